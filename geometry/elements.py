@@ -1,0 +1,50 @@
+"""Records shared by pattern parsing, G-code import and meshing (printed-state mm)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class PrintedElement:
+    """One printed element: a planar shape with a plastic thickness on one fabric face.
+
+    geometry: shapely Polygon or MultiPolygon in printed-state mm.
+    thickness_mm: plastic thickness (> 0). side: "front" (+z) or "back" (-z).
+    kind: "region", "ribbon", "star" or "gcode". label: where it came from, for
+    error messages and provenance (e.g. "region[2]", "stars (3, -1)", "print.gcode path 17").
+    """
+    geometry: object
+    thickness_mm: float
+    side: str = "front"
+    kind: str = "region"
+    label: str = ""
+
+
+@dataclass
+class Support:
+    """Boundary condition after release: nearest mesh vertices to ``points`` are held.
+
+    fix: "z" (on the ground plane z = 0, free to slide) or "xyz" (held at
+    ``position`` or, when None, at the relaxed-fabric position (x/sx, y/sy, 0)).
+    """
+    points: np.ndarray            # (k, 2) printed-state mm
+    fix: str = "z"
+    position: np.ndarray | None = None  # (k, 3) mm, deployed frame
+    label: str = ""
+
+
+@dataclass
+class Ribbon:
+    """A printed path of given width (inverse design output, G-code writer input).
+
+    path: (k, 2) centre line in printed-state mm. width_mm, thickness_mm: plastic
+    bead width and stacked thickness. side: "front" or "back".
+    """
+    path: np.ndarray
+    width_mm: float = 1.5
+    thickness_mm: float = 0.4
+    side: str = "front"
+    label: str = ""
+    meta: dict = field(default_factory=dict)

@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# Install selfshape and everything it needs on a fresh Debian/Ubuntu machine (or a
+# machine that already has them: every step is idempotent). Python >= 3.10 with pip.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+if command -v apt-get >/dev/null 2>&1; then
+  SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
+  export DEBIAN_FRONTEND=noninteractive
+  # gmsh needs the GL/X client libraries even headless; libegl1 for off-screen pyvista
+  # PNGs; OpenBLAS makes CHOLMOD 3-7x faster than reference BLAS; libsuitesparse-dev
+  # and a compiler build scikit-sparse (CHOLMOD) from source.
+  pkgs="libgl1 libglu1-mesa libxrender1 libxcursor1 libxft2 libxinerama1 libgomp1 libegl1
+        libopenblas0-pthread libsuitesparse-dev gcc g++"
+  missing=$(for p in $pkgs; do dpkg -s "$p" >/dev/null 2>&1 || echo "$p"; done)
+  if [ -n "$missing" ]; then
+    $SUDO apt-get update -qq
+    $SUDO apt-get install -y -qq --no-install-recommends $missing >/dev/null
+  fi
+fi
+$PY -m pip install -q --upgrade pip >/dev/null 2>&1 || true
+# scikit-sparse 0.4.16 (CHOLMOD) builds against Debian's libsuitesparse-dev; 0.5 does not build
+$PY -m pip install -q "scikit-sparse==0.4.16" 2>&1 | grep -v -i warning || true
+$PY -m pip install -q -e ".[test]" 2>&1 | grep -v -i warning || true
+$PY -c "import shellfem, geometry, gmsh, skfem, pyvista; print('selfshape installed')"
+$PY -c "import sksparse.cholmod" 2>/dev/null && echo "CHOLMOD available" || echo "CHOLMOD not available: falling back to SciPy SuperLU (slower)"

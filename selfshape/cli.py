@@ -1,0 +1,128 @@
+"""The ``selfshape`` command: mesh, simulate, design, calibrate, validate, predict.
+
+Every verb is a thin wrapper over a Python function (named in its help) so that
+scripts can call the same thing. Bad input exits with status 2 and one line on
+stderr naming the problem; an unexpected failure exits 3, also with one line.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+
+def _cmd_mesh(a):
+    from geometry.meshing import mesh_pattern_file
+    info = mesh_pattern_file(a.pattern, a.output, size_mm=a.size)
+    print(f"wrote {a.output}: {info['n_vertices']} vertices, {info['n_triangles']} triangles, "
+          f"{info['n_regions']} printed regions, min angle {info['min_angle_deg']:.1f} deg")
+
+
+def _cmd_simulate(a):
+    from shellfem.simulate import simulate_pattern_file
+    s = simulate_pattern_file(a.pattern, a.output, size_mm=a.size, seed=a.seed, render=not a.no_png,
+                              max_iterations=a.max_iterations, verbose=a.verbose)
+    state = "converged" if s["converged"] else "NOT converged"
+    print(f"{state} in {s['newton_iterations']} Newton iterations, |grad| {s['gradient_norm']:.2e}, "
+          f"{s['n_vertices']} vertices, {s['wall_time_s']:.1f} s -> {a.output}")
+    return 0 if s["converged"] else 1
+
+
+def _cmd_design(a):
+    from inverse.pipeline import design_file
+    r = design_file(a.target, a.output, verify=a.verify, diagonal_mm=a.diagonal, stretch=a.stretch)
+    print(f"design written to {a.output} in {r['time_s']:.1f} s")
+
+
+def _cmd_calibrate(a):
+    if a.kind == "strips":
+        from validation.strips import calibrate_strips as fn
+    elif a.kind == "fabric":
+        from validation.fabric import calibrate_fabric as fn
+    else:  # argparse restricts choices; kept for the Python API
+        raise ValueError(a.kind)
+    fn(a.data, a.output)
+    print(f"parameters written to {os.path.join(a.output, 'parameters.json')}")
+
+
+def _cmd_validate(a):
+    from validation.loop import validate_file
+    r = validate_file(a.data, a.output, seed=a.seed)
+    print(f"error before {r['error_before']:.4f}, after {r['error_after']:.4f}; "
+          f"effects added: {', '.join(r['effects_added']) or 'none'} -> {a.output}")
+
+
+def _cmd_predict(a):
+    from validation.loop import predict_file
+    n = predict_file(a.model, a.data, a.output)
+    print(f"wrote {n} predictions to {a.output}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="selfshape", description="Self-shaping textiles: simulate, design, calibrate.")
+    sub = p.add_subparsers(dest="verb", required=True)
+
+    m = sub.add_parser("mesh", help="conforming Gmsh mesh of a pattern (geometry.meshing.mesh_pattern_file)")
+    m.add_argument("pattern", help="pattern .toml or .gcode")
+    m.add_argument("-o", "--output", required=True, help="output .msh")
+    m.add_argument("--size", type=float, default=None, help="override [mesh] size_mm")
+    m.set_defaults(fn=_cmd_mesh)
+
+    s = sub.add_parser("simulate", help="released equilibrium of a pattern (shellfem.simulate.simulate_pattern_file)")
+    s.add_argument("pattern")
+    s.add_argument("-o", "--output", required=True, help="output directory")
+    s.add_argument("--size", type=float, default=None, help="override [mesh] size_mm")
+    s.add_argument("--seed", type=int, default=None, help="override [solver] seed")
+    s.add_argument("--max-iterations", type=int, default=None)
+    s.add_argument("--no-png", action="store_true", help="skip deployed.png")
+    s.add_argument("-v", "--verbose", action="store_true")
+    s.set_defaults(fn=_cmd_simulate)
+
+    d = sub.add_parser("design", help="inverse design from a target surface (inverse.pipeline.design_file)")
+    d.add_argument("target")
+    d.add_argument("-o", "--output", required=True)
+    d.add_argument("--verify", action="store_true", help="simulate the design and report its deviation")
+    d.add_argument("--diagonal", type=float, default=110.0, help="scale the target to this bounding-box diagonal, mm")
+    d.add_argument("--stretch", type=float, default=1.6, help="fabric pre-stretch s")
+    d.set_defaults(fn=_cmd_design)
+
+    c = sub.add_parser("calibrate", help="fit material parameters (validation.strips / validation.fabric)")
+    c.add_argument("kind", choices=["strips", "fabric"])
+    c.add_argument("data")
+    c.add_argument("-o", "--output", required=True)
+    c.set_defaults(fn=_cmd_calibrate)
+
+    v = sub.add_parser("validate", help="the closed validation loop (validation.loop.validate_file)")
+    v.add_argument("data")
+    v.add_argument("-o", "--output", required=True)
+    v.add_argument("--seed", type=int, default=0, help="seed of the cross-validation splits")
+    v.set_defaults(fn=_cmd_validate)
+
+    r = sub.add_parser("predict", help="apply a fitted model.json (validation.loop.predict_file)")
+    r.add_argument("model")
+    r.add_argument("data")
+    r.add_argument("-o", "--output", required=True)
+    r.set_defaults(fn=_cmd_predict)
+    return p
+
+
+def main(argv=None) -> int:
+    from selfshape.errors import SelfshapeError
+    args = build_parser().parse_args(argv)
+    try:
+        rc = args.fn(args)
+    except SelfshapeError as e:
+        print(f"selfshape {args.verb}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"selfshape {args.verb}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:  # never a traceback: one line, and a distinct status
+        msg = " ".join(str(e).split()) or type(e).__name__
+        print(f"selfshape {args.verb}: internal error ({type(e).__name__}): {msg}", file=sys.stderr)
+        return 3
+    return int(rc or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,108 @@
+"""Material parameters of the fabric and the printed plastic (mm, N, MPa).
+
+These are plain records with validation; the energies that use them live in
+:mod:`shellfem.energies`. Defaults are the seed's Table 4.1 (spandex + TPU95A).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from selfshape.errors import SelfshapeError
+
+#: Seed Table 4.1 orthotropic log-barrier parameters, converted from Pa to MPa.
+TABLE_4_1_ORTHOTROPIC = {"a1": 0.024161, "a2": 0.090890, "a3": 0.063419,
+                         "b1": 0.029676, "b2": 0.020512, "g1": 0.9626, "g2": 0.9637}
+
+
+def _check(name: str, value, lo=None, hi=None, lo_open=False):
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise SelfshapeError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(v):
+        raise SelfshapeError(f"{name} must be finite, got {value!r}")
+    if lo is not None and (v <= lo if lo_open else v < lo):
+        raise SelfshapeError(f"{name} must be {'>' if lo_open else '>='} {lo}, got {v:g}")
+    if hi is not None and v > hi:
+        raise SelfshapeError(f"{name} must be <= {hi}, got {v:g}")
+    return v
+
+
+@dataclass
+class Fabric:
+    """Pre-stretched fabric.
+
+    stretch: (sx, sy) pre-stretch factors along printed x and y (>= 1); the fabric's
+        rest (unstretched) metric is diag(1/sx^2, 1/sy^2) in printed coordinates.
+    thickness: mm. model: "neo-hookean" or "orthotropic" (seed Eq. 4.2-4.3).
+    young_modulus: MPa, the neo-Hookean modulus and the fabric layer's modulus E2
+        inside printed bilayers (the seed's pseudo-Young modulus at release).
+    poisson: fabric Poisson's ratio. bending_stiffness: k_B, N mm (moment per width
+        per unit curvature). course_angle_deg: course direction from +x.
+    areal_weight: N/mm^2 of relaxed fabric; > 0 adds gravity along -z.
+    orthotropic: a1, a2, a3, b1, b2 (MPa), g1, g2 (Green strain) of Eq. 4.2-4.3.
+    """
+    stretch: tuple = (1.35, 1.35)
+    thickness: float = 0.8
+    model: str = "neo-hookean"
+    young_modulus: float = 1.05
+    poisson: float = 0.3
+    bending_stiffness: float = 0.0192
+    course_angle_deg: float = 0.0
+    areal_weight: float = 0.0
+    orthotropic: dict = field(default_factory=lambda: dict(TABLE_4_1_ORTHOTROPIC))
+
+    def __post_init__(self):
+        s = self.stretch
+        if isinstance(s, (int, float)):
+            s = (s, s)
+        try:
+            s = tuple(s)
+        except TypeError:
+            raise SelfshapeError(f"fabric.stretch must be a number or [sx, sy], got {self.stretch!r}") from None
+        if len(s) != 2:
+            raise SelfshapeError(f"fabric.stretch must be a number or [sx, sy], got {self.stretch!r}")
+        self.stretch = (_check("fabric.stretch[0]", s[0], 1.0), _check("fabric.stretch[1]", s[1], 1.0))
+        self.thickness = _check("fabric.thickness_mm", self.thickness, 0.0, lo_open=True)
+        self.young_modulus = _check("fabric.young_modulus_mpa", self.young_modulus, 0.0, lo_open=True)
+        self.poisson = _check("fabric.poisson", self.poisson, -0.99, 0.499)
+        self.bending_stiffness = _check("fabric.bending_stiffness_nmm", self.bending_stiffness, 0.0)
+        self.course_angle_deg = _check("fabric.course_angle_deg", self.course_angle_deg)
+        self.areal_weight = _check("fabric.areal_weight_n_per_mm2", self.areal_weight, 0.0)
+        if self.model not in ("neo-hookean", "orthotropic"):
+            raise SelfshapeError(f"fabric.model must be \"neo-hookean\" or \"orthotropic\", got {self.model!r}")
+        o = dict(TABLE_4_1_ORTHOTROPIC)
+        o.update(self.orthotropic or {})
+        unknown = set(o) - set(TABLE_4_1_ORTHOTROPIC)
+        if unknown:
+            raise SelfshapeError(f"fabric.orthotropic: unknown parameter(s) {sorted(unknown)}")
+        for k in ("a1", "a2", "a3", "b1", "b2", "g1", "g2"):
+            o[k] = _check(f"fabric.orthotropic.{k}", o[k], 0.0, lo_open=True)
+        self.orthotropic = o
+        if self.model == "orthotropic":
+            # the log barrier must admit the pre-stretched state: Green strain < g
+            for k, si in (("g1", max(self.stretch)), ("g2", max(self.stretch))):
+                eps = 0.5 * (si * si - 1.0)
+                if eps >= o[k]:
+                    raise SelfshapeError(f"fabric.orthotropic.{k} = {o[k]:g} is below the pre-stretch Green strain {eps:.3f}; "
+                                         "the log-barrier model cannot represent this stretch")
+
+
+@dataclass
+class Plastic:
+    """Printed plastic (TPU95A by default).
+
+    young_modulus: MPa. poisson: Poisson's ratio (the seed uses 0.5 for TPU; values
+    up to 0.5 are accepted). rest_curvature: 1/mm, the plastic set (seed Fig. 3.4,
+    Eq. 3.4-3.9): the curvature of the plastic alone after peeling, with the same sign
+    as the bilayer bend (towards the fabric side).
+    """
+    young_modulus: float = 72.3
+    poisson: float = 0.5
+    rest_curvature: float = 0.0
+
+    def __post_init__(self):
+        self.young_modulus = _check("plastic.young_modulus_mpa", self.young_modulus, 0.0, lo_open=True)
+        self.poisson = _check("plastic.poisson", self.poisson, -0.99, 0.5)
+        self.rest_curvature = _check("plastic.rest_curvature_per_mm", self.rest_curvature)
