@@ -1,0 +1,107 @@
+"""Fabric outlines and printed polygons as validated shapely Polygons (printed-state mm).
+
+Shapes: ``rectangle`` (origin at (0, 0)), ``disk`` (centred at (0, 0), polygonised),
+``hexagon`` (centred at (0, 0), a vertex on +x) and ``polygon`` (a simple polygon from a
+point list, any orientation). ``polygon`` is also the validator used for every printed
+[[region]]: bad input raises SelfshapeError with a one-line message naming ``where``.
+"""
+from __future__ import annotations
+
+import math
+import re
+
+import numpy as np
+import shapely
+from shapely.geometry import Polygon
+
+from selfshape.errors import SelfshapeError
+
+
+def rectangle(width: float, height: float) -> Polygon:
+    """[0, width] x [0, height] (mm), counter-clockwise."""
+    return Polygon([(0.0, 0.0), (width, 0.0), (width, height), (0.0, height)])
+
+
+def disk_segments(radius: float, segment_mm: float, min_segments: int = 48) -> int:
+    """Number of polygon edges so that each edge is about ``segment_mm`` long."""
+    return int(max(min_segments, math.ceil(2.0 * math.pi * radius / max(segment_mm, 1e-9))))
+
+
+def disk(radius: float, segment_mm: float = 1.0) -> Polygon:
+    """Regular polygon inscribed in the circle of ``radius`` (mm) centred at (0, 0).
+
+    The edge length is about ``segment_mm`` (use the mesh size, so that polygon
+    vertices and mesh boundary nodes coincide; at least 48 edges).
+    """
+    n = disk_segments(radius, segment_mm)
+    t = 2.0 * np.pi * np.arange(n) / n
+    return Polygon(np.column_stack([radius * np.cos(t), radius * np.sin(t)]))
+
+
+def hexagon(side: float) -> Polygon:
+    """Regular hexagon of the given side length (mm) centred at (0, 0), a vertex on +x."""
+    t = np.pi / 3.0 * np.arange(6)
+    return Polygon(np.column_stack([side * np.cos(t), side * np.sin(t)]))
+
+
+def _location(reason: str) -> str:
+    m = re.search(r"\[\s*([-+0-9.eE]+)\s+([-+0-9.eE]+)\s*\]", reason)
+    if not m:
+        return ""
+    return f" at ({float(m.group(1)):.6g}, {float(m.group(2)):.6g})"
+
+
+def as_points(value, where: str, min_points: int = 1, dim: int = 2) -> np.ndarray:
+    """A list of [x, y] pairs (or [x, y, z] with dim=3) as a finite (k, dim) float array."""
+    try:
+        if isinstance(value, (str, bytes)) or any(isinstance(v, (str, bytes, bool)) for row in value for v in row):
+            raise TypeError
+        a = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise SelfshapeError(f"{where} must be a list of [{', '.join('xyz'[:dim])}] points, got {value!r:.80}") from None
+    if a.ndim != 2 or a.shape[1] != dim:
+        raise SelfshapeError(f"{where} must be a list of [{', '.join('xyz'[:dim])}] points, got {value!r:.80}")
+    if len(a) < min_points:
+        raise SelfshapeError(f"{where} needs at least {min_points} points, got {len(a)}")
+    bad = ~np.isfinite(a).all(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise SelfshapeError(f"{where}: point {i + 1} {value[i]!r} is not finite")
+    return a
+
+
+def polygon(points, where: str = "polygon") -> Polygon:
+    """A validated simple polygon from (k, 2) points, any orientation, closing point optional.
+
+    Raises SelfshapeError naming ``where`` if there are fewer than 3 distinct points, a
+    non-finite coordinate, zero area or a self-intersection (with its location).
+    """
+    p = as_points(points, where, min_points=1)
+    keep = np.ones(len(p), bool)
+    keep[1:] = np.any(p[1:] != p[:-1], axis=1)      # drop consecutive duplicates
+    p = p[keep]
+    if len(p) > 1 and np.all(p[0] == p[-1]):
+        p = p[:-1]
+    if len(p) < 3:
+        raise SelfshapeError(f"{where}: polygon needs at least 3 distinct points, got {len(p)}")
+    poly = Polygon(p)
+    if not poly.is_valid:
+        reason = shapely.is_valid_reason(poly)
+        if "elf-intersection" in reason:
+            raise SelfshapeError(f"{where}: polygon is self-intersecting{_location(reason)}")
+        raise SelfshapeError(f"{where}: polygon is invalid ({reason})")
+    scale = float(np.max(np.ptp(p, axis=0)))
+    if poly.area <= 1e-12 * max(scale, 1e-300) ** 2:
+        raise SelfshapeError(f"{where}: polygon has zero area")
+    return shapely.orient_polygons(poly) if hasattr(shapely, "orient_polygons") else shapely.geometry.polygon.orient(poly)
+
+
+def check_inside(outline: Polygon, geom, where: str, what: str = "polygon") -> None:
+    """Raise SelfshapeError unless ``geom`` lies inside ``outline`` (up to 1e-9 of its size)."""
+    tol = 1e-9 * max(1.0, math.sqrt(outline.area))
+    if outline.buffer(tol).covers(geom):
+        return
+    outside = geom.difference(outline)
+    at = outside.representative_point() if not outside.is_empty else geom.representative_point()
+    how = "is outside the fabric" if not geom.intersects(outline) else "crosses the fabric outline"
+    raise SelfshapeError(f"{where}: {what} {how} ({outside.area:.3g} mm^2 outside, e.g. near ({at.x:.4g}, {at.y:.4g}))")

@@ -1,0 +1,503 @@
+"""Stripe patterns on triangle meshes (Knoppel, Crane, Pinkall, Schroder 2015, "Stripe Patterns
+on Surfaces"), for line (sign-free) direction fields.
+
+A stripe pattern is an S^1-valued function psi = exp(i alpha) per vertex whose phase alpha
+advances at 2 pi / spacing per mm across a given direction field, so that the level sets of
+alpha (the stripes) run *along* the direction and are ``spacing`` mm apart. psi is the
+eigenvector of the smallest eigenvalue of a connection-Laplacian-like energy
+
+    E(psi) = sum_edges w_ab |psi~_b - exp(i omega_ab) psi_a|^2,
+
+(w = cotan weights, omega_ab the target phase increment along edge ab, psi~_b = psi_b or its
+conjugate when the line field flips sheet across the edge) against the lumped mass matrix. The
+energy is real-linear only (conjugation), so it is assembled as a real 2n x 2n matrix of 2x2
+blocks and solved by inverse power iteration with a sparse Cholesky factor.
+
+Per-face "texture coordinates" alpha at the three corners (unwrapped inside the face, exact
+mod 2 pi at the vertices) make isoline extraction robust; faces where the unwrapping does not
+close (the pattern has a zero inside) or where the line field has a half-integer singularity
+are marked singular and no isoline is extracted there.
+
+Lengths in mm, phases in radians. Planar meshes (n, 2) are handled as z = 0.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse import csgraph
+
+from selfshape.errors import SelfshapeError
+
+TWO_PI = 2.0 * np.pi
+
+
+@dataclass
+class StripeField:
+    """Result of :func:`stripe_field` on a mesh with n vertices and m faces.
+
+    psi: (n,) unit complex stripe function (phase = alpha mod 2 pi, in each vertex's own sheet).
+    amplitude: (n,) |psi| of the M-normalised eigenvector before normalising (small near zeros).
+    alpha: (m, 3) per-corner phase (rad), continuous inside each face.
+    sheet: (m, 3) +-1, sign of each corner's vertex field in the face's sheet (alpha in the face
+        = sheet * vertex phase mod 2 pi).
+    branch: (m,) bool, the line field has a half-integer singularity in the face.
+    index: (m,) int, winding number of psi around the face (nonzero: stripe singularity).
+    singular: (m,) bool, branch | (index != 0): no isolines there.
+    direction: (n, 3) unit isoline direction per vertex (tangent, sign arbitrary).
+    frequency: (n,) phase rate 2 pi / spacing (rad/mm).
+    eigenvalue: smallest eigenvalue of the energy (1/mm^2); 0 for an exactly realisable field.
+    iterations: inverse power iterations used.
+    """
+    psi: np.ndarray
+    amplitude: np.ndarray
+    alpha: np.ndarray
+    sheet: np.ndarray
+    branch: np.ndarray
+    index: np.ndarray
+    singular: np.ndarray
+    direction: np.ndarray
+    frequency: np.ndarray
+    eigenvalue: float
+    iterations: int
+
+
+@dataclass
+class IsolineSet:
+    """Isolines as concatenated arrays (p polylines, N points).
+
+    points: (N, dim) positions. offsets: (p + 1,) polyline j is points[offsets[j]:offsets[j+1]].
+    closed: (p,) bool, closed loops (last point connects to the first, not repeated).
+    edge: (N, 2) mesh vertices (a < b) of the edge each point lies on, t: (N,) position
+    along it (point = (1 - t) V[a] + t V[b]). seg_face: (N,) face containing the segment from
+    point j to j + 1 (for a closed loop's last point: the closing segment; -1 at open ends).
+    """
+    points: np.ndarray
+    offsets: np.ndarray
+    closed: np.ndarray
+    edge: np.ndarray
+    t: np.ndarray
+    seg_face: np.ndarray
+
+    def polylines(self) -> list[np.ndarray]:
+        """List of (k, dim) arrays; closed loops repeat their first point at the end."""
+        out = []
+        for j in range(len(self.closed)):
+            p = self.points[self.offsets[j]:self.offsets[j + 1]]
+            out.append(np.vstack([p, p[:1]]) if self.closed[j] else p)
+        return out
+
+
+# ----------------------------------------------------------------------------- mesh helpers
+
+def _mesh(V, F) -> tuple[np.ndarray, np.ndarray, int]:
+    V = np.asarray(V, dtype=float)
+    F = np.asarray(F)
+    if V.ndim != 2 or V.shape[1] not in (2, 3) or len(V) < 3:
+        raise SelfshapeError(f"stripes: vertices must be an (n, 2) or (n, 3) array, got shape {V.shape}")
+    if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0 or not np.issubdtype(F.dtype, np.integer):
+        raise SelfshapeError(f"stripes: faces must be an (m, 3) integer array, got shape {F.shape}")
+    if not np.isfinite(V).all():
+        raise SelfshapeError(f"stripes: vertex {int(np.argwhere(~np.isfinite(V))[0, 0])} is not finite")
+    if F.min() < 0 or F.max() >= len(V):
+        bad = int(np.argwhere((F < 0) | (F >= len(V)))[0, 0])
+        raise SelfshapeError(f"stripes: face {bad} refers to a vertex outside 0..{len(V) - 1}")
+    used = np.bincount(F.ravel(), minlength=len(V)) > 0
+    if not used.all():
+        raise SelfshapeError(f"stripes: vertex {int(np.argmin(used))} is not used by any face")
+    dim = V.shape[1]
+    if dim == 2:
+        V = np.column_stack([V, np.zeros(len(V))])
+    return V, F.astype(np.int64), dim
+
+
+def _face_normals_areas(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    cr = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    dbl = np.linalg.norm(cr, axis=1)
+    scale = np.max(np.ptp(V, axis=0)) ** 2
+    bad = dbl <= 1e-14 * scale
+    if bad.any():
+        raise SelfshapeError(f"stripes: face {int(np.argmax(bad))} is degenerate (zero area)")
+    return cr / dbl[:, None], 0.5 * dbl
+
+
+def _vertex_normals(F, n, face_normals, areas) -> np.ndarray:
+    acc = np.zeros((n, 3))
+    for c in range(3):
+        np.add.at(acc, F[:, c], face_normals * areas[:, None])
+    nrm = np.linalg.norm(acc, axis=1)
+    scale = np.bincount(F.ravel(), weights=np.repeat(areas, 3), minlength=n)
+    bad = nrm <= 1e-9 * scale
+    if bad.any():
+        raise SelfshapeError(f"stripes: faces around vertex {int(np.argmax(bad))} are inconsistently "
+                             "oriented (vertex normal vanishes)")
+    return acc / nrm[:, None]
+
+
+def _tangent_frames(N: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a = np.zeros_like(N)
+    use_x = np.abs(N[:, 0]) < 0.9
+    a[use_x, 0] = 1.0
+    a[~use_x, 1] = 1.0
+    t1 = a - np.sum(a * N, axis=1)[:, None] * N
+    t1 /= np.linalg.norm(t1, axis=1)[:, None]
+    return t1, np.cross(N, t1)
+
+
+def mesh_edges(F: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Undirected edges. Returns E (k, 2) with a < b, face_edge (m, 3) id of the edge from corner
+    c to corner c + 1, and forward (m, 3) bool (corner c is the edge's first vertex a)."""
+    F = np.asarray(F, dtype=np.int64)
+    a = F
+    b = np.roll(F, -1, axis=1)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    key = lo * n + hi
+    uniq, inv = np.unique(key.ravel(), return_inverse=True)
+    E = np.column_stack([uniq // n, uniq % n])
+    return E, inv.reshape(F.shape), a == lo
+
+
+def _corner_cotangents(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """cot of the angle at corner c (m, 3); it weighs the opposite edge (c + 1 -> c + 2)."""
+    cots = np.empty(F.shape)
+    for c in range(3):
+        p = V[F[:, c]]
+        e1 = V[F[:, (c + 1) % 3]] - p
+        e2 = V[F[:, (c + 2) % 3]] - p
+        cots[:, c] = np.sum(e1 * e2, axis=1) / np.linalg.norm(np.cross(e1, e2), axis=1)
+    return cots
+
+
+# ----------------------------------------------------------------------------- direction field
+
+def _vertex_line_field(V, F, N, t1, t2, areas, direction, on: str):
+    """Per-vertex unit isoline direction X (n, 3) and a per-face sign reference (m, 3) for the
+    phase-gradient direction (used only to orient each face's sheet)."""
+    n, m = len(V), len(F)
+    d = np.asarray(direction, dtype=float)
+    if d.ndim != 2 or d.shape[1] not in (2, 3):
+        raise SelfshapeError(f"stripes: direction must be an (m, 2|3) or (n, 2|3) array, got {d.shape}")
+    if on == "auto":
+        if len(d) == m:
+            on = "face"
+        elif len(d) == n:
+            on = "vertex"
+        else:
+            raise SelfshapeError(f"stripes: direction has {len(d)} rows; expected {m} (faces) or {n} (vertices)")
+    if len(d) != (m if on == "face" else n):
+        raise SelfshapeError(f"stripes: direction has {len(d)} rows, expected one per {on}")
+    if d.shape[1] == 2:
+        d = np.column_stack([d, np.zeros(len(d))])
+    if not np.isfinite(d).all():
+        raise SelfshapeError(f"stripes: direction[{int(np.argwhere(~np.isfinite(d))[0, 0])}] is not finite")
+    if on == "face":
+        fn, _ = _face_normals_areas(V, F)
+        dt = d - np.sum(d * fn, axis=1)[:, None] * fn
+        ln = np.linalg.norm(dt, axis=1)
+        bad = ln <= 1e-12 * max(1.0, float(np.abs(d).max()))
+        if bad.any():
+            raise SelfshapeError(f"stripes: direction[{int(np.argmax(bad))}] is zero or normal to its face")
+        dt /= ln[:, None]
+        z = np.zeros(n, dtype=complex)
+        for c in range(3):
+            v = F[:, c]
+            phi = np.arctan2(np.sum(dt * t2[v], axis=1), np.sum(dt * t1[v], axis=1))
+            z += np.bincount(v, weights=areas * np.cos(2 * phi), minlength=n)
+            z += 1j * np.bincount(v, weights=areas * np.sin(2 * phi), minlength=n)
+        half = 0.5 * np.angle(z)
+        X = np.cos(half)[:, None] * t1 + np.sin(half)[:, None] * t2
+        ref = np.cross(fn, dt)
+    else:
+        dt = d - np.sum(d * N, axis=1)[:, None] * N
+        ln = np.linalg.norm(dt, axis=1)
+        bad = ln <= 1e-12 * max(1.0, float(np.abs(d).max()))
+        if bad.any():
+            raise SelfshapeError(f"stripes: direction[{int(np.argmax(bad))}] is zero or normal to the surface")
+        X = dt / ln[:, None]
+        ref = np.cross(N, X)[F].sum(axis=1)
+    return X, ref
+
+
+# ----------------------------------------------------------------------------- energy and solve
+
+def _edge_transport(V, E, G, nu):
+    """Sheet sign s (k,) and target phase increment omega (k,) along each edge a -> b, in a's sheet."""
+    a, b = E[:, 0], E[:, 1]
+    s = np.where(np.sum(G[a] * G[b], axis=1) < 0.0, -1.0, 1.0)
+    e = V[b] - V[a]
+    omega = 0.5 * (nu[a] * np.sum(G[a] * e, axis=1) + s * nu[b] * np.sum(G[b] * e, axis=1))
+    return s, omega
+
+
+def _energy_matrix(n, E, w, s, omega) -> sp.csr_matrix:
+    """Real 2n x 2n matrix of sum_e w |C_s x_b - R(omega) x_a|^2 (2x2 blocks per vertex pair)."""
+    a, b = E[:, 0], E[:, 1]
+    c, sn = np.cos(omega), np.sin(omega)
+    # block B = -w C_s R(omega) at (b, a), its transpose at (a, b)
+    blk = -w[:, None, None] * np.stack([np.stack([c, -sn], 1), np.stack([s * sn, s * c], 1)], 1)
+    rows = (2 * b)[:, None, None] + np.arange(2)[None, :, None]
+    cols = (2 * a)[:, None, None] + np.arange(2)[None, None, :]
+    rows = np.broadcast_to(rows, blk.shape)
+    cols = np.broadcast_to(cols, blk.shape)
+    diag = np.bincount(a, weights=w, minlength=n) + np.bincount(b, weights=w, minlength=n)
+    r = np.concatenate([rows.ravel(), cols.ravel(), np.arange(2 * n)])
+    q = np.concatenate([cols.ravel(), rows.ravel(), np.arange(2 * n)])
+    val = np.concatenate([blk.ravel(), blk.ravel(), np.repeat(diag, 2)])
+    return sp.csr_matrix((val, (r, q)), shape=(2 * n, 2 * n))
+
+
+def _factor(K: sp.spmatrix):
+    """Solve function for the SPD matrix K: CHOLMOD when available, else SuperLU."""
+    try:
+        from sksparse.cholmod import cholesky, CholmodNotPositiveDefiniteError
+    except ImportError:  # pragma: no cover - optional dependency
+        from scipy.sparse.linalg import splu
+        lu = splu(K.tocsc(), permc_spec="MMD_AT_PLUS_A", options=dict(SymmetricMode=True))
+        return lu.solve
+    try:
+        return cholesky(K.tocsc())
+    except CholmodNotPositiveDefiniteError as err:
+        raise SelfshapeError("stripes: energy matrix is not positive definite (mesh with "
+                             "degenerate or flipped faces?)") from err
+
+
+def _smallest_eigenvector(A, mass, seed, tol, rtol, max_iter):
+    """Inverse power iteration for A x = lambda M x (M = diag(mass)), M-normalised x.
+
+    Stops when successive iterates are parallel (1 - cos < tol) or when the Rayleigh quotient
+    stalls (relative decrease < rtol): frustrated fields have near-degenerate low modes (e.g.
+    an almost free global phase) between which the iterate drifts without changing the energy.
+    """
+    n2 = A.shape[0]
+    shift = 1e-8 * A.diagonal().mean() / mass.mean()
+    solve = _factor(A + sp.diags(shift * mass))
+    rng = np.random.default_rng(seed)
+    x = rng.standard_normal(n2)
+    x /= np.sqrt(x @ (mass * x))
+    lam_prev = np.inf
+    it = 0
+    for it in range(1, max_iter + 1):
+        y = solve(mass * x)
+        y /= np.sqrt(y @ (mass * y))
+        cos = abs(y @ (mass * x))
+        x = y
+        lam = float(x @ (A @ x))
+        if 1.0 - cos < tol or (it >= 3 and lam_prev - lam <= rtol * lam):
+            break
+        lam_prev = lam
+    return x, max(float(x @ (A @ x)), 0.0), it
+
+
+# ----------------------------------------------------------------------------- texture coordinates
+
+def _texture_coordinates(V, F, psi, G, nu, s_edge, face_edge, ref):
+    """Per-corner unwrapped phase alpha (m, 3), sheet signs (m, 3), branch and index per face."""
+    sF = s_edge[face_edge]                       # sign across face edges 0->1, 1->2, 2->0
+    branch = sF.prod(axis=1) < 0
+    s0 = np.where(np.sum(G[F[:, 0]] * ref, axis=1) < 0.0, -1.0, 1.0)
+    sheet = np.column_stack([s0, s0 * sF[:, 0], s0 * sF[:, 2]])
+    Y = sheet[:, :, None] * G[F]                 # (m, 3, 3) gradient directions in the face sheet
+    P = V[F]
+    ps = psi[F]
+    ps = np.where(sheet > 0, ps, np.conj(ps))
+    alpha = np.empty(F.shape)
+    alpha[:, 0] = np.angle(ps[:, 0])
+    cur = alpha[:, 0]
+    for c in range(3):
+        d = (c + 1) % 3
+        e = P[:, d] - P[:, c]
+        om = 0.5 * (nu[F[:, c]] * np.sum(Y[:, c] * e, axis=1) + nu[F[:, d]] * np.sum(Y[:, d] * e, axis=1))
+        nxt = cur + om + np.angle(ps[:, d] * np.conj(ps[:, c]) * np.exp(-1j * om))
+        if d:
+            alpha[:, d] = nxt
+        cur = nxt
+    index = np.rint((cur - alpha[:, 0]) / TWO_PI).astype(np.int64)
+    return alpha, sheet.astype(np.int8), branch, index
+
+
+# ----------------------------------------------------------------------------- public API
+
+def stripe_field(V, F, direction, spacing, seed: int = 0, direction_on: str = "auto",
+                 tol: float = 1e-12, rtol: float = 1e-7, max_iter: int = 200) -> StripeField:
+    """Stripe pattern whose isolines run along ``direction`` with ``spacing`` mm between them.
+
+    V: (n, 2|3) vertices (mm), F: (m, 3) faces. direction: per-face (m, 2|3) or per-vertex
+    (n, 2|3) line field (sign ignored) giving the isoline direction; ``direction_on`` = "face"
+    or "vertex" resolves m == n. spacing: scalar or (n,) per-vertex stripe spacing (mm).
+    seed: start vector of the inverse power iteration (deterministic). Iteration stops when
+    1 - cos(angle between successive iterates, M inner product) < tol or the eigenvalue estimate
+    decreases by less than rtol (relative) in one iteration.
+    """
+    V3, F, _ = _mesh(V, F)
+    n = len(V3)
+    if direction_on not in ("auto", "face", "vertex"):
+        raise SelfshapeError(f"stripes: direction_on = {direction_on!r}, expected auto, face or vertex")
+    spacing = np.broadcast_to(np.asarray(spacing, dtype=float), (n,)) if np.ndim(spacing) == 0 \
+        else np.asarray(spacing, dtype=float)
+    if spacing.shape != (n,):
+        raise SelfshapeError(f"stripes: spacing must be a scalar or one value per vertex ({n}), got {spacing.shape}")
+    bad = ~np.isfinite(spacing) | (spacing <= 0.0)
+    if bad.any():
+        raise SelfshapeError(f"stripes: spacing[{int(np.argmax(bad))}] = {spacing[bad][0]} mm must be finite and > 0")
+
+    fn, areas = _face_normals_areas(V3, F)
+    N = _vertex_normals(F, n, fn, areas)
+    t1, t2 = _tangent_frames(N)
+    X, ref = _vertex_line_field(V3, F, N, t1, t2, areas, direction, direction_on)
+    G = np.cross(N, X)                            # phase-gradient direction (across the stripes)
+    nu = TWO_PI / spacing
+
+    E, face_edge, _ = mesh_edges(F, n)
+    s_edge, omega = _edge_transport(V3, E, G, nu)
+    worst = int(np.argmax(np.abs(omega)))
+    if abs(omega[worst]) > np.pi:
+        a, b = E[worst]
+        raise SelfshapeError(
+            f"stripes: mesh too coarse for the spacing: edge ({a}, {b}) spans {abs(omega[worst]) / TWO_PI:.2f} "
+            f"stripe periods (spacing {spacing[a]:.3g} mm); refine to edges below half the spacing")
+
+    branch = s_edge[face_edge].prod(axis=1) < 0
+    cots = np.where(branch[:, None], 0.0, _corner_cotangents(V3, F))
+    # corner c weighs the edge opposite to it, i.e. face edge (c + 1) -> (c + 2)
+    w = 0.5 * np.bincount(np.roll(face_edge, -1, axis=1).ravel(), weights=cots.ravel(), minlength=len(E))
+    w = np.maximum(w, 0.0)
+    A = _energy_matrix(n, E, w, s_edge, omega)
+    vmass = np.bincount(F.ravel(), weights=np.repeat(areas / 3.0, 3), minlength=n)
+    x, lam, iters = _smallest_eigenvector(A, np.repeat(vmass, 2), seed, tol, rtol, max_iter)
+
+    z = x[0::2] + 1j * x[1::2]
+    amp = np.abs(z)
+    psi = np.where(amp > 0, z / np.where(amp > 0, amp, 1.0), 1.0 + 0j)
+    alpha, sheet, branch, index = _texture_coordinates(V3, F, psi, G, nu, s_edge, face_edge, ref)
+    return StripeField(psi=psi, amplitude=amp, alpha=alpha, sheet=sheet, branch=branch, index=index,
+                       singular=branch | (index != 0), direction=X, frequency=nu,
+                       eigenvalue=lam, iterations=iters)
+
+
+def _crossing_key(C: np.ndarray, value: float) -> np.ndarray:
+    """Integer label of an edge crossing from its value C in the edge's first-vertex sheet:
+    C is value + 2 pi k (even label) or -value + 2 pi k (odd label)."""
+    r1 = (C - value) / TWO_PI
+    k1 = np.rint(r1)
+    k2 = np.rint((C + value) / TWO_PI)
+    return np.where(np.abs(r1 - k1) < 1e-6, 2 * k1, 2 * k2 + 1).astype(np.int64)
+
+
+def isoline_set(V, F, field: StripeField, value: float = 0.0) -> IsolineSet:
+    """Isolines alpha = value (mod 2 pi) of a stripe field, chained across faces, skipping
+    singular faces. value in [0, 2 pi); 0 and pi are well defined for any line field, other
+    values follow each face's sheet (consistent where the input direction is a vector field)."""
+    V3, F, dim = _mesh(V, F)
+    n, m = len(V3), len(F)
+    value = float(value)
+    if not np.isfinite(value):
+        raise SelfshapeError("isolines: value must be finite")
+    value = value % TWO_PI
+    al = field.alpha
+    if al.shape != F.shape:
+        raise SelfshapeError(f"isolines: the stripe field has {len(al)} faces, the mesh {m}")
+    lo, hi = al.min(axis=1), al.max(axis=1)
+    k_lo = np.floor((lo - value) / TWO_PI).astype(np.int64) + 1
+    k_hi = np.floor((hi - value) / TWO_PI).astype(np.int64)
+    cnt = np.where(field.singular, 0, np.maximum(k_hi - k_lo + 1, 0))
+    face = np.repeat(np.arange(m), cnt)
+    empty = IsolineSet(np.zeros((0, dim)), np.zeros(1, np.int64), np.zeros(0, bool),
+                       np.zeros((0, 2), np.int64), np.zeros(0), np.zeros(0, np.int64))
+    if len(face) == 0:
+        return empty
+    first = np.cumsum(cnt) - cnt
+    k = k_lo[face] + np.arange(len(face)) - first[face]
+    L = value + TWO_PI * k
+    a = al[face]
+    above = a >= L[:, None]
+    cross = above != np.roll(above, -1, axis=1)        # face edge c: corner c -> c + 1
+    rows, slot = np.nonzero(cross)                     # exactly two per row, sorted by row
+    slot = slot.reshape(-1, 2)
+    seg_face = face
+    # crossing points
+    fr = np.repeat(face, 2)
+    sl = slot.ravel()
+    c0, c1 = sl, (sl + 1) % 3
+    a0 = al[fr, c0]
+    a1 = al[fr, c1]
+    Lr = np.repeat(L, 2)
+    t = (Lr - a0) / (a1 - a0)
+    v0, v1 = F[fr, c0], F[fr, c1]
+    fwd = v0 < v1
+    ea = np.where(fwd, v0, v1)
+    eb = np.where(fwd, v1, v0)
+    tc = np.where(fwd, t, 1.0 - t)
+    # canonical crossing value in the first edge vertex's own sheet
+    ca = np.where(fwd, c0, c1)
+    sa = field.sheet[fr, ca].astype(float)
+    C = np.angle(field.psi[ea]) + sa * (Lr - al[fr, ca])
+    key = _crossing_key(C, value)
+    E, face_edge, _ = mesh_edges(F, n)
+    eid = face_edge[fr, sl]
+    if np.abs(key).max() >= 2 ** 20:
+        raise SelfshapeError("isolines: stripe phase out of range (corrupt field?)")
+    node_key = eid * (2 ** 21) + (key + 2 ** 20)
+    uniq, first_idx, node = np.unique(node_key, return_index=True, return_inverse=True)
+    nn = len(uniq)
+    pts = (1.0 - tc[first_idx, None]) * V3[ea[first_idx]] + tc[first_idx, None] * V3[eb[first_idx]]
+    node_edge = np.column_stack([ea[first_idx], eb[first_idx]])
+    node_t = tc[first_idx]
+    seg = node.reshape(-1, 2)
+    return _chain(seg, seg_face, nn, pts[:, :dim], node_edge, node_t)
+
+
+def _chain(seg, seg_face, nn, pts, node_edge, node_t) -> IsolineSet:
+    """Order the nodes of a graph of max degree 2 into paths and loops."""
+    u, w = seg[:, 0], seg[:, 1]
+    deg = np.bincount(seg.ravel(), minlength=nn)
+    if deg.max() > 2:
+        raise SelfshapeError("isolines: an isoline branches (inconsistent stripe field)")
+    adj = sp.coo_matrix((np.ones(len(seg)), (u, w)), shape=(nn, nn)).tocsr()
+    ncomp, comp = csgraph.connected_components(adj, directed=False)
+    # start node per component: its smallest degree-1 node, else (a loop) its smallest node
+    big = np.iinfo(np.int64).max
+    ids = np.arange(nn)
+    start_open = np.full(ncomp, big)
+    np.minimum.at(start_open, comp[deg == 1], ids[deg == 1])
+    closed = start_open == big
+    start_any = np.full(ncomp, big)
+    np.minimum.at(start_any, comp, ids)
+    start = np.where(closed, start_any, start_open)
+    # loops: drop one segment at the start node so the walk is a path
+    is_start_closed = np.zeros(nn, bool)
+    is_start_closed[start[closed]] = True
+    touches = np.where(is_start_closed[u], u, np.where(is_start_closed[w], w, -1))
+    cand = np.nonzero(touches >= 0)[0]
+    _, pick = np.unique(touches[cand], return_index=True)
+    drop = np.zeros(len(seg), bool)
+    drop[cand[pick]] = True
+    keep = ~drop
+    root = nn
+    r = np.concatenate([u[keep], np.full(ncomp, root)])
+    c = np.concatenate([w[keep], start])
+    G = sp.coo_matrix((np.ones(len(r)), (r, c)), shape=(nn + 1, nn + 1)).tocsr()
+    order = csgraph.depth_first_order(G, root, directed=False, return_predecessors=False)[1:]
+    lab = comp[order]
+    brk = np.nonzero(np.diff(lab))[0] + 1
+    offsets = np.concatenate([[0], brk, [len(order)]]).astype(np.int64)
+    pcomp = lab[offsets[:-1]]
+    # face of each consecutive segment (including the closing one of loops)
+    nxt = np.roll(order, -1)
+    last = offsets[1:] - 1
+    nxt[last] = order[offsets[:-1]]
+    sk = np.minimum(u, w) * nn + np.maximum(u, w)
+    srt = np.argsort(sk)
+    qk = np.minimum(order, nxt) * nn + np.maximum(order, nxt)
+    pos = np.clip(np.searchsorted(sk[srt], qk), 0, len(sk) - 1)
+    found = sk[srt][pos] == qk
+    sface = np.where(found, seg_face[srt][pos], -1)
+    sface[last[~closed[pcomp]]] = -1
+    return IsolineSet(points=pts[order], offsets=offsets, closed=closed[pcomp],
+                      edge=node_edge[order], t=node_t[order], seg_face=sface.astype(np.int64))
+
+
+def isolines(V, F, field: StripeField, value: float = 0.0) -> list[np.ndarray]:
+    """Isolines alpha = value of ``field`` as a list of (k, dim) polylines (mm), chained across
+    faces and stopping at singular faces and the boundary; loops repeat their first point."""
+    return isoline_set(V, F, field, value).polylines()

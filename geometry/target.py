@@ -1,0 +1,316 @@
+"""Target surfaces for inverse design: read, validate (disk topology), scale, refine.
+
+All public functions take and return plain arrays: V (n, 3) float vertex positions and
+F (m, 3) int triangle indices. After `load_target` lengths are millimetres.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from selfshape.errors import SelfshapeError
+
+#: A face whose area is below this fraction of the squared bounding-box diagonal is "zero area".
+ZERO_AREA_REL = 1e-12
+
+
+# ----------------------------------------------------------------------------- reading
+def read_obj(path) -> tuple[np.ndarray, np.ndarray]:
+    """Minimal OBJ reader: `v` and `f` records only (texture/normal indices ignored,
+    negative indices resolved, polygons fan-triangulated)."""
+    name = os.path.basename(str(path))
+    verts, polys = [], []
+    with open(path, "r", errors="replace") as fh:
+        for lineno, line in enumerate(fh, 1):
+            if line.startswith("v "):
+                verts.append(line.split()[1:4])
+            elif line.startswith("f "):
+                try:
+                    idx = [int(tok.split("/")[0]) for tok in line.split()[1:]]
+                except ValueError:
+                    raise SelfshapeError(f"{name}: line {lineno}: malformed face record") from None
+                if len(idx) < 3:
+                    raise SelfshapeError(f"{name}: line {lineno}: face with fewer than 3 vertices")
+                nv = len(verts)  # OBJ negative indices count back from the current vertex
+                polys.append([i - 1 if i > 0 else nv + i for i in idx])
+    try:
+        V = np.asarray(verts, dtype=float).reshape(-1, 3)
+    except ValueError:
+        raise SelfshapeError(f"{name}: malformed vertex record") from None
+    return V, _fan_triangulate(polys)
+
+
+def _fan_triangulate(polys) -> np.ndarray:
+    tris = []
+    sizes = np.array([len(p) for p in polys], dtype=int)
+    for k in np.unique(sizes):
+        P = np.array([p for p, s in zip(polys, sizes) if s == k], dtype=np.int64)
+        for j in range(1, k - 1):  # fan around the first corner, vectorised per polygon size
+            tris.append(P[:, [0, j, j + 1]])
+    if not tris:
+        return np.zeros((0, 3), dtype=np.int64)
+    return np.concatenate(tris, axis=0)
+
+
+def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a surface mesh (OBJ with the own reader, anything else through meshio;
+    quads and polygons are triangulated, STL vertices are merged)."""
+    name = os.path.basename(str(path))
+    if not os.path.isfile(path):
+        raise SelfshapeError(f"{name}: file not found")
+    if str(path).lower().endswith(".obj"):
+        return read_obj(path)
+    import meshio
+
+    try:
+        mesh = meshio.read(path)
+    except Exception as exc:  # meshio raises many types; the user needs one line
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise SelfshapeError(f"{name}: cannot read mesh ({msg})") from None
+    V = np.asarray(mesh.points, dtype=float)
+    if V.ndim != 2 or V.shape[1] not in (2, 3):
+        raise SelfshapeError(f"{name}: vertices are not 2D or 3D points")
+    if V.shape[1] == 2:
+        V = np.column_stack([V, np.zeros(len(V))])
+    polys = []
+    for block in mesh.cells:
+        if block.type in ("triangle", "quad") or block.type.startswith("polygon"):
+            polys.extend(np.asarray(block.data).tolist())
+    F = _fan_triangulate(polys)
+    if str(path).lower().endswith(".stl") and len(F):
+        # STL stores every triangle with its own corners: weld identical positions
+        V, inverse = np.unique(V, axis=0, return_inverse=True)
+        F = inverse.reshape(-1)[F]
+    return V, F
+
+
+# ----------------------------------------------------------------------------- topology
+def face_areas(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Triangle areas (m,)."""
+    return 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
+
+
+def unique_edges(F: np.ndarray):
+    """Undirected edges of a triangle mesh.
+
+    Returns E (k, 2) sorted vertex pairs, he2e (3m,) edge of each half-edge (half-edge
+    3f + c goes from F[f, c] to F[f, (c+1) % 3]) and the number of faces at each edge (k,).
+    """
+    H = halfedges(F)
+    key = np.sort(H, axis=1)
+    E, he2e, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    return E, he2e.reshape(-1), counts
+
+
+def halfedges(F: np.ndarray) -> np.ndarray:
+    """Directed half-edges (3m, 2): row 3f + c is F[f, c] -> F[f, (c+1) % 3]."""
+    return np.stack([F, np.roll(F, -1, axis=1)], axis=2).reshape(-1, 2)
+
+
+def boundary_loop_count(F: np.ndarray, n: int) -> int:
+    """Number of boundary loops (components of the boundary-edge graph)."""
+    E, _, counts = unique_edges(F)
+    B = E[counts == 1]
+    if len(B) == 0:
+        return 0
+    verts = np.unique(B)
+    A = sp.coo_matrix((np.ones(len(B)), (B[:, 0], B[:, 1])), shape=(n, n))
+    _, labels = connected_components(A, directed=False)
+    return len(np.unique(labels[verts]))
+
+
+def remove_unreferenced(V: np.ndarray, F: np.ndarray):
+    """Drop vertices no face uses; returns (V, F, old index of each kept vertex)."""
+    used = np.unique(F)
+    remap = np.full(len(V), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    return V[used], remap[F], used
+
+
+def check_disk(V: np.ndarray, F: np.ndarray, where: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
+    """Validate a disk-topology triangle mesh; return it without unreferenced vertices.
+
+    Raises SelfshapeError (one line starting with ``where``) on: no faces, non-finite
+    coordinates, bad indices, degenerate or zero-area faces, non-manifold edges or
+    vertices, inconsistent orientation, several components, no or several boundary loops,
+    or a non-disk Euler characteristic.
+    """
+    V = np.asarray(V, dtype=float)
+    F = np.asarray(F)
+    if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
+        raise SelfshapeError(f"{where}: no triangle faces")
+    if V.ndim != 2 or V.shape[1] != 3 or len(V) < 3:
+        raise SelfshapeError(f"{where}: vertices must be an (n, 3) array with n >= 3")
+    bad = ~np.isfinite(V).all(axis=1)
+    if bad.any():
+        raise SelfshapeError(f"{where}: vertex {int(np.flatnonzero(bad)[0])} has a non-finite coordinate")
+    F = F.astype(np.int64)
+    out = (F < 0) | (F >= len(V))
+    if out.any():
+        f = int(np.flatnonzero(out.any(axis=1))[0])
+        raise SelfshapeError(f"{where}: face {f} references a vertex index outside 0..{len(V) - 1}")
+    rep = (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 2] == F[:, 0])
+    if rep.any():
+        f = int(np.flatnonzero(rep)[0])
+        raise SelfshapeError(f"{where}: face {f} is degenerate (repeated vertex), {int(rep.sum())} such faces")
+    V, F, _ = remove_unreferenced(V, F)
+    diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    area = face_areas(V, F)
+    zero = area <= ZERO_AREA_REL * max(diag, np.finfo(float).tiny) ** 2
+    if zero.any():
+        f = int(np.flatnonzero(zero)[0])
+        raise SelfshapeError(f"{where}: face {f} has zero area, {int(zero.sum())} such faces")
+    E, he2e, counts = unique_edges(F)
+    if (counts > 2).any():
+        a, b = E[np.flatnonzero(counts > 2)[0]]
+        raise SelfshapeError(f"{where}: non-manifold edge ({a}, {b}) shared by {int(counts.max())} faces")
+    H = halfedges(F)
+    _, dcounts = np.unique(H, axis=0, return_counts=True)
+    if (dcounts > 1).any():
+        _, first, dc = np.unique(H, axis=0, return_index=True, return_counts=True)
+        he = int(first[np.flatnonzero(dc > 1)[0]])
+        raise SelfshapeError(f"{where}: faces are not consistently oriented "
+                             f"(edge ({H[he, 0]}, {H[he, 1]}) runs the same way in two faces)")
+    n = len(V)
+    ncomp, _ = connected_components(
+        sp.coo_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(n, n)), directed=False)
+    if ncomp > 1:
+        raise SelfshapeError(f"{where}: {ncomp} connected components (need one)")
+    manifold = _vertex_manifold(F, n)
+    if not manifold.all():
+        v = int(np.flatnonzero(~manifold)[0])
+        raise SelfshapeError(f"{where}: non-manifold vertex {v} (its faces form several fans)")
+    loops = boundary_loop_count(F, n)
+    if loops == 0:
+        raise SelfshapeError(f"{where}: closed surface (no boundary); a disk-like surface is required")
+    if loops > 1:
+        raise SelfshapeError(f"{where}: {loops} boundary loops (holes); a disk needs exactly one")
+    chi = n - len(E) + len(F)
+    if chi != 1:
+        raise SelfshapeError(f"{where}: Euler characteristic {chi} (genus {(1 - chi) // 2}); a disk has 1")
+    return V, F
+
+
+def _vertex_manifold(F: np.ndarray, n: int) -> np.ndarray:
+    """True where the faces around a vertex form a single fan (libigl's check)."""
+    import igl
+
+    return np.asarray(igl.is_vertex_manifold(np.ascontiguousarray(F, dtype=np.int64)), dtype=bool)[:n]
+
+
+# ----------------------------------------------------------------------------- scaling
+def normalize(V: np.ndarray, diagonal_mm: float | None = 110.0) -> np.ndarray:
+    """Centre the bounding box at the origin and scale uniformly to a bounding-box
+    diagonal of ``diagonal_mm`` (None keeps the units)."""
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    V = V - 0.5 * (lo + hi)
+    if diagonal_mm is None:
+        return V
+    if not (np.isfinite(diagonal_mm) and diagonal_mm > 0):
+        raise SelfshapeError(f"diagonal_mm: must be a positive number, got {diagonal_mm}")
+    return V * (float(diagonal_mm) / float(np.linalg.norm(hi - lo)))
+
+
+def load_target(path, diagonal_mm: float | None = 110.0) -> tuple[np.ndarray, np.ndarray]:
+    """Read a disk-topology target surface (OBJ/PLY/STL/... ), validate it, drop unreferenced
+    vertices, centre it and scale it to a bounding-box diagonal of ``diagonal_mm`` mm."""
+    name = os.path.basename(str(path))
+    V, F = read_mesh(path)
+    V, F = check_disk(V, F, where=name)
+    return normalize(V, diagonal_mm), F
+
+
+# ----------------------------------------------------------------------------- refinement
+def refine(V: np.ndarray, F: np.ndarray, levels: int = 1, method: str = "loop"):
+    """Subdivide ``levels`` times (each level x4 faces): "loop" (smooth, libigl) or
+    "midpoint" (keeps the piecewise-flat shape)."""
+    import igl
+
+    if levels < 0:
+        raise SelfshapeError(f"refine: levels must be >= 0, got {levels}")
+    if levels == 0:
+        return np.asarray(V, float), np.asarray(F, np.int64)
+    V = np.ascontiguousarray(V, dtype=float)
+    F = np.ascontiguousarray(F, dtype=np.int64)
+    if method == "loop":
+        return igl.loop(V, F, int(levels))
+    if method == "midpoint":
+        return igl.upsample(V, F, int(levels))
+    raise SelfshapeError(f"refine: unknown method {method!r} (use 'loop' or 'midpoint')")
+
+
+def levels_for_faces(n_faces: int, target_faces: int = 100_000) -> int:
+    """Subdivision levels bringing ``n_faces`` closest (in log scale) to ``target_faces``."""
+    return max(0, int(round(np.log(target_faces / n_faces) / np.log(4.0))))
+
+
+# ----------------------------------------------------------------------------- synthetic targets
+def disk_points(n_radial: int) -> np.ndarray:
+    """Well-spaced points on the unit disk: concentric rings of 6k points (k = 0..n_radial)."""
+    pts = [np.zeros((1, 2))]
+    for k in range(1, n_radial + 1):
+        t = 2 * np.pi * np.arange(6 * k) / (6 * k) + (np.pi / (6 * k) if k % 2 else 0.0)
+        pts.append((k / n_radial) * np.column_stack([np.cos(t), np.sin(t)]))
+    return np.concatenate(pts)
+
+
+def triangulate_disk(n_radial: int) -> tuple[np.ndarray, np.ndarray]:
+    """Delaunay triangulation of `disk_points`, counter-clockwise faces."""
+    from scipy.spatial import Delaunay
+
+    P = disk_points(n_radial)
+    F = Delaunay(P).simplices.astype(np.int64)
+    d = P[F[:, 1]] - P[F[:, 0]], P[F[:, 2]] - P[F[:, 0]]
+    cw = d[0][:, 0] * d[1][:, 1] - d[0][:, 1] * d[1][:, 0] < 0
+    F[cw] = F[cw][:, [0, 2, 1]]
+    return P, F
+
+
+def sphere_cap(radius: float = 40.0, half_angle_deg: float = 45.0, n_radial: int = 20):
+    """Spherical cap of given radius (mm) and opening half-angle; apex at the origin, the
+    sphere centre at (0, 0, radius), normals pointing away from the centre (-z at the apex)."""
+    P, F = triangulate_disk(n_radial)
+    r = np.linalg.norm(P, axis=1)
+    phi = r * np.deg2rad(half_angle_deg)
+    t = np.arctan2(P[:, 1], P[:, 0])
+    V = radius * np.column_stack([np.sin(phi) * np.cos(t), np.sin(phi) * np.sin(t), 1.0 - np.cos(phi)])
+    return V, F[:, [0, 2, 1]]  # CW in the xy-projection: normal -z, i.e. away from the centre
+
+
+def cylinder_patch(radius: float = 30.0, arc_mm: float = 60.0, length_mm: float = 50.0,
+                   n_arc: int = 24, n_len: int = 20):
+    """Cylinder patch (axis along y, radius mm) of arc length ``arc_mm`` and length ``length_mm``,
+    structured alternating-diagonal triangles; normals point away from the axis."""
+    s = np.linspace(-arc_mm / 2, arc_mm / 2, n_arc + 1)
+    y = np.linspace(-length_mm / 2, length_mm / 2, n_len + 1)
+    S, Y = np.meshgrid(s, y, indexing="ij")
+    P = np.column_stack([S.ravel(), Y.ravel()])
+    F = grid_triangles(n_arc, n_len)
+    a = P[:, 0] / radius
+    V = np.column_stack([radius * np.sin(a), P[:, 1], radius * (1.0 - np.cos(a))])
+    return V, F[:, [0, 2, 1]]  # axis at z = +radius: outward normal is -z at s = 0
+
+
+def plane_patch(width: float = 60.0, height: float = 40.0, nx: int = 24, ny: int = 16):
+    """Flat rectangle in the xy-plane (mm), normals +z."""
+    x = np.linspace(-width / 2, width / 2, nx + 1)
+    y = np.linspace(-height / 2, height / 2, ny + 1)
+    X, Y = np.meshgrid(x, y, indexing="ij")
+    V = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
+    return V, grid_triangles(nx, ny)
+
+
+def grid_triangles(nx: int, ny: int) -> np.ndarray:
+    """Counter-clockwise triangles of an (nx+1) x (ny+1) vertex grid (index i*(ny+1)+j),
+    diagonals alternating so the mesh has no preferred direction."""
+    i, j = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    i, j = i.ravel(), j.ravel()
+    v00 = i * (ny + 1) + j
+    v10, v01, v11 = v00 + ny + 1, v00 + 1, v00 + ny + 2
+    alt = (i + j) % 2 == 0
+    t1 = np.where(alt[:, None], np.column_stack([v00, v10, v11]), np.column_stack([v00, v10, v01]))
+    t2 = np.where(alt[:, None], np.column_stack([v00, v11, v01]), np.column_stack([v10, v11, v01]))
+    return np.concatenate([t1, t2]).astype(np.int64)

@@ -1,0 +1,113 @@
+"""The FDM printer and print settings used to turn ribbons into G-code (mm, mm/s, deg C).
+
+Defaults follow the seed (section 5.5): an Ultimaker 2 (223 x 223 mm bed, 2.85 mm
+filament) with a 0.8 mm nozzle printing TPU 95A at 15 mm/s onto fabric held in a frame
+on the bed. Coordinates: a pattern point (x, y) in printed-state mm is printed at bed
+position (x + origin[0], y + origin[1]) (front side; the back side is mirrored, see
+:mod:`inverse.gcode`); the nozzle height is measured from the fabric
+top, which sits ``bed_offset_z_mm`` above the bed (0 when the nozzle is calibrated to
+start directly above the fabric, as in the seed).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from selfshape.errors import SelfshapeError
+
+
+def _number(name, value, lo=None, lo_open=False, hi=None):
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise SelfshapeError(f"printer.{name} must be a number, got {value!r}") from None
+    if not math.isfinite(v):
+        raise SelfshapeError(f"printer.{name} must be finite, got {value!r}")
+    if lo is not None and (v <= lo if lo_open else v < lo):
+        raise SelfshapeError(f"printer.{name} must be {'>' if lo_open else '>='} {lo:g}, got {v:g}")
+    if hi is not None and v > hi:
+        raise SelfshapeError(f"printer.{name} must be <= {hi:g}, got {v:g}")
+    return v
+
+
+def _pair(name, value, lo=None, lo_open=False):
+    try:
+        a, b = value
+    except (TypeError, ValueError):
+        raise SelfshapeError(f"printer.{name} must be a pair (x, y), got {value!r}") from None
+    return (_number(f"{name}[0]", a, lo, lo_open), _number(f"{name}[1]", b, lo, lo_open))
+
+
+@dataclass
+class Printer:
+    """Printer geometry and print settings (lengths mm, speeds mm/s, temperatures deg C).
+
+    bed_size: printable (x, y) extent of the bed. origin: bed position of the pattern's
+    (0, 0); None = centre the bounding box of the ribbons on the bed. layer_height_mm: every layer, the first one too. retraction_mm /
+    retraction_speed_mm_s / z_hop_mm: applied on every travel longer than
+    ``retract_min_travel_mm``. extrusion_multiplier scales the bead volume (flow).
+    mirror_axis_x: bed x of the line the frame is flipped about to print the back side;
+    None = the bed centre (the frame base is centred on the bed).
+    """
+    bed_size: tuple = (223.0, 223.0)
+    nozzle_mm: float = 0.8
+    filament_diameter_mm: float = 2.85
+    layer_height_mm: float = 0.2
+    print_speed_mm_s: float = 15.0
+    travel_speed_mm_s: float = 100.0
+    z_speed_mm_s: float = 10.0
+    retraction_mm: float = 4.5
+    retraction_speed_mm_s: float = 25.0
+    retract_min_travel_mm: float = 1.0
+    z_hop_mm: float = 0.5
+    extrusion_multiplier: float = 1.0
+    nozzle_temperature_c: float = 225.0
+    bed_temperature_c: float = 0.0
+    bed_offset_z_mm: float = 0.0
+    origin: tuple | None = None
+    mirror_axis_x: float | None = None
+    relative_e: bool = True
+
+    def __post_init__(self):
+        self.bed_size = _pair("bed_size", self.bed_size, 0.0, lo_open=True)
+        if self.origin is not None:
+            self.origin = _pair("origin", self.origin)
+        self.nozzle_mm = _number("nozzle_mm", self.nozzle_mm, 0.0, lo_open=True)
+        self.filament_diameter_mm = _number("filament_diameter_mm", self.filament_diameter_mm, 0.0, lo_open=True)
+        self.layer_height_mm = _number("layer_height_mm", self.layer_height_mm, 0.0, lo_open=True)
+        if self.layer_height_mm > self.nozzle_mm:
+            raise SelfshapeError(f"printer.layer_height_mm ({self.layer_height_mm:g}) must not exceed "
+                                 f"the nozzle diameter ({self.nozzle_mm:g})")
+        for name in ("print_speed_mm_s", "travel_speed_mm_s", "z_speed_mm_s", "retraction_speed_mm_s",
+                     "extrusion_multiplier"):
+            setattr(self, name, _number(name, getattr(self, name), 0.0, lo_open=True))
+        for name in ("retraction_mm", "retract_min_travel_mm", "z_hop_mm", "bed_offset_z_mm"):
+            setattr(self, name, _number(name, getattr(self, name), 0.0))
+        self.nozzle_temperature_c = _number("nozzle_temperature_c", self.nozzle_temperature_c, 0.0, hi=350.0)
+        self.bed_temperature_c = _number("bed_temperature_c", self.bed_temperature_c, 0.0, hi=150.0)
+        if self.mirror_axis_x is not None:
+            self.mirror_axis_x = _number("mirror_axis_x", self.mirror_axis_x)
+        if not isinstance(self.relative_e, bool):
+            raise SelfshapeError(f"printer.relative_e must be true or false, got {self.relative_e!r}")
+
+    @property
+    def filament_area_mm2(self) -> float:
+        """Cross-section of the filament, mm^2."""
+        return math.pi * self.filament_diameter_mm ** 2 / 4.0
+
+    @property
+    def flip_axis_x(self) -> float:
+        """Bed x of the frame's flip line (``mirror_axis_x`` or the bed centre), mm."""
+        return self.bed_size[0] / 2.0 if self.mirror_axis_x is None else self.mirror_axis_x
+
+
+def bead_area(width_mm, height_mm):
+    """Cross-section (mm^2) of an extruded bead: a rectangle with semicircular sides
+    (Slic3r's flow model), area = (w - h) h + pi h^2 / 4. Needs w >= h. Vectorised."""
+    return (width_mm - height_mm) * height_mm + math.pi * height_mm * height_mm / 4.0
+
+
+def bead_width(area_mm2, height_mm):
+    """Inverse of :func:`bead_area`: the width (mm) of a bead of given cross-section
+    and height. Vectorised."""
+    return area_mm2 / height_mm + height_mm * (1.0 - math.pi / 4.0)

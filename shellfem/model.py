@@ -1,0 +1,256 @@
+"""The discrete shell: DOF layout, per-region materials, total energy and derivatives.
+
+DOFs q = [x (n x 3, vertex-major), theta (one angle per edge)], mm and radians.
+Energy in N mm. Per triangle the energy is a function of y = (a, h, psi) (see
+shellfem.kinematics and shellfem.energies); derivatives are chained exactly:
+
+    W_q = J^T W_y,    W_qq = J^T W_yy J + sum_k W_y,k d2y_k/dq2
+
+with J = dy/dq over the triangle's 21 local DOFs (own 3 vertices, 3 flap vertices,
+3 edge angles). The dihedral-angle curvature term is assembled per hinge (12 x 12).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from shellfem import energies as en
+from shellfem.kinematics import A_HESS, build_topology, face_heights, first_fundamental_form, hinge_angles
+from shellfem.materials import Fabric, Plastic
+from shellfem.sheet import Sheet
+
+
+@dataclass
+class Layer:
+    """A St.Venant-Kirchhoff layer on a set of triangles (arrays per masked triangle)."""
+    mask: np.ndarray   # (m,) bool
+    E: np.ndarray      # MPa
+    nu: np.ndarray
+    z0: np.ndarray     # mm, below/above the mesh surface
+    z1: np.ndarray
+    abar: np.ndarray   # (m, 3) rest metric (edge basis)
+    bbar: np.ndarray   # (m, 3) rest second fundamental form
+
+
+def edge_metric(P: np.ndarray) -> np.ndarray:
+    """Edge-basis metric (m, 3) of triangles with 2D/3D corner points P (m, 3, d)."""
+    E1, E2 = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]
+    return np.stack([np.einsum("ij,ij->i", E1, E1), np.einsum("ij,ij->i", E1, E2), np.einsum("ij,ij->i", E2, E2)], 1)
+
+
+class ShellModel:
+    """Energy of a sheet: layered quadratic terms + optional fabric membrane + gravity.
+
+    Build with :meth:`from_materials` (fabric + printed plastic, the seed's model) or
+    :meth:`homogeneous` (one isotropic St.Venant-Kirchhoff shell, for benchmarks).
+    """
+
+    def __init__(self, sheet: Sheet, quad: en.QuadraticForm, membrane_mask=None, membrane=None,
+                 nodal_weight=None):
+        self.sheet = sheet
+        self.topo = build_topology(sheet.triangles)
+        self.quad = quad
+        self.membrane_mask = membrane_mask
+        self.membrane = membrane          # callable(a_masked) -> W, g, H
+        self.nodal_weight = nodal_weight  # (n,) N, gravity along -z
+        n, ne = sheet.n_vertices, self.topo.n_edges
+        self.n_vertices, self.n_edges = n, ne
+        self.n_dofs = 3 * n + ne
+        self._build_indices()
+
+    # --- construction ---------------------------------------------------------------
+    @classmethod
+    def homogeneous(cls, sheet: Sheet, E: float, nu: float, h: float):
+        """Single-layer isotropic shell, flat and stress-free in the sheet's coordinates."""
+        P = np.concatenate([sheet.points, np.zeros((sheet.n_vertices, 1))], 1)[sheet.triangles]
+        abar = edge_metric(P)
+        quad = en.QuadraticForm(sheet.n_triangles)
+        quad.add(*en.layer_quadratic(abar, np.zeros_like(abar), E, nu, -h / 2, h / 2))
+        return cls(sheet, quad)
+
+    @classmethod
+    def from_materials(cls, sheet: Sheet, fabric: Fabric, plastic: Plastic, gravity: bool = True):
+        """The seed's model: bare fabric = membrane model (neo-Hookean or orthotropic) +
+        bending with k_B; printed triangles = fabric layer (E2, nu_f) + plastic layer(s)
+        on the front (+z) and/or back (-z) face, plastic with rest curvature (plastic set).
+        The fabric's rest metric is diag(1/sx^2, 1/sy^2) in printed coordinates."""
+        m = sheet.n_triangles
+        P2 = sheet.points[sheet.triangles]                      # (m, 3, 2) printed
+        P3 = np.concatenate([P2, np.zeros((m, 3, 1))], 2)
+        sx, sy = fabric.stretch
+        Prest = P2 / np.array([sx, sy])
+        abar_print = edge_metric(P3)
+        abar_fab = edge_metric(Prest)
+        hf = fabric.thickness
+        tf, tb = sheet.thickness_front, sheet.thickness_back
+        printed = (tf > 0) | (tb > 0)
+        bare = ~printed
+        quad = en.QuadraticForm(m)
+        kap = plastic.rest_curvature
+        if printed.any():
+            quad.add(*en.layer_quadratic(abar_fab, np.zeros((m, 3)), fabric.young_modulus, fabric.poisson,
+                                         -hf / 2, hf / 2), mask=printed)
+            front = tf > 0
+            if front.any():
+                # front plastic bends the sheet towards -z (centre of curvature on the fabric side): b < 0
+                quad.add(*en.layer_quadratic(abar_print, -kap * abar_print, plastic.young_modulus, plastic.poisson,
+                                             hf / 2, hf / 2 + tf), mask=front)
+            back = tb > 0
+            if back.any():
+                quad.add(*en.layer_quadratic(abar_print, kap * abar_print, plastic.young_modulus, plastic.poisson,
+                                             -hf / 2 - tb, -hf / 2), mask=back)
+        membrane = None
+        if bare.any():
+            if fabric.bending_stiffness > 0:
+                quad.add(*en.bending_quadratic(abar_fab, fabric.bending_stiffness, fabric.poisson), mask=bare)
+            ab = abar_fab[bare]
+            area = en.rest_area(ab)
+            if fabric.model == "neo-hookean":
+                E, nu = fabric.young_modulus, fabric.poisson
+
+                def membrane(a, ab=ab, area=area):
+                    return en.neo_hookean(a, ab, E, nu, hf, area)
+            else:
+                c, s = np.cos(np.radians(fabric.course_angle_deg)), np.sin(np.radians(fabric.course_angle_deg))
+                Rot = np.array([[c, s], [-s, c]])                # printed frame -> course frame
+                rest = Prest[bare]
+                edges = np.stack([rest[:, 1] - rest[:, 0], rest[:, 2] - rest[:, 0]], 2)   # columns E1, E2
+                T = en.strain_map(np.einsum("ij,mjk->mik", Rot, edges))
+                params, nu = fabric.orthotropic, fabric.poisson
+
+                def membrane(a, T=T, area=area):
+                    return en.orthotropic(a, T, params, nu, hf, area)
+        weight = None
+        if gravity and fabric.areal_weight > 0:
+            weight = nodal_loads(sheet, fabric.areal_weight / (sx * sy))
+        return cls(sheet, quad, bare if membrane is not None else None, membrane, weight)
+
+    # --- index maps -------------------------------------------------------------------
+    def _build_indices(self):
+        t, topo = self.sheet.triangles, self.topo
+        m = len(t)
+        flaps = np.where(topo.flaps >= 0, topo.flaps, t)          # dummy = own vertex, zero weight
+        pts = np.concatenate([t, flaps], 1)                       # (m, 6)
+        self.face_dofs = np.concatenate([(3 * pts[:, :, None] + np.arange(3)).reshape(m, 18),
+                                         3 * self.n_vertices + topo.face_edges], 1)   # (m, 21)
+        self.hinge_dofs = (3 * topo.hinge[:, :, None] + np.arange(3)).reshape(-1, 12)
+        hinge_of_edge = -np.ones(topo.n_edges, dtype=np.int64)
+        hinge_of_edge[topo.hinge_edges] = np.arange(len(topo.hinge_edges))
+        self.face_hinge = hinge_of_edge[topo.face_edges]             # (m, 3), -1 on boundary
+        # local columns (0..17) of the hinge's 12 coordinates inside the face's 21 DOFs
+        cols = np.zeros((m, 3, 12), dtype=np.int64)
+        for i in range(3):       # local edge i: hinge points (e0, e1, oA, oB)
+            j, k = (i + 1) % 3, (i + 2) % 3
+            as_A = np.array([j, k, i, 3 + i])
+            as_B = np.array([k, j, 3 + i, i])
+            order = np.where((topo.face_sign[:, i] > 0)[:, None], as_A, as_B)    # (m, 4)
+            cols[:, i] = (3 * order[:, :, None] + np.arange(3)).reshape(m, 12)
+        self._hinge_cols = cols
+
+    # --- evaluation ---------------------------------------------------------------------
+    def split(self, q):
+        n = self.n_vertices
+        return q[:3 * n].reshape(n, 3), q[3 * n:]
+
+    def _psi(self, x, theta, with_hessian):
+        topo = self.topo
+        phi, gphi, Hphi = hinge_angles(x[topo.hinge], with_hessian) if len(topo.hinge) else (
+            np.zeros(0), np.zeros((0, 12)), np.zeros((0, 12, 12)))
+        fh = self.face_hinge
+        interior = fh >= 0
+        psi = topo.face_sign * theta[topo.face_edges] + np.where(interior, 0.5 * phi[np.maximum(fh, 0)], 0.0)
+        return psi, phi, gphi, Hphi
+
+    def energy(self, q) -> float:
+        return float(self._evaluate(q, order=0)[0])
+
+    def _evaluate(self, q, order=2):
+        x, theta = self.split(q)
+        t = self.sheet.triangles
+        m = len(t)
+        xf = x[t]
+        a, Ja = first_fundamental_form(xf)
+        h, gh, Hh = face_heights(xf, with_hessian=order >= 2)
+        psi, phi, gphi, Hphi = self._psi(x, theta, order >= 2)
+        mm = self.membrane_mask
+        membrane = None
+        if self.membrane is not None:
+            def membrane(aa):
+                W = np.zeros(m)
+                g = np.zeros((m, 3))
+                H = np.zeros((m, 3, 3))
+                W[mm], g[mm], H[mm] = self.membrane(aa[mm])
+                return W, g, H
+        W, Wy, Wyy = en.face_energy(a, h, psi, self.quad, membrane, hessian=order >= 2)
+        E = W.sum()
+        if self.nodal_weight is not None:
+            E += self.nodal_weight @ x[:, 2]
+        if order == 0:
+            return E, None, None
+        # Jacobian of y w.r.t. the 21 local DOFs
+        J = np.zeros((m, 9, 21))
+        J[:, 0:3, 0:9] = Ja
+        J[:, 3:6, 0:9] = gh
+        rows = np.arange(m)[:, None]
+        for i in range(3):
+            J[:, 6 + i, 18 + i] = self.topo.face_sign[:, i]
+            fi = self.face_hinge[:, i]
+            inner = fi >= 0
+            J[rows[inner], 6 + i, self._hinge_cols[inner, i]] = 0.5 * gphi[fi[inner]]
+        g_face = (Wy[:, None, :] @ J)[:, 0]
+        grad = np.bincount(self.face_dofs.ravel(), weights=g_face.ravel(), minlength=self.n_dofs)
+        if self.nodal_weight is not None:
+            grad[2:3 * self.n_vertices:3] += self.nodal_weight
+        if order == 1:
+            return E, grad, None
+        Hf = np.swapaxes(J, 1, 2) @ Wyy @ J
+        Hf[:, :9, :9] += (Wy[:, 0:3] @ A_HESS.reshape(3, 81)).reshape(m, 9, 9) + (Wy[:, 3:6, None, None] * Hh).sum(1)
+        # hinge curvature term: w_e = 1/2 sum over the edge's faces of dW/dpsi
+        wpsi = np.where(self.face_hinge >= 0, 0.5 * Wy[:, 6:9], 0.0)
+        wh = np.bincount(np.maximum(self.face_hinge, 0).ravel(), weights=wpsi.ravel(), minlength=len(Hphi))
+        Hh_blocks = wh[:, None, None] * Hphi
+        return E, grad, (Hf, Hh_blocks)
+
+    def gradient(self, q):
+        return self._evaluate(q, order=1)[1]
+
+    def hessian_blocks(self, q):
+        return self._evaluate(q, order=2)
+
+    def initial_state(self) -> np.ndarray:
+        """Flat printed state: x = (X, Y, 0), theta = 0."""
+        x = np.concatenate([self.sheet.points, np.zeros((self.n_vertices, 1))], 1)
+        return np.concatenate([x.ravel(), np.zeros(self.n_edges)])
+
+    # --- derived fields ---------------------------------------------------------------------
+    def fundamental_forms(self, q):
+        x, theta = self.split(q)
+        xf = x[self.sheet.triangles]
+        a, _ = first_fundamental_form(xf)
+        h, _, _ = face_heights(xf, with_hessian=False)
+        psi = self._psi(x, theta, False)[0]
+        return a, en.second_fundamental_form(h, psi)
+
+    def curvatures(self, q):
+        """Principal curvatures (m, 2) (1/mm, k1 >= k2; > 0 = centre of curvature on the +normal
+        side) and mean/Gaussian curvature per triangle, from the shape operator a^-1 b."""
+        a, b = self.fundamental_forms(q)
+        S = np.linalg.solve(en.sym_to_mat(a), en.sym_to_mat(b))
+        tr = S[:, 0, 0] + S[:, 1, 1]
+        det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
+        disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
+        k = np.stack([tr / 2 + disc, tr / 2 - disc], 1)
+        return k, tr / 2, det
+
+
+def nodal_loads(sheet: Sheet, load_per_area: float) -> np.ndarray:
+    """Consistent P1 nodal loads (N) of a uniform areal load (N/mm^2 of printed area),
+    assembled with scikit-fem."""
+    from skfem import Basis, ElementTriP1, LinearForm
+
+    @LinearForm
+    def unit(v, w):
+        return load_per_area * v
+
+    return unit.assemble(Basis(sheet.mesh, ElementTriP1()))

@@ -1,0 +1,66 @@
+"""Uniform-state bilayer curvature: the engine's own energy, reduced to a fully printed strip.
+
+A strip fully covered by plastic deforms (away from its ends) into a uniform state:
+constant first and second fundamental forms. The layered energy of
+:mod:`shellfem.energies` is quadratic in (a, b), so the uniform equilibrium is one small
+linear solve per strip, vectorised over any number of strips. tests/test_strip.py checks
+that the full finite-element simulation of a strip reproduces these values, so the
+calibration and validation code may use them as "the project's own model".
+
+Units: thickness mm, curvature 1/mm. Only the ratio E_plastic / E_fabric matters.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from shellfem.energies import QuadraticForm, layer_quadratic
+
+
+def strip_state(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, plastic_poisson=0.5,
+                fabric_poisson=0.3, rest_curvature=0.0, mode="narrow"):
+    """Uniform equilibrium (a11, a12, a22, b11, b12, b22) in printed Cartesian coordinates
+    of a strip with plastic on the front (+z); arrays broadcast together.
+
+    mode "narrow": no constraint (a narrow strip: transverse stress free, anticlastic
+    freedom); "plate": transverse curvature b22 = 0 (a wide sheet rolling into a cylinder
+    about y)."""
+    hp, hf, s, ratio, nup, nuf, kap = np.broadcast_arrays(*(np.asarray(v, float) for v in (
+        plastic_thickness, fabric_thickness, stretch, modulus_ratio, plastic_poisson, fabric_poisson,
+        rest_curvature)))
+    shape = hp.shape
+    hp, hf, s, ratio, nup, nuf, kap = (v.ravel() for v in (hp, hf, s, ratio, nup, nuf, kap))
+    n = hp.size
+    eye = np.tile([1.0, 0.0, 1.0], (n, 1))
+    quad = QuadraticForm(n)
+    quad.add(*layer_quadratic(eye / (s * s)[:, None], np.zeros((n, 3)), 1.0, nuf, -hf / 2, hf / 2,
+                              area=np.ones(n)))
+    quad.add(*layer_quadratic(eye, -kap[:, None] * eye, ratio, nup, hf / 2, hf / 2 + hp, area=np.ones(n)))
+    if mode == "narrow":
+        z = quad.minimiser()
+    elif mode == "plate":
+        z = quad.minimiser(keep=[0, 1, 2, 3, 4])
+    else:
+        raise ValueError(f"mode must be 'narrow' or 'plate', got {mode!r}")
+    return z.reshape(shape + (6,))
+
+
+def strip_curvature(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, plastic_poisson=0.5,
+                    fabric_poisson=0.3, rest_curvature=0.0, mode="narrow"):
+    """Curvature (1/mm) of a released bilayer strip, > 0 when concave on the fabric side.
+
+    plastic_thickness, fabric_thickness: mm; stretch: isotropic pre-stretch s >= 1;
+    modulus_ratio: E_plastic / E_fabric; rest_curvature: plastic set (1/mm, same sign as
+    the bilayer bend). Arrays broadcast. The curvature is b11 / a11 of the uniform state
+    (normal curvature per unit deformed length along the strip)."""
+    z = strip_state(plastic_thickness, fabric_thickness, stretch, modulus_ratio, plastic_poisson=plastic_poisson,
+                    fabric_poisson=fabric_poisson, rest_curvature=rest_curvature, mode=mode)
+    return -z[..., 3] / z[..., 0]
+
+
+def timoshenko_curvature(plastic_thickness, fabric_thickness, modulus_ratio, misfit):
+    """Timoshenko (1925) bilayer curvature (1/mm) for a small misfit strain (beam theory):
+    kappa = 6 eps (1 + m)^2 / (h (3 (1 + m)^2 + (1 + m n)(m^2 + 1/(m n)))),
+    m = h1/h2, n = E1/E2, h = h1 + h2 (layer 1 = plastic)."""
+    h1, h2 = np.asarray(plastic_thickness, float), np.asarray(fabric_thickness, float)
+    m, n = h1 / h2, np.asarray(modulus_ratio, float)
+    return 6 * misfit * (1 + m) ** 2 / ((h1 + h2) * (3 * (1 + m) ** 2 + (1 + m * n) * (m * m + 1 / (m * n))))

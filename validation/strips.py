@@ -1,0 +1,256 @@
+"""Bilayer-strip data and the calibration of the plastic/fabric modulus ratio.
+
+A strips CSV (schema: validation/data/README.md) lists plastic strips printed on
+pre-stretched fabric, released and photographed from the side. This module reads
+and validates such files, evaluates the project's bilayer model for them and fits
+the modulus ratio E_plastic / E_fabric by nonlinear least squares on that model.
+
+Units: mm, 1/mm for curvatures, dimensionless stretch and modulus ratio.
+
+Model: ``shellfem.strip.strip_curvature``, the engine's layered Kirchhoff energy
+(fabric with rest metric I/s^2, plastic above it with rest metric I and optional
+rest curvature) minimised over uniform states of a fully printed strip.
+:func:`_timoshenko_curvature` is the closed form the seed quotes after Eq. 3.17
+(its Eq. 3.13 coefficient), kept for comparison.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+
+import numpy as np
+
+from selfshape.errors import SelfshapeError
+
+MEASURED = "curvature_per_mm"
+REST = "rest_curvature_per_mm"
+NUMERIC = ("stretch", "orientation_deg", "plastic_thickness_mm", "fabric_thickness_mm",
+           "width_mm", "length_mm")
+REQUIRED = ("specimen", "side") + NUMERIC
+SIDES = ("front", "back")
+PLASTIC_POISSON = 0.5
+FABRIC_POISSON = 0.3
+
+# ---------------------------------------------------------------------------
+# reading
+
+
+def _number(text, where, col, positive=False, at_least=None):
+    try:
+        v = float(text)
+    except (TypeError, ValueError):
+        raise SelfshapeError(f"{where}, column {col}: not a number: {text!r}") from None
+    if not math.isfinite(v):
+        raise SelfshapeError(f"{where}, column {col}: not finite: {text!r}")
+    if positive and v <= 0:
+        raise SelfshapeError(f"{where}, column {col}: must be > 0, got {v:g}")
+    if at_least is not None and v < at_least:
+        raise SelfshapeError(f"{where}, column {col}: must be >= {at_least:g}, got {v:g}")
+    return v
+
+
+def read_strips(path, require_measured=True) -> dict:
+    """Read and validate a strips CSV. Returns a dict of column arrays (n rows):
+    specimen, side (str arrays), the numeric columns (float), ``curvature_per_mm``
+    (NaN where absent when ``require_measured`` is False), ``rest_curvature_per_mm``
+    (NaN where empty), plus ``_raw`` (header, raw rows) and ``_file``.
+    Raises SelfshapeError naming file, row and column on any bad entry."""
+    name = os.path.basename(str(path))
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            table = list(csv.reader(f))
+    except (OSError, UnicodeDecodeError) as e:
+        raise SelfshapeError(f"{name}: cannot read strips CSV: {e}") from None
+    table = [r for r in table if any(c.strip() for c in r)]
+    if not table:
+        raise SelfshapeError(f"{name}: empty file, expected a strips CSV header")
+    header = [h.strip() for h in table[0]]
+    missing = [c for c in REQUIRED if c not in header]
+    if require_measured and MEASURED not in header:
+        missing.append(MEASURED)
+    if missing:
+        raise SelfshapeError(f"{name}: missing column(s) {', '.join(missing)} in header")
+    if len(set(header)) != len(header):
+        raise SelfshapeError(f"{name}: duplicate column names in header")
+    body = table[1:]
+    if not body:
+        raise SelfshapeError(f"{name}: no data rows")
+    col = {h: i for i, h in enumerate(header)}
+    n = len(body)
+    out = {"specimen": np.empty(n, dtype=object), "side": np.empty(n, dtype=object)}
+    for c in NUMERIC + (MEASURED, REST):
+        out[c] = np.full(n, np.nan)
+    for i, r in enumerate(body):
+        where = f"{name}: row {i + 1}"
+        if len(r) != len(header):
+            raise SelfshapeError(f"{where}: {len(r)} fields, header has {len(header)}")
+        get = lambda c: r[col[c]].strip()  # noqa: E731
+        spec = get("specimen")
+        if not spec:
+            raise SelfshapeError(f"{where}, column specimen: empty")
+        where = f"{name}: row {i + 1} (specimen {spec})"
+        side = get("side").lower()
+        if side not in SIDES:
+            raise SelfshapeError(f"{where}, column side: must be front or back, got {get('side')!r}")
+        out["specimen"][i], out["side"][i] = spec, side
+        out["stretch"][i] = _number(get("stretch"), where, "stretch", at_least=1.0)
+        out["orientation_deg"][i] = _number(get("orientation_deg"), where, "orientation_deg")
+        for c in ("plastic_thickness_mm", "fabric_thickness_mm", "width_mm", "length_mm"):
+            out[c][i] = _number(get(c), where, c, positive=True)
+        if MEASURED in col:
+            t = get(MEASURED)
+            if t or require_measured:
+                if not t:
+                    raise SelfshapeError(f"{where}, column {MEASURED}: empty")
+                out[MEASURED][i] = _number(t, where, MEASURED)
+        if REST in col and get(REST):
+            out[REST][i] = _number(get(REST), where, REST)
+    out["_raw"] = (header, body)
+    out["_file"] = name
+    return out
+
+
+def n_rows(rows) -> int:
+    return len(rows["specimen"])
+
+
+def subset(rows, idx) -> dict:
+    """Rows ``idx`` (index array or boolean mask) of a rows dict."""
+    out = {k: (v[idx] if isinstance(v, np.ndarray) else v) for k, v in rows.items() if k != "_raw"}
+    return out
+
+
+# ---------------------------------------------------------------------------
+# the bilayer model
+
+def _timoshenko_curvature(plastic_thickness, fabric_thickness, misfit, modulus_ratio):
+    """Timoshenko's bimetal curvature (seed after Eq. 3.17, written as Eq. 3.13):
+    kappa = 6 E1 E2 h1 h2 (h1 + h2) eps / (E1^2 h1^4 + 2 E1 E2 h1 h2 (2h1^2 + 3h1h2 + 2h2^2)
+    + E2^2 h2^4), with 1 = plastic, 2 = fabric, eps the misfit strain (1/mm out)."""
+    h1, h2, n = (np.asarray(v, float) for v in (plastic_thickness, fabric_thickness, modulus_ratio))
+    den = n * n * h1 ** 4 + 2 * n * h1 * h2 * (2 * h1 ** 2 + 3 * h1 * h2 + 2 * h2 ** 2) + h2 ** 4
+    return 6 * n * h1 * h2 * (h1 + h2) * np.asarray(misfit, float) / den
+
+
+def model_source() -> str:
+    """The implementation :func:`strip_model` uses."""
+    return "shellfem.strip.strip_curvature"
+
+
+def strip_model(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *,
+                rest_curvature=0.0, mode="narrow"):
+    """Curvature (1/mm, > 0 concave on the fabric side) of a fully printed bilayer
+    strip: the project's model, shellfem.strip. Thicknesses in mm; arrays broadcast."""
+    from shellfem.strip import strip_curvature
+    return np.asarray(strip_curvature(plastic_thickness, fabric_thickness, stretch, modulus_ratio,
+                                      plastic_poisson=PLASTIC_POISSON, fabric_poisson=FABRIC_POISSON,
+                                      rest_curvature=rest_curvature, mode=mode), float)
+
+
+# ---------------------------------------------------------------------------
+# calibration
+
+RATIO_RANGE = (1.0, 1e7)
+
+
+def fit_modulus_ratio(rows, rest_curvature=0.0):
+    """Least-squares modulus ratio of the base model (narrow strip, plastic rest
+    curvature ``rest_curvature``) to the measured curvatures. Returns dict: value,
+    se (delta method from log space), ci95 (profile likelihood, F-based), ssr,
+    residuals (measured - fitted), fitted."""
+    from validation import stats
+    y = rows[MEASURED]
+    args = (rows["plastic_thickness_mm"], rows["fabric_thickness_mm"], rows["stretch"])
+    kb = np.asarray(rest_curvature, float)
+    grid = np.exp(np.linspace(*np.log(RATIO_RANGE), 71))
+    k = strip_model(*(a[None] for a in args), grid[:, None], rest_curvature=kb)
+    t0 = np.log(grid[np.argmin(((k - y) ** 2).sum(1))])
+
+    def res(t):  # t: (1,) or (m, 1) log ratio
+        t = np.asarray(t, float)
+        return strip_model(*args, np.exp(t[..., :1]), rest_curvature=kb) - y
+
+    lo, hi = np.log(RATIO_RANGE)
+    r = stats.nls_fit(res, [t0], [lo], [hi], batch_fn=res)
+    t_hat = float(r["theta"][0])
+    ssr_of = lambda t: float((res(np.array([t])) ** 2).sum())  # noqa: E731
+    ci = stats.profile_interval(ssr_of, t_hat, r["ssr"], y.size, 1, lo, hi)
+    value = float(np.exp(t_hat))
+    fitted = y + r["residuals"]
+    return {"value": value, "se": value * float(r["se"][0]), "ci95": [float(np.exp(ci[0])), float(np.exp(ci[1]))],
+            "ssr": r["ssr"], "residuals": -r["residuals"], "fitted": fitted}
+
+
+def seed_linear_fit(rows):
+    """The seed's calibration (section 3.3): linear regression through the origin
+    of kappa - kbar on 6 h2 (h1 + h2)(1 - 1/s^2) / h1^3 (Eq. 3.17), slope E2/E1.
+    Missing rest curvatures count as 0. Returns (E1/E2, standard error)."""
+    h1, h2, s = rows["plastic_thickness_mm"], rows["fabric_thickness_mm"], rows["stretch"]
+    x = 6 * h2 * (h1 + h2) * (1 - 1 / s ** 2) / h1 ** 3
+    y = rows[MEASURED] - np.nan_to_num(rows[REST], nan=0.0)
+    slope = float(x @ y / (x @ x))
+    dof = max(x.size - 1, 1)
+    se = float(np.sqrt(((y - slope * x) ** 2).sum() / dof / (x @ x)))
+    return 1.0 / slope, se / slope ** 2
+
+
+def calibrate_strips(csv_path, out_dir) -> dict:
+    """Fit the plastic/fabric modulus ratio to a strips CSV with the base model
+    (plastic flat at rest: issue 4, loop step 1). Writes out_dir/parameters.json
+    (``modulus_ratio`` [value, standard error], its 95 % profile-likelihood
+    interval, the fit residuals; for comparison the ratio with the measured rest
+    curvatures and the seed's Eq. 3.17 linear regression) and
+    out_dir/strips_fit.png. Returns the parameters dict."""
+    rows = read_strips(csv_path)
+    base = fit_modulus_ratio(rows)
+    out = {"modulus_ratio": [base["value"], base["se"]]}
+    rest = rows[REST]
+    if np.isfinite(rest).all():
+        wr = fit_modulus_ratio(rows, rest_curvature=rest)
+        out["modulus_ratio_rest_measured"] = [wr["value"], wr["se"]]
+    out["modulus_ratio_seed_eq3_17"] = list(seed_linear_fit(rows))
+    n = n_rows(rows)
+    out["confidence_intervals_95"] = {"modulus_ratio": base["ci95"]}
+    if "modulus_ratio_rest_measured" in out:
+        out["confidence_intervals_95"]["modulus_ratio_rest_measured"] = wr["ci95"]
+    out["fit"] = {"data": rows["_file"], "n_rows": n, "model": model_source() + ", mode narrow",
+                  "base_model": "plastic flat at rest (rest curvature 0); only the modulus ratio is fitted",
+                  "method": "nonlinear least squares on log(modulus_ratio); standard error by the delta "
+                            "method; 95 % interval by profile likelihood (F test)",
+                  "rms_residual_per_mm": float(np.sqrt(base["ssr"] / n)),
+                  "relative_rms": float(np.sqrt(base["ssr"] / n) / np.sqrt(np.mean(rows[MEASURED] ** 2))),
+                  "poisson": {"plastic": PLASTIC_POISSON, "fabric": FABRIC_POISSON}}
+    out["residuals"] = {"specimen": [str(s) for s in rows["specimen"]],
+                        "measured_per_mm": [float(v) for v in rows[MEASURED]],
+                        "fitted_per_mm": [float(v) for v in base["fitted"]],
+                        "residual_per_mm": [float(v) for v in base["residuals"]]}
+    os.makedirs(out_dir, exist_ok=True)
+    _plot_fit(rows, base["value"], os.path.join(out_dir, "strips_fit.png"))
+    with open(os.path.join(out_dir, "parameters.json"), "w") as fh:
+        json.dump(out, fh, indent=2)
+    return out
+
+
+def _plot_fit(rows, ratio, path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(5.5, 4.0))
+    h = rows["plastic_thickness_mm"]
+    hs = np.linspace(h.min() * 0.9, h.max() * 1.1, 100)
+    keys = sorted({(rows["side"][i], rows["stretch"][i]) for i in range(n_rows(rows))})
+    for j, (side, s) in enumerate(keys):
+        m = (rows["side"] == side) & (rows["stretch"] == s)
+        color = f"C{j % 10}"
+        ax.plot(h[m], rows[MEASURED][m], "o", ms=3, color=color, alpha=0.6, label=f"{side}, s = {s:g}")
+        hf = float(np.median(rows["fabric_thickness_mm"][m]))
+        ax.plot(hs, strip_model(hs, hf, s, ratio), "-", color=color, lw=1.2)
+    ax.set_xlabel("plastic thickness (mm)")
+    ax.set_ylabel("curvature (1/mm)")
+    ax.set_title(f"{rows['_file']}: base model, E_p/E_f = {ratio:.4g}", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
