@@ -18,7 +18,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from geometry.fields import cotan_weights, factorize
-from geometry.target import boundary_loop_count, face_areas
+from geometry.target import boundary_loop_count, face_areas, unique_edges
 from selfshape.errors import SelfshapeError
 
 
@@ -91,8 +91,7 @@ def tutte_embedding(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     bnd = igl.boundary_loop(F)
     bc = igl.map_vertices_to_circle(np.asfortranarray(V, dtype=float), bnd.astype(np.int32))
     n = len(V)
-    E = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
-    E = np.unique(E, axis=0)
+    E, _, _ = unique_edges(F)
     A = sp.coo_matrix((np.ones(2 * len(E)), (np.r_[E[:, 0], E[:, 1]], np.r_[E[:, 1], E[:, 0]])), shape=(n, n)).tocsr()
     L = sp.diags(np.asarray(A.sum(axis=1)).ravel()) - A
     free = np.setdiff1d(np.arange(n), bnd)
@@ -175,59 +174,69 @@ def principal_stretches(J: np.ndarray, k1: np.ndarray):
 
 
 def _local_step(P0, P1, s1, s2, bounds):
-    """One local update: rotation R = (c, s) by the signed Procrustes solution (Eq. 5.12) for
-    the current stretches, then clamped stretches (Eq. 5.7). P0 = J k1, P1 = J k2 (m, 2): the
-    Jacobian in the curvature frame."""
-    psi = np.arctan2(s1 * P0[:, 1] - s2 * P1[:, 0], s1 * P0[:, 0] + s2 * P1[:, 1])
-    c, s = np.cos(psi), np.sin(psi)
+    """One local update: rotation R = [[c, -s], [s, c]] by the signed Procrustes solution
+    (Eq. 5.12) for the current stretches, then clamped stretches (Eq. 5.7).
+    P0 = J k1, P1 = J k2 (m, 2): the Jacobian in the curvature frame."""
+    x = s1 * P0[:, 0] + s2 * P1[:, 1]
+    y = s1 * P0[:, 1] - s2 * P1[:, 0]
+    h = np.hypot(x, y)
+    h[h == 0] = 1.0
+    c, s = x / h, y / h
+    c[h == 0] = 1.0
     s1 = np.clip(P0[:, 0] * c + P0[:, 1] * s, bounds[0], bounds[1])
     s2 = np.clip(P1[:, 1] * c - P1[:, 0] * s, bounds[2], bounds[3])
     return c, s, s1, s2
 
 
 class _Problem:
-    """Precomputed per-face and global-step data of Eq. 5.3 for one mesh and k1 field."""
+    """Precomputed sparse operators of Eq. 5.3 for one mesh and k1 field.
+
+    B (2m, n): stacked maps uv -> J k1 and uv -> J k2 per face. A1, A2 (n, m): the global
+    right-hand side of Eq. 5.14 is A1 @ (R Sigma)[:, :, 0] + A2 @ (R Sigma)[:, :, 1]."""
 
     def __init__(self, V, F, k1, Dinv, X, bounds, local_loops):
-        self.F, self.bounds, self.local_loops = F, bounds, local_loops
+        self.bounds, self.local_loops = bounds, local_loops
         n, m = len(V), len(F)
+        self.m = m
         self.area = face_areas(V, F)
         K = np.stack([k1, np.column_stack([-k1[:, 1], k1[:, 0]])], axis=2)   # columns k1, k2
-        self.K = K
-        self.Q = Dinv @ K          # P = [e1 e2] Q, e1, e2 the flat edge vectors of the face
+        Q = Dinv @ K                        # J K = [e1 e2] Q, e1, e2 the flat edge vectors
+        rows = np.repeat(np.arange(m), 3)
+        cols = F.reshape(-1)
+        blocks = []
+        for j in range(2):                  # coefficient of uv[F0], uv[F1], uv[F2] in (J K)[:, j]
+            coef = np.column_stack([-(Q[:, 0, j] + Q[:, 1, j]), Q[:, 0, j], Q[:, 1, j]]).reshape(-1)
+            blocks.append(sp.csr_matrix((coef, (rows, cols)), shape=(m, n)))
+        self.B = sp.vstack(blocks).tocsr()
         Dh = X[:, [0, 1, 2], :] - X[:, [1, 2, 0], :]                      # X_i - X_j per half-edge
-        self.Y = np.einsum("fab,fha->fhb", K, Dh)                          # in the (k1, k2) frame
+        Y = np.einsum("fab,fha->fhb", K, Dh)                               # in the (k1, k2) frame
         w = cotan_weights(V, F)
         he_i, he_j = F.reshape(-1), np.roll(F, -1, axis=1).reshape(-1)
-        rows = np.arange(3 * m)
-        G = sp.csr_matrix((np.r_[np.ones(3 * m), -np.ones(3 * m)], (np.r_[rows, rows], np.r_[he_i, he_j])),
+        he = np.arange(3 * m)
+        G = sp.csr_matrix((np.r_[np.ones(3 * m), -np.ones(3 * m)], (np.r_[he, he], np.r_[he_i, he_j])),
                           shape=(3 * m, n))
-        self.Kt = (G.T @ sp.diags(w)).tocsr()
-        L = (self.Kt @ G).tocsc()
+        Kt = (G.T @ sp.diags(w)).tocsr()
+        R = sp.csr_matrix((np.ones(3 * m), (he, he // 3)), shape=(3 * m, m))
+        self.A1 = (Kt @ sp.diags(Y[..., 0].reshape(-1)) @ R).tocsr()
+        self.A2 = (Kt @ sp.diags(Y[..., 1].reshape(-1)) @ R).tocsr()
+        L = (Kt @ G).tocsc()
         # vertex n-1 is pinned (translation gauge): the free unknowns are a contiguous slice
         self.solve = factorize(L[: n - 1, : n - 1])
         self.L_fp = np.asarray(L[: n - 1, n - 1].todense()).ravel()
 
-    def frame_jacobian(self, uv):
-        F, Q = self.F, self.Q
-        e1 = uv[F[:, 1]] - uv[F[:, 0]]
-        e2 = uv[F[:, 2]] - uv[F[:, 0]]
-        return e1 * Q[:, 0, 0, None] + e2 * Q[:, 1, 0, None], e1 * Q[:, 0, 1, None] + e2 * Q[:, 1, 1, None]
-
     def local(self, uv, s1, s2):
-        P0, P1 = self.frame_jacobian(uv)
+        P = self.B @ uv
+        P0, P1 = P[: self.m], P[self.m:]
         for _ in range(self.local_loops):
             c, s, s1, s2 = _local_step(P0, P1, s1, s2, self.bounds)
-        # ||J - R Sigma R_theta||_F = ||J K - R Sigma|| (K orthogonal)
+        # ||J - R Sigma R_theta||_F = ||J K - R Sigma||_F (K orthogonal)
         r = ((P0[:, 0] - c * s1) ** 2 + (P0[:, 1] - s * s1) ** 2
              + (P1[:, 0] + s * s2) ** 2 + (P1[:, 1] - c * s2) ** 2)
         return (c, s, s1, s2), float(self.area @ r)
 
     def global_step(self, uv, st):
-        c, s, s1, s2 = (a[:, None] for a in st)
-        Y0, Y1 = self.Y[..., 0], self.Y[..., 1]
-        MD = np.stack([c * s1 * Y0 - s * s2 * Y1, s * s1 * Y0 + c * s2 * Y1], axis=2).reshape(-1, 2)
-        b = self.Kt @ MD
+        c, s, s1, s2 = st
+        b = self.A1 @ np.column_stack([c * s1, s * s1]) + self.A2 @ np.column_stack([-s * s2, c * s2])
         out = uv.copy()
         out[:-1] = self.solve(b[:-1] - np.outer(self.L_fp, uv[-1]))
         return out
@@ -242,51 +251,10 @@ def _anderson(xs, gs, window):
     return gs[-1] - dG @ gamma
 
 
-def flatten(V: np.ndarray, F: np.ndarray, dir1: np.ndarray, bounds=None, *, max_iter: int = 2000,
-            tol: float = 1e-6, slim_iterations: int = 2, uv_init: np.ndarray | None = None,
-            local_loops: int = 2, anderson: int = 5) -> FlatResult:
-    """Bounded-stretch flattening of a disk-topology target (V mm, F) with per-face k1
-    directions ``dir1`` (m, 3). bounds = (s1min, s1max, s2min, s2max), default
-    `stretch_bounds()`. Init: Tutte (unit circle) + ``slim_iterations`` of SLIM, or ``uv_init``.
-    Each iteration: ``local_loops`` local updates, one global solve (Eq. 5.14, factored once).
-    Stops when the mean change of sigma1 and of sigma2 between iterations is below ``tol``;
-    at ``max_iter`` iterations returns converged=False. ``anderson`` > 1: Anderson
-    acceleration of the global iterates with that window, each accelerated step accepted only
-    if it lowers Eq. 5.3 (otherwise the plain local/global step is taken); 0 = plain."""
-    times = {}
-    V = np.ascontiguousarray(V, dtype=float)
-    F = np.ascontiguousarray(F, dtype=np.int64)
-    bounds = _check_bounds(stretch_bounds() if bounds is None else bounds)
-    dir1 = np.asarray(dir1, dtype=float)
-    if dir1.shape != F.shape:
-        raise SelfshapeError(f"flatten: dir1 must have shape {F.shape}, got {dir1.shape}")
-    if boundary_loop_count(F, len(V)) != 1:
-        raise SelfshapeError("flatten: the mesh must have exactly one boundary loop (disk topology)")
-    U, W, Dinv, X = local_triangles(V, F)
-    k1 = np.column_stack([np.einsum("ij,ij->i", dir1, U), np.einsum("ij,ij->i", dir1, W)])
-    kn = np.linalg.norm(k1, axis=1)
-    if not (kn > 1e-9).all():
-        raise SelfshapeError(f"flatten: dir1 of face {int(np.flatnonzero(~(kn > 1e-9))[0])} is not a tangent direction")
-    k1 /= kn[:, None]
-
-    t0 = time.perf_counter()
-    if uv_init is None:
-        uv = tutte_embedding(V, F)
-        times["tutte"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        uv = slim_map(V, F, uv, slim_iterations)
-        times["slim"] = time.perf_counter() - t0
-    else:
-        uv = np.array(uv_init, dtype=float)
-        if uv.shape != (len(V), 2):
-            raise SelfshapeError(f"flatten: uv_init must have shape {(len(V), 2)}, got {uv.shape}")
-    t0 = time.perf_counter()
-    prob = _Problem(V, F, k1, Dinv, X, bounds, local_loops)
-
-    m = len(F)
-    st, E = prob.local(uv, np.ones(m), np.ones(m))     # sigma = 1, R from Eq. 5.12
+def _iterate(prob, uv, st, E, max_iter, tol, anderson, change):
+    """Local/global iterations from (uv, local state st, energy E) until
+    change(old_state, new_state, old_E, new_E) -> (c1, c2) has both entries below tol."""
     history, xs, gs = [], [], []
-    converged = False
     it = 0
     while it < max_iter:
         g = prob.global_step(uv, st)
@@ -304,11 +272,86 @@ def flatten(V: np.ndarray, F: np.ndarray, dir1: np.ndarray, bounds=None, *, max_
             new_uv = g                                   # reject the extrapolation
             new_st, new_E = prob.local(g, st[2], st[3])
             xs, gs = [], []
-        history.append((float(np.abs(new_st[2] - st[2]).mean()), float(np.abs(new_st[3] - st[3]).mean())))
+        history.append(change(st, new_st, E, new_E))
         uv, st, E = new_uv, new_st, new_E
         if history[-1][0] < tol and history[-1][1] < tol:
-            converged = True
-            break
+            return uv, st, E, it, True, history
+    return uv, st, E, it, False, history
+
+
+def flatten(V: np.ndarray, F: np.ndarray, dir1: np.ndarray, bounds=None, *, max_iter: int = 2000,
+            tol: float = 1e-6, slim_iterations: int = 2, isometric_iterations: int = 100,
+            uv_init: np.ndarray | None = None, local_loops: int = 2, anderson: int = 5,
+            stop: str = "norm") -> FlatResult:
+    """Bounded-stretch flattening of a disk-topology target (V mm, F) with per-face k1
+    directions ``dir1`` (m, 3). bounds = (s1min, s1max, s2min, s2max), default
+    `stretch_bounds()`.
+
+    Init: Tutte (unit circle) + ``slim_iterations`` of SLIM (or ``uv_init``), then up to
+    ``isometric_iterations`` of the same solver with all bounds 1 (ARAP: polishes the start to
+    an isometry cheaply, reusing the factorisation). Each iteration: ``local_loops`` local
+    updates, one global solve (Eq. 5.14, factored once). Stops when the average change of
+    sigma1 and of sigma2 between iterations is below ``tol``; at ``max_iter`` iterations
+    returns converged=False. "Average change": with stop="norm" (default) ||d sigma||_2 / m,
+    the formula of the seed authors' published local/global solver (shrink-morph), the only
+    one consistent with the seed's timings; stop="mean" uses mean |d sigma| (sqrt(m) times
+    stricter). ``anderson`` > 1: Anderson acceleration (window ``anderson``) of the global
+    iterates, each extrapolation kept only if it lowers Eq. 5.3, else the plain step is
+    taken; 0 = the plain seed iteration."""
+    times = {}
+    V = np.ascontiguousarray(V, dtype=float)
+    F = np.ascontiguousarray(F, dtype=np.int64)
+    bounds = _check_bounds(stretch_bounds() if bounds is None else bounds)
+    dir1 = np.asarray(dir1, dtype=float)
+    if dir1.shape != F.shape:
+        raise SelfshapeError(f"flatten: dir1 must have shape {F.shape}, got {dir1.shape}")
+    if boundary_loop_count(F, len(V)) != 1:
+        raise SelfshapeError("flatten: the mesh must have exactly one boundary loop (disk topology)")
+    if stop not in ("norm", "mean"):
+        raise SelfshapeError(f"flatten: stop must be 'norm' or 'mean', got {stop!r}")
+    U, W, Dinv, X = local_triangles(V, F)
+    k1 = np.column_stack([np.einsum("ij,ij->i", dir1, U), np.einsum("ij,ij->i", dir1, W)])
+    kn = np.linalg.norm(k1, axis=1)
+    if not (kn > 1e-9).all():
+        raise SelfshapeError(f"flatten: dir1 of face {int(np.flatnonzero(~(kn > 1e-9))[0])} is not a tangent direction")
+    k1 /= kn[:, None]
+    m = len(F)
+
+    def avg(d):
+        return float(np.linalg.norm(d)) / m if stop == "norm" else float(np.abs(d).mean())
+
+    def sigma_change(st0, st1, E0, E1):
+        return avg(st1[2] - st0[2]), avg(st1[3] - st0[3])
+
+    def energy_change(st0, st1, E0, E1):
+        # with all bounds 1 sigma never changes: stop on the relative energy decrease
+        rel = (E0 - E1) / max(E0, 1e-300)
+        return (rel, rel) if E1 > 1e-14 * prob.area.sum() else (0.0, 0.0)
+
+    t0 = time.perf_counter()
+    if uv_init is None:
+        uv = tutte_embedding(V, F)
+        times["tutte"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        uv = slim_map(V, F, uv, slim_iterations)
+        times["slim"] = time.perf_counter() - t0
+    else:
+        uv = np.array(uv_init, dtype=float)
+        if uv.shape != (len(V), 2):
+            raise SelfshapeError(f"flatten: uv_init must have shape {(len(V), 2)}, got {uv.shape}")
+    t0 = time.perf_counter()
+    prob = _Problem(V, F, k1, Dinv, X, (1.0, 1.0, 1.0, 1.0), local_loops)
+    ones = np.ones(m)
+    iso_it = 0
+    if isometric_iterations > 0:
+        st, E = prob.local(uv, ones, ones)
+        uv, st, E, iso_it, _, _ = _iterate(prob, uv, st, E, isometric_iterations, tol, anderson, energy_change)
+    times["isometric"] = time.perf_counter() - t0
+    times["isometric_iterations"] = iso_it
+    t0 = time.perf_counter()
+    prob.bounds = bounds
+    st, E = prob.local(uv, ones, ones)     # sigma = 1, R from Eq. 5.12
+    uv, st, E, it, converged, history = _iterate(prob, uv, st, E, max_iter, tol, anderson, sigma_change)
     times["local_global"] = time.perf_counter() - t0
 
     c, s, s1, s2 = st

@@ -389,6 +389,16 @@ def _header_float(meta, key, lineno_name):
         raise SelfshapeError(f"{lineno_name}: selfshape header {key} = {v!r} is not a number") from None
 
 
+def _finite(what, v):
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        v = math.nan
+    if not math.isfinite(v):
+        raise SelfshapeError(f"read_gcode: {what} must be a finite number")
+    return v
+
+
 def segment_widths(seg, heights, filament_diameter_mm):
     """Bead width (mm) per segment: the ;WIDTH: hint or the bead model inverted from the
     deposited volume. heights: (n,) layer heights (mm). Vectorised."""
@@ -456,11 +466,11 @@ def read_gcode(path, *, side=None, mirror_axis_x=None, filament_diameter_mm=None
     # settings: explicit argument > file header > default
     if meta["filament_diameter_mm_file"] is not None:
         d_f, d_src = meta["filament_diameter_mm_file"], "file comment"
-        if filament_diameter_mm is not None and abs(filament_diameter_mm - d_f) > 1e-9:
+        if filament_diameter_mm is not None and abs(_finite("filament_diameter_mm", filament_diameter_mm) - d_f) > 1e-9:
             warnings.append(f"filament diameter {filament_diameter_mm:g} mm given, the file says {d_f:g} mm: "
                             f"using the file's")
     elif filament_diameter_mm is not None:
-        d_f, d_src = float(filament_diameter_mm), "argument"
+        d_f, d_src = _finite("filament_diameter_mm", filament_diameter_mm), "argument"
     else:
         d_f, d_src = DEFAULT_FILAMENT_DIAMETER_MM, "default"
         warnings.append(f"{name}: filament diameter not stated in the file, assuming {d_f:g} mm")
@@ -471,10 +481,11 @@ def read_gcode(path, *, side=None, mirror_axis_x=None, filament_diameter_mm=None
     if origin.shape != (2,) or not np.isfinite(origin).all():
         raise SelfshapeError(f"read_gcode: origin_mm must be (x, y), got {origin_mm!r}")
     hdr_axis = _header_float(meta, "mirror_axis_x_mm", name)
-    axis = float(mirror_axis_x if mirror_axis_x is not None else (hdr_axis[0] if hdr_axis else
-                                                                   DEFAULT_MIRROR_AXIS_X_MM))
+    axis = _finite("mirror_axis_x", mirror_axis_x if mirror_axis_x is not None else
+                   (hdr_axis[0] if hdr_axis else DEFAULT_MIRROR_AXIS_X_MM))
     hdr_bed = _header_float(meta, "bed_offset_z_mm", name)
-    bed_z = float(bed_z_mm if bed_z_mm is not None else (hdr_bed[0] if hdr_bed else 0.0))
+    bed_z = _finite("bed_z_mm", bed_z_mm if bed_z_mm is not None else (hdr_bed[0] if hdr_bed else 0.0))
+    min_width_mm = _finite("min_width_mm", min_width_mm)
 
     # layer heights: hint, else the step from the extrusion level below
     levels = np.asarray(meta["layer_z_mm"])

@@ -104,11 +104,11 @@ def star_elements(outline: Polygon, spacing: float, arm_length, thickness, arm_w
     frac = evaluate_field(arm_length, x, y, r, f"{where} arm_length")
     h = evaluate_field(thickness, x, y, r, f"{where} thickness_mm")
     w = evaluate_field(arm_width, x, y, r, f"{where} arm_width_mm")
-    for name, v, ok in (("arm_length", frac, (frac >= 0) & (frac <= 1)),):
-        if not ok.all():
-            k = int(np.argmin(ok))
-            raise SelfshapeError(f"{where} {name} is {v[k]:.4g} at the star centred at ({xr[k]:.4g}, {yr[k]:.4g});"
-                                 " it must be a fraction of spacing_mm in [0, 1]")
+    ok = (frac >= 0) & (frac <= 1)
+    if not ok.all():
+        k = int(np.argmin(ok))
+        raise SelfshapeError(f"{where} arm_length is {frac[k]:.4g} at the star centred at ({xr[k]:.4g}, {yr[k]:.4g});"
+                             " it must be a fraction of spacing_mm in [0, 1]")
     keep = frac > 0
     for name, v in (("thickness_mm", h), ("arm_width_mm", w)):
         bad = keep & ~(v > 0)

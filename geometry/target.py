@@ -100,9 +100,10 @@ def unique_edges(F: np.ndarray):
     3f + c goes from F[f, c] to F[f, (c+1) % 3]) and the number of faces at each edge (k,).
     """
     H = halfedges(F)
-    key = np.sort(H, axis=1)
-    E, he2e, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    return E, he2e.reshape(-1), counts
+    n = int(F.max()) + 1
+    key = np.minimum(H[:, 0], H[:, 1]) * n + np.maximum(H[:, 0], H[:, 1])
+    ukey, he2e, counts = np.unique(key, return_inverse=True, return_counts=True)
+    return np.column_stack([ukey // n, ukey % n]), he2e.reshape(-1), counts
 
 
 def halfedges(F: np.ndarray) -> np.ndarray:
@@ -168,9 +169,8 @@ def check_disk(V: np.ndarray, F: np.ndarray, where: str = "mesh") -> tuple[np.nd
         a, b = E[np.flatnonzero(counts > 2)[0]]
         raise SelfshapeError(f"{where}: non-manifold edge ({a}, {b}) shared by {int(counts.max())} faces")
     H = halfedges(F)
-    _, dcounts = np.unique(H, axis=0, return_counts=True)
-    if (dcounts > 1).any():
-        _, first, dc = np.unique(H, axis=0, return_index=True, return_counts=True)
+    _, first, dc = np.unique(H[:, 0] * len(V) + H[:, 1], return_index=True, return_counts=True)
+    if (dc > 1).any():
         he = int(first[np.flatnonzero(dc > 1)[0]])
         raise SelfshapeError(f"{where}: faces are not consistently oriented "
                              f"(edge ({H[he, 0]}, {H[he, 1]}) runs the same way in two faces)")
@@ -243,8 +243,13 @@ def refine(V: np.ndarray, F: np.ndarray, levels: int = 1, method: str = "loop"):
 
 
 def levels_for_faces(n_faces: int, target_faces: int = 100_000) -> int:
-    """Subdivision levels bringing ``n_faces`` closest (in log scale) to ``target_faces``."""
-    return max(0, int(round(np.log(target_faces / n_faces) / np.log(4.0))))
+    """Subdivision levels (x4 faces each) bringing ``n_faces`` closest in log scale to
+    ``target_faces``, preferring counts within [0.4, 1.6] x target (the seed's 40k-160k)."""
+    levels = np.arange(9)
+    counts = n_faces * 4.0 ** levels
+    dist = np.abs(np.log(counts / target_faces))
+    inside = (counts >= 0.4 * target_faces) & (counts <= 1.6 * target_faces)
+    return int(levels[inside][np.argmin(dist[inside])] if inside.any() else levels[np.argmin(dist)])
 
 
 # ----------------------------------------------------------------------------- synthetic targets

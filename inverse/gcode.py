@@ -268,7 +268,10 @@ def write_gcode(ribbons, path, printer: Printer | None = None, side="front", mir
     if side not in SIDES:
         raise SelfshapeError(f"write_gcode: side must be \"front\" or \"back\", got {side!r}")
     rel = p.relative_e if relative_e is None else bool(relative_e)
-    axis = p.flip_axis_x if mirror_axis_x is None else float(mirror_axis_x)
+    try:
+        axis = p.flip_axis_x if mirror_axis_x is None else float(mirror_axis_x)
+    except (TypeError, ValueError):
+        axis = math.nan
     if not math.isfinite(axis):
         raise SelfshapeError(f"write_gcode: mirror_axis_x must be finite, got {mirror_axis_x!r}")
     h = p.layer_height_mm
@@ -313,8 +316,6 @@ def write_gcode(ribbons, path, printer: Printer | None = None, side="front", mir
     em.lines += ["M104 S0", "M140 S0", "M107", "M84", "; end of selfshape print"]
 
     _write_atomic(path, "\n".join(em.lines) + "\n")
-    printed = np.zeros(len(ribbons))
-    printed[sel] = n_layers_each * h
     bbox = (np.concatenate(bed_paths).min(0).tolist() + np.concatenate(bed_paths).max(0).tolist()
             if bed_paths else [])
     stats = dict(em.stats)

@@ -47,13 +47,13 @@ class ShellModel:
     """
 
     def __init__(self, sheet: Sheet, quad: en.QuadraticForm, membrane_mask=None, membrane=None,
-                 nodal_weight=None):
+                 external_force=None):
         self.sheet = sheet
         self.topo = build_topology(sheet.triangles)
         self.quad = quad
         self.membrane_mask = membrane_mask
         self.membrane = membrane          # callable(a_masked) -> W, g, H
-        self.nodal_weight = nodal_weight  # (n,) N, gravity along -z
+        self.external_force = external_force  # (n, 3) N, dead loads (gravity); potential -f.x
         n, ne = sheet.n_vertices, self.topo.n_edges
         self.n_vertices, self.n_edges = n, ne
         self.n_dofs = 3 * n + ne
@@ -61,12 +61,19 @@ class ShellModel:
 
     # --- construction ---------------------------------------------------------------
     @classmethod
-    def homogeneous(cls, sheet: Sheet, E: float, nu: float, h: float):
-        """Single-layer isotropic shell, flat and stress-free in the sheet's coordinates."""
+    def homogeneous(cls, sheet: Sheet, E: float, nu: float, h: float, rest_curvature=None):
+        """Single-layer isotropic shell (MPa, mm), flat and stress-free in the sheet's
+        coordinates unless ``rest_curvature`` (2x2 in the sheet's x, y; 1/mm) is given."""
         P = np.concatenate([sheet.points, np.zeros((sheet.n_vertices, 1))], 1)[sheet.triangles]
         abar = edge_metric(P)
+        bbar = np.zeros_like(abar)
+        if rest_curvature is not None:
+            P2 = sheet.points[sheet.triangles]
+            Em = np.stack([P2[:, 1] - P2[:, 0], P2[:, 2] - P2[:, 0]], 2)        # columns E1, E2
+            Bm = np.einsum("mji,jk,mkl->mil", Em, np.asarray(rest_curvature, float), Em)
+            bbar = np.stack([Bm[:, 0, 0], Bm[:, 0, 1], Bm[:, 1, 1]], 1)
         quad = en.QuadraticForm(sheet.n_triangles)
-        quad.add(*en.layer_quadratic(abar, np.zeros_like(abar), E, nu, -h / 2, h / 2))
+        quad.add(*en.layer_quadratic(abar, bbar, E, nu, -h / 2, h / 2))
         return cls(sheet, quad)
 
     @classmethod
@@ -121,10 +128,11 @@ class ShellModel:
 
                 def membrane(a, T=T, area=area):
                     return en.orthotropic(a, T, params, nu, hf, area)
-        weight = None
+        force = None
         if gravity and fabric.areal_weight > 0:
-            weight = nodal_loads(sheet, fabric.areal_weight / (sx * sy))
-        return cls(sheet, quad, bare if membrane is not None else None, membrane, weight)
+            force = np.zeros((sheet.n_vertices, 3))
+            force[:, 2] = -nodal_loads(sheet, fabric.areal_weight / (sx * sy))
+        return cls(sheet, quad, bare if membrane is not None else None, membrane, force)
 
     # --- index maps -------------------------------------------------------------------
     def _build_indices(self):
@@ -184,8 +192,8 @@ class ShellModel:
                 return W, g, H
         W, Wy, Wyy = en.face_energy(a, h, psi, self.quad, membrane, hessian=order >= 2)
         E = W.sum()
-        if self.nodal_weight is not None:
-            E += self.nodal_weight @ x[:, 2]
+        if self.external_force is not None:
+            E -= float(np.sum(self.external_force * x))
         if order == 0:
             return E, None, None
         # Jacobian of y w.r.t. the 21 local DOFs
@@ -200,8 +208,8 @@ class ShellModel:
             J[rows[inner], 6 + i, self._hinge_cols[inner, i]] = 0.5 * gphi[fi[inner]]
         g_face = (Wy[:, None, :] @ J)[:, 0]
         grad = np.bincount(self.face_dofs.ravel(), weights=g_face.ravel(), minlength=self.n_dofs)
-        if self.nodal_weight is not None:
-            grad[2:3 * self.n_vertices:3] += self.nodal_weight
+        if self.external_force is not None:
+            grad[:3 * self.n_vertices] -= self.external_force.ravel()
         if order == 1:
             return E, grad, None
         Hf = np.swapaxes(J, 1, 2) @ Wyy @ J

@@ -127,13 +127,14 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
         t0 = time.perf_counter()
         factor = None
         lam_try = (0.0 if lam <= stability_shift else lam) if converged_gradient else lam
+        lam_floor = 1e-10
         for _ in range(60):
             timings["factorisations"] += 1
             try:
                 factor = solver.factor(H if lam_try == 0.0 else H + sp.diags(lam_try * D))
                 break
             except NotPositiveDefinite:
-                lam_try = max(10.0 * lam_try, stability_shift) if lam_try > 0 else stability_shift
+                lam_try = max(8.0 * lam_try, lam_floor)
         timings["factorisation"] += time.perf_counter() - t0
         if factor is None:
             reason = "Hessian could not be regularised to positive definite"
@@ -171,7 +172,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
         if not np.isfinite(E_new) or actual <= 0 or rho < 1e-4:
             # reject: shrink the trust region and re-solve with the same Hessian
             timings["rejected_steps"] += 1
-            lam = max(10.0 * lam, 1e-6)
+            lam = max(8.0 * lam, 1e-8)
             fresh = False
             if lam > 1e12:
                 reason = f"no decrease possible (trust region collapsed) with gradient norm {gnorm:.3e}"
@@ -185,7 +186,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
         if rho > 0.75:
             lam = lam / 4 if lam > lam_min else 0.0
         elif rho < 0.25:
-            lam = max(4.0 * lam, 1e-6)
+            lam = max(4.0 * lam, 1e-8)
     return SolveResult(q, False, it, float(E), gnorm, reason, stable, history, _finish(timings, t_start))
 
 

@@ -32,8 +32,10 @@ def strip_state(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, 
     n = hp.size
     eye = np.tile([1.0, 0.0, 1.0], (n, 1))
     quad = QuadraticForm(n)
+    # energies per unit printed area; each layer is integrated over its own rest area
+    # (seed Eq. 3.9: sqrt(det a_r) dx dy), which for the fabric is 1/s^2 of the printed one
     quad.add(*layer_quadratic(eye / (s * s)[:, None], np.zeros((n, 3)), 1.0, nuf, -hf / 2, hf / 2,
-                              area=np.ones(n)))
+                              area=1.0 / (s * s)))
     quad.add(*layer_quadratic(eye, -kap[:, None] * eye, ratio, nup, hf / 2, hf / 2 + hp, area=np.ones(n)))
     if mode == "narrow":
         z = quad.minimiser()

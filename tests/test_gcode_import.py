@@ -233,6 +233,8 @@ def test_unreadable_files(tmp_path):
         read_gcode(tmp_path / "z.gcode")
     with pytest.raises(SelfshapeError, match="cap"):
         read_gcode(data("s3d_plain.gcode"), cap="butt")
+    with pytest.raises(SelfshapeError, match="mirror_axis_x must be a finite number"):
+        read_gcode(data("s3d_plain.gcode"), side="back", mirror_axis_x="middle")
 
 
 def test_thin_paths_are_dropped_and_caps_follow_the_option(tmp_path):

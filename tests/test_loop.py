@@ -183,8 +183,8 @@ def test_validate_file_predict_round_trip(tmp_path):
         assert key in on_disk
     assert on_disk["effects_added"] == rep["effects_added"]
     assert "side_deposition" in rep["effects_added"]
-    assert rep["error_after"] < 0.5 * rep["error_before"]
-    assert rep["error_after"] < 1.3 * NOISE
+    assert rep["error_after"] < 0.2 * rep["error_before"]
+    assert rep["error_after"] < 1.5 * rep["noise_relative"]  # held out, 48 rows, multiplicative noise
     p = rep["parameters"]["side_deposition.back_extra_thickness_mm"]
     assert abs(p[0] - 0.06) < 4 * p[1]
     assert all(isinstance(r["reason"], str) and r["reason"] for r in rep["effects_rejected"])
@@ -231,7 +231,7 @@ def test_bad_input_one_line_errors(tmp_path):
 
 def test_cli_validate_and_predict(tmp_path):
     from selfshape.cli import main
-    rows = synthetic("plastic_set_constant", seed=21, n_points=12)
+    rows = synthetic("plastic_set_constant", seed=21, n_points=8, reps=2)
     data = tmp_path / "c.csv"
     write_csv(rows, data)
     assert main(["validate", str(data), "-o", str(tmp_path / "v")]) == 0
@@ -246,3 +246,24 @@ def test_strips_s1_loop(tmp_path):
     rep = loop.validate_file(path, tmp_path, seed=0)
     assert rep["error_after"] < rep["error_before"]
     assert rep["effects_added"]
+
+
+def test_three_undeclared_effects_at_once():
+    """Back-face deposition, fabric orthotropy and a specimen-to-specimen plastic set
+    that only the measured rest-curvature column reveals."""
+    rows = design(0, n_points=24, orientation=(0.0, 45.0, 90.0), stretch=(1.25, 1.35, 1.5), width=(5.0, 10.0, 20.0),
+                  length=(30.0, 60.0))
+    hp, back = rows["plastic_thickness_mm"], rows["side"] == "back"
+    rng = np.random.default_rng(50)
+    rest = 0.016 - 0.02 * hp + rng.normal(0, 0.001, hp.size)
+    rows[REST] = rest + rng.normal(0, 2e-4, hp.size)
+    R = R_TRUE / (1 + 0.25 * np.cos(2 * np.radians(rows["orientation_deg"])))
+    k = strip_curvature(np.where(back, hp + 0.05, hp), rows["fabric_thickness_mm"], rows["stretch"], R,
+                        rest_curvature=rest)
+    rows[MEASURED] = k * (1 + NOISE * rng.standard_normal(k.size))
+    sel = loop.select_effects(rows, seed=0)
+    assert sorted(sel["added"]) == ["orthotropy", "plastic_set_measured", "side_deposition"]
+    p = loop._parameters(sel["fit"])
+    for name, true in (("orthotropy.cos2theta_amplitude", 0.25), ("side_deposition.back_extra_thickness_mm", 0.05)):
+        assert abs(p[name][0] - true) < 4 * p[name][1], name
+    assert _rel(sel["cv_rms_after"], rows[MEASURED]) < 1.3 * NOISE

@@ -112,16 +112,26 @@ class PlasticSetSmoothed(PlasticSetMeasured):
     """Plastic set from the measured rest curvatures with their peel-off scatter
     averaged out (errors in variables): kbar is the least-squares linear law of the
     measured rest curvature in the design covariates that vary (plastic and fabric
-    thickness, stretch, side, cos 2 theta, width, length), fitted on the training
-    rows (aux) and applied to every row. No free parameter (seed 3.3, Eq. 3.17)."""
+    thickness, stretch, side, cos 2 theta, width, length, taken in this order while
+    the design stays full rank), fitted on the training rows (aux) and applied to
+    every row. No free parameter (seed 3.3, Eq. 3.17)."""
 
     def prepare(self, rows):
         m = np.isfinite(rows[REST])
         sub = {k: v[m] for k, v in rows.items() if isinstance(v, np.ndarray)}
-        names = [c for c in SMOOTHING_COVARIATES if np.unique(np.round(_covariate(sub, c), 12)).size > 1]
+        names = []
+        for c in SMOOTHING_COVARIATES:  # keep the design full rank with spare rows
+            X = _smoothing_design(sub, names + [c])
+            if X.shape[0] > X.shape[1] and np.linalg.matrix_rank(X) == X.shape[1]:
+                names.append(c)
         X = _smoothing_design(sub, names)
-        coef = np.linalg.lstsq(X, sub[REST], rcond=None)[0]
-        return {"covariates": names, "coefficients": [float(c) for c in coef]}
+        coef, *_ = np.linalg.lstsq(X, sub[REST], rcond=None)
+        dof = max(X.shape[0] - X.shape[1], 1)
+        s2 = float(((sub[REST] - X @ coef) ** 2).sum()) / dof
+        se = np.sqrt(np.maximum(np.diag(s2 * np.linalg.pinv(X.T @ X)), 0.0))
+        labels = ["rest_curvature_intercept_per_mm"] + [f"rest_curvature_slope_{c}" for c in names]
+        return {"covariates": names, "coefficients": [float(c) for c in coef],
+                "parameters": {q: [float(c), float(e)] for q, c, e in zip(labels, coef, se)}}
 
     def apply(self, rows, p, state, aux):
         law = _smoothing_design(rows, aux["covariates"]) @ np.asarray(aux["coefficients"])

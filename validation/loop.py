@@ -76,6 +76,12 @@ def _effects_of(names):
     return [fx.BY_NAME[n] for n in names]
 
 
+def _theta_without(f, name):
+    """Natural parameters of fit f with effect ``name``'s parameters left out."""
+    keep = [i for i, q in enumerate(f["names"]) if not q.startswith(name + ".")]
+    return [f["theta"][i] for i in keep]
+
+
 def predict_fit(rows, f):
     return fx.predict(rows, _effects_of(f["effects"]), f["theta"], f["aux"])
 
@@ -109,9 +115,14 @@ def residual_analysis(rows, residuals, fitted, seed=0):
     and the replicate groups (lack of fit), Holm-adjusted at ALPHA."""
     cov = covariate_table(rows, fitted)
     g = replicate_groups(rows)
+    within = None
     if np.unique(g).size < n_rows(rows):
         cov["replicate_groups"] = g.astype(float)
-    return stats.residual_tests(residuals, cov, alpha=ALPHA, n_perm=N_PERM, seed=seed)
+        rest = rows[REST]
+        m = np.isfinite(rest)
+        if m.sum() > np.unique(g[m]).size + 2:  # the rest curvature varies inside replicate groups
+            within = (g, {REST: rest})
+    return stats.residual_tests(residuals, cov, alpha=ALPHA, n_perm=N_PERM, seed=seed, within=within)
 
 
 def replicate_groups(rows):
@@ -120,12 +131,16 @@ def replicate_groups(rows):
     return np.unique(keys, return_inverse=True)[1]
 
 
-def noise_estimate(rows, fallback_rms):
-    """Noise standard deviation of the measured curvature: pooled replicate
-    scatter when replicates give >= 5 degrees of freedom, else ``fallback_rms``."""
-    r = stats.noise_level(rows[MEASURED], replicate_groups(rows))
+def noise_estimate(rows, residuals, fallback_rms):
+    """Noise standard deviation of the measured curvature: pooled scatter of a
+    model's residuals within replicate groups (rows sharing every design covariate;
+    residuals rather than raw values so that per-row covariates the model uses,
+    such as a measured rest curvature, do not count as noise) when replicates give
+    >= 5 degrees of freedom, else ``fallback_rms``."""
+    r = stats.noise_level(residuals, replicate_groups(rows))
     if r is None:
         return {"sigma": float(fallback_rms), "dof": None, "method": "CV RMS of the base model (no replicates)"}
+    r["method"] = "pooled within-replicate-group scatter of the residuals"
     return r
 
 
@@ -142,19 +157,20 @@ def select_effects(rows, seed=0, folds=5, candidates=fx.CATALOGUE):
     y = rows[MEASURED]
     cur = fit(rows, [])
     err_cur = cv_errors(rows, [], split, start=cur["theta"])
-    noise = noise_estimate(rows, np.sqrt(np.mean(err_cur ** 2)))
+    fallback = float(np.sqrt(np.mean(err_cur ** 2)))
+    noise = noise_estimate(rows, cur["residuals"], fallback)
     sig2 = noise["sigma"] ** 2
     rejected, pool = {}, []
     for e in candidates:
         ok, why = e.applicable(rows)
         (pool.append(e) if ok else rejected.__setitem__(e.name, why))
-    added, steps, confounded = [], [], []
+    added, steps, confounded, history = [], [], [], {}
     tests_before = tests = residual_analysis(rows, cur["residuals"], y - cur["residuals"], seed)
     while pool:
         sig = [t["name"] for t in tests if t.get("significant")]
         if not sig:
             for e in pool:
-                rejected[e.name] = (f"no residual structure left against any covariate "
+                rejected[e.name] = (history.get(e.name, "") + f"no residual structure left against any covariate "
                                     f"(permutation F tests, Holm, alpha {ALPHA})")
             break
         trials = []
@@ -175,7 +191,11 @@ def select_effects(rows, seed=0, folds=5, candidates=fx.CATALOGUE):
         for t in trials:
             t["pays"] = bool(not t.get("in_sample_only") and t["gain"] > Z_GAIN * t["se"]
                              and t["gain"] > GAIN_NOISE_FRACTION * sig2)
-        best = trials[0]
+        paying = [t for t in trials if t["pays"]]
+        best = paying[0] if paying else trials[0]
+        if best is not trials[0]:  # the best-paying effect leads; the others compare with it
+            trials.remove(best)
+            trials.insert(0, best)
         if best["pays"]:
             pb = predict_fit(rows, best["fit"])
             for t in trials[1:]:
@@ -186,7 +206,10 @@ def select_effects(rows, seed=0, folds=5, candidates=fx.CATALOGUE):
                                     "prediction_rms_difference_per_mm": diff}
                     t["confounded"] = bool(abs(d) <= Z_GAIN * dse and diff <= noise["sigma"])
         steps.append({"structure_in": sig, "cv_rms_current": float(np.sqrt(np.mean(err_cur ** 2))),
+                      "aicc_current": stats.information_criteria(cur["ssr"], n, len(cur["theta"]))["aicc"],
                       "candidates": [{"effect": t["effect"].name, "cv_rms": t["cv_rms"], "gain": t["gain"],
+                                      "aicc": stats.information_criteria(t["fit"]["ssr"], n,
+                                                                         len(t["fit"]["theta"]))["aicc"],
                                       "gain_se": t["se"], "pays": t["pays"],
                                       "scored_by": "in-sample (cannot pay)" if t.get("in_sample_only") else "CV",
                                       **t.get("vs_best", {})}
@@ -207,11 +230,43 @@ def select_effects(rows, seed=0, folds=5, candidates=fx.CATALOGUE):
                 rejected[t["effect"].name] = (f"indistinguishable from {best['effect'].name} "
                                               f"(CV errors and predictions agree within the noise); "
                                               f"{best['effect'].name} was added")
+        for t in trials[1:]:
+            if t["effect"].name not in rejected:
+                how = (f"CV RMS {t['cv_rms']:.3g} vs {best['cv_rms']:.3g} 1/mm" if t["cv_rms"] is not None
+                       else "its in-sample gain was below the noise threshold")
+                history[t["effect"].name] = (f"at step {len(steps)} {best['effect'].name} was added instead "
+                                             f"({how}); then ")
         added.append(best["effect"].name)
         pool = [e for e in pool if e.name != best["effect"].name and e.name not in rejected]
         cur, err_cur = best["fit"], best["err"]
+        if noise["dof"] is not None:
+            noise = noise_estimate(rows, cur["residuals"], fallback)
+            sig2 = noise["sigma"] ** 2
         tests = residual_analysis(rows, cur["residuals"], y - cur["residuals"], seed)
-    return {"fit": cur, "added": added, "rejected": rejected, "steps": steps,
+    removed = []
+    while len(added) > 1:  # backward pass: drop an effect the others made redundant
+        worst = None
+        for name in added:
+            keep = [a for a in added if a != name]
+            f = fit(rows, _effects_of(keep), start=_theta_without(cur, name))
+            err = cv_errors(rows, _effects_of(keep), split, start=f["theta"])
+            loss, se = stats.paired_gain(err, err_cur)
+            if not (loss > Z_GAIN * se and loss > GAIN_NOISE_FRACTION * sig2):
+                if worst is None or loss < worst[1]:
+                    worst = (name, loss, se, f, err)
+        if worst is None:
+            break
+        name, loss, se, f, err = worst
+        added.remove(name)
+        removed.append(name)
+        rejected[name] = (f"added, then removed in the backward pass: without it the CV squared error rises "
+                          f"only {loss:.3g} +- {se:.3g} (1/mm)^2, the other effects explain it")
+        cur, err_cur = f, err
+    if removed:
+        tests = residual_analysis(rows, cur["residuals"], y - cur["residuals"], seed)
+        if noise["dof"] is not None:
+            noise = noise_estimate(rows, cur["residuals"], fallback)
+    return {"fit": cur, "added": added, "rejected": rejected, "steps": steps, "removed": removed,
             "indistinguishable": confounded, "noise": noise, "tests_before": tests_before,
             "tests_after": tests, "cv_rms_after": float(np.sqrt(np.mean(err_cur ** 2)))}
 
@@ -253,7 +308,7 @@ def validate(rows, seed=0, outer_folds=5, inner_folds=5):
         "noise": noise,
         "effects_added": list(final["added"]),
         "effects_rejected": [{"name": k, "reason": v} for k, v in final["rejected"].items()],
-        "parameters": {nm: [float(v), float(s)] for nm, v, s in zip(f["names"], f["theta"], f["se"])},
+        "parameters": _parameters(f),
         "indistinguishable": final["indistinguishable"],
         "residual_tests_before": final["tests_before"],
         "residual_tests_after": final["tests_after"],
@@ -267,6 +322,16 @@ def validate(rows, seed=0, outer_folds=5, inner_folds=5):
     report["_final"] = final
     report["_heldout"] = {"before": before, "after": after}
     return report
+
+
+def _parameters(f):
+    """name: [value, standard error] of a fit, including laws effects fitted to
+    auxiliary columns (e.g. the smoothed measured rest curvature)."""
+    out = {nm: [float(v), float(s)] for nm, v, s in zip(f["names"], f["theta"], f["se"])}
+    for name in f["effects"]:
+        for q, vs in f["aux"].get(name, {}).get("parameters", {}).items():
+            out[f"{name}.{q}"] = [float(vs[0]), float(vs[1])]
+    return out
 
 
 def model_dict(f) -> dict:
@@ -284,7 +349,22 @@ def model_dict(f) -> dict:
 
 
 def _public(report):
-    return {k: v for k, v in report.items() if not k.startswith("_")}
+    return _finite({k: v for k, v in report.items() if not k.startswith("_")})
+
+
+def _finite(o):
+    """JSON-safe copy: numpy to Python, NaN/inf to None."""
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_finite(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _finite(o.tolist())
+    if isinstance(o, np.generic):
+        o = o.item()
+    if isinstance(o, float) and not np.isfinite(o):
+        return None
+    return o
 
 
 def validate_file(csv_path, out_dir, seed=0) -> dict:

@@ -165,14 +165,39 @@ def permutation_f_test(residuals, labels, n_perm=999, seed=0):
     return float(f_obs), float((1 + np.count_nonzero(f_perm >= f_obs * (1 - 1e-12))) / (n_perm + 1))
 
 
-def residual_tests(residuals, covariates, alpha=0.05, n_perm=999, seed=0):
+def within_group_slope_test(residuals, x, groups, n_perm=999, seed=0):
+    """Does x explain residual scatter inside groups? Statistic |corr| of the
+    group-demeaned residuals and x; p-value by permuting x within groups (exact
+    false-positive rate under within-group exchangeability). Returns (corr, p)."""
+    r, x = np.asarray(residuals, float), np.asarray(x, float)
+    _, g = np.unique(np.asarray(groups), return_inverse=True)
+    cnt = np.bincount(g)
+    rd = r - (np.bincount(g, r) / cnt)[g]
+    xd = x - (np.bincount(g, x) / cnt)[g]
+    if xd @ xd <= 0 or rd @ rd <= 0:
+        return 0.0, 1.0
+    stat = lambda xv: abs(rd @ xv) / np.sqrt((rd @ rd) * (xv @ xv))  # noqa: E731
+    obs = stat(xd)
+    rng = np.random.default_rng(seed)
+    home = np.argsort(g, kind="stable")
+    hits = 0
+    for _ in range(n_perm):
+        xp = np.empty_like(xd)
+        xp[home] = xd[np.lexsort((rng.random(g.size), g))]
+        hits += stat(xp) >= obs * (1 - 1e-12)
+    return float(obs), float((1 + hits) / (n_perm + 1))
+
+
+def residual_tests(residuals, covariates, alpha=0.05, n_perm=999, seed=0, within=None):
     """Test residuals for structure against each covariate.
 
     covariates: {name: values} (NaN entries are left out of that covariate's test).
     Each varying covariate is grouped (levels, or quantile bins when continuous) and
     tested by a permutation F test; p-values are Holm-adjusted over the covariates
-    tested, so the family-wise false-positive rate is ``alpha``. Returns a list of
-    dicts: name, tested, method, F, p, p_holm, significant (and why not tested)."""
+    tested, so the family-wise false-positive rate is ``alpha``. ``within``:
+    optional (groups, {name: values}) of per-row covariates tested inside groups
+    (within_group_slope_test), in the same Holm family. Returns a list of dicts:
+    name, tested, method, F or corr, p, p_holm, significant (or why not tested)."""
     out = []
     for j, (name, vals) in enumerate(covariates.items()):
         v = np.asarray(vals)
@@ -188,6 +213,15 @@ def residual_tests(residuals, covariates, alpha=0.05, n_perm=999, seed=0):
         f, p = permutation_f_test(rr, labels, n_perm=n_perm, seed=seed + 7919 * (j + 1))
         out.append({"name": name, "tested": True, "method": f"permutation F test, {method}",
                     "F": f, "p": p})
+    if within is not None:
+        groups, extra = within
+        for j, (name, vals) in enumerate(extra.items()):
+            v = np.asarray(vals, float)
+            keep = np.isfinite(v)
+            c, p = within_group_slope_test(np.asarray(residuals, float)[keep], v[keep], np.asarray(groups)[keep],
+                                           n_perm=n_perm, seed=seed + 104729 * (j + 1))
+            out.append({"name": f"{name} within replicate groups", "tested": True,
+                        "method": "permutation test of the within-group correlation", "corr": c, "p": p})
     tested = [o for o in out if o["tested"]]
     adj = holm([o["p"] for o in tested])
     for o, a in zip(tested, adj):

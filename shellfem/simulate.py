@@ -1,0 +1,204 @@
+"""Form-finding: a pattern becomes a mesh, a shell model and its released equilibrium.
+
+    from shellfem.simulate import simulate
+    result = simulate(load_pattern("examples/strip.toml"))
+    result.positions            # (n, 3) deployed vertex positions, mm
+
+``simulate_pattern_file`` is the ``selfshape simulate`` verb: it writes deployed.vtu,
+summary.json and deployed.png (mm, N).
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from selfshape.errors import SelfshapeError
+from shellfem.boundary import gauge_dofs, nearest_vertices, smooth_perturbation
+from shellfem.model import ShellModel
+from shellfem.sheet import Sheet
+from shellfem.solver import SolveResult, newton
+
+
+@dataclass
+class Simulation:
+    sheet: Sheet
+    model: ShellModel
+    result: SolveResult
+    fixed: np.ndarray        # held DOF indices (supports), excluding the gauge
+    gauge: np.ndarray        # DOFs held only to remove rigid motions
+    wall_time_s: float
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.model.split(self.result.q)[0]
+
+    def summary(self) -> dict:
+        x = self.positions
+        r = self.result
+        return {
+            "converged": bool(r.converged),
+            "reason": r.reason,
+            "stable": bool(r.stable),
+            "newton_iterations": int(r.iterations),
+            "energy": float(r.energy),
+            "gradient_norm": float(r.gradient_norm),
+            "wall_time_s": round(self.wall_time_s, 3),
+            "n_vertices": int(self.sheet.n_vertices),
+            "n_triangles": int(self.sheet.n_triangles),
+            "n_dofs": int(self.model.n_dofs),
+            "bbox_mm": [float(v) for v in (x.max(0) - x.min(0))],
+            "timings_s": {k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.timings.items()},
+        }
+
+
+def _support_constraints(sheet: Sheet, supports, fabric, tol: float):
+    """(dofs, values) held by the pattern's supports."""
+    dofs, vals = [], []
+    sx, sy = fabric.stretch
+    for k, sup in enumerate(supports):
+        label = sup.label or f"[[support]] #{k + 1}"
+        idx = nearest_vertices(sheet.points, sup.points, tol, label)
+        if sup.fix == "z":
+            dofs.append(3 * idx + 2)
+            vals.append(np.zeros(len(idx)))
+        elif sup.fix == "xyz":
+            if sup.position is not None:
+                pos = np.asarray(sup.position, float).reshape(-1, 3)
+            else:
+                p = sheet.points[idx]
+                pos = np.column_stack([p[:, 0] / sx, p[:, 1] / sy, np.zeros(len(idx))])
+            dofs.append((3 * idx[:, None] + np.arange(3)).ravel())
+            vals.append(pos.ravel())
+        else:
+            raise SelfshapeError(f"{label}: fix must be \"z\" or \"xyz\", got {sup.fix!r}")
+    if not dofs:
+        return np.zeros(0, dtype=np.int64), np.zeros(0)
+    d, v = np.concatenate(dofs), np.concatenate(vals)
+    d, first = np.unique(d, return_index=True)
+    return d, v[first]
+
+
+def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0, max_iterations: int = 300,
+                   release_steps: int = 1, tol_support: float | None = None, verbose: bool = False,
+                   rtol: float = 1e-8) -> Simulation:
+    """Released equilibrium of a meshed sheet (printed-state mm) with the given materials.
+
+    The start is the flat printed state with a smooth out-of-plane perturbation of 1 % of
+    the sheet size seeded by ``seed`` (the flat state is a saddle). The release is followed
+    by continuation: the pre-stretch, the plastic set and any support motion ("xyz" supports
+    at relaxed positions) are ramped over ``release_steps`` steps, each started from a secant
+    prediction of the previous two equilibria (large rotations converge in far fewer Newton
+    iterations along such a path). ``max_iterations`` bounds each step; newton_iterations in
+    the result is the total. Only the final step's tolerance decides ``converged``."""
+    from dataclasses import replace
+    t0 = time.perf_counter()
+    model = ShellModel.from_materials(sheet, fabric, plastic)
+    q = model.initial_state()
+    x, _ = model.split(q)
+    size = float(np.linalg.norm(sheet.points.max(0) - sheet.points.min(0)))
+    x[:, 2] += smooth_perturbation(sheet.points, seed, 0.01 * size)
+    edge = np.linalg.norm(sheet.points[sheet.triangles[:, 1]] - sheet.points[sheet.triangles[:, 0]], axis=1)
+    tol = tol_support if tol_support is not None else 2.0 * float(edge.max())
+    fixed, values = _support_constraints(sheet, supports, fabric, tol)
+    gravity = model.external_force is not None
+    from shellfem.boundary import rigid_modes
+    gauge = np.zeros(0, dtype=np.int64)
+    if gravity and not np.any(fixed % 3 == 2):
+        raise SelfshapeError("gravity is on (areal_weight_n_per_mm2 > 0) but no [[support]] holds the sheet "
+                             "in z: the sheet would fall")
+    if len(fixed) == 0 or np.linalg.matrix_rank(rigid_modes(x)[fixed]) < 6:
+        gauge = gauge_dofs(x, fixed)
+    free = np.ones(model.n_dofs, bool)
+    free[fixed] = False
+    free[gauge] = False
+    start = q[fixed].copy()
+    steps = max(1, int(release_steps))
+    sx, sy = fabric.stretch
+    total_it = 0
+    q_prev = None
+    result = None
+    for k in range(1, steps + 1):
+        t = k / steps
+        fab_k = replace(fabric, stretch=(1 + (sx - 1) * t, 1 + (sy - 1) * t))
+        pla_k = replace(plastic, rest_curvature=plastic.rest_curvature * t)
+        model_k = model if k == steps else ShellModel.from_materials(sheet, fab_k, pla_k)
+        guess = q if q_prev is None else q + (q - q_prev)
+        guess[fixed] = start + (values - start) * t
+        if not np.isfinite(model_k.energy(guess)):
+            guess = q.copy()
+            guess[fixed] = start + (values - start) * t
+        last = k == steps
+        result = newton(model_k, guess, free, max_iterations=max_iterations, verbose=verbose,
+                        rtol=rtol if last else 1e-5)
+        total_it += result.iterations
+        if not result.converged and not last:
+            if verbose:
+                print(f"  release step {k}/{steps} did not converge ({result.reason}); continuing", flush=True)
+        q_prev, q = q, result.q
+        if verbose:
+            print(f"release step {k}/{steps}: {result.iterations} iterations, |g| {result.gradient_norm:.2e}",
+                  flush=True)
+    result.iterations = total_it
+    return Simulation(sheet, model, result, fixed, gauge, time.perf_counter() - t0)
+
+
+def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=False) -> Simulation:
+    """Mesh a geometry.patterns.Pattern and compute its released equilibrium."""
+    from geometry.meshing import mesh_pattern
+    sheet = mesh_pattern(pattern, size_mm=size_mm)
+    solver_opts = pattern.raw.get("solver", {}) if isinstance(pattern.raw, dict) else {}
+    mi = max_iterations or int(solver_opts.get("max_iterations", 300))
+    return simulate_sheet(sheet, pattern.fabric, pattern.plastic, pattern.supports,
+                          seed=pattern.seed if seed is None else seed, max_iterations=mi, verbose=verbose)
+
+
+def write_vtu(sim: Simulation, path: str):
+    """deployed.vtu: deployed surface with point data `reference` and cell data `region`,
+    `thickness_mm`, `side` (+1 front, -1 back, 0 fabric, 2 both), curvatures (1/mm)."""
+    import meshio
+    sheet = sim.sheet
+    k, H, K = sim.model.curvatures(sim.result.q)
+    ref = np.column_stack([sheet.points, np.zeros(sheet.n_vertices)])
+    cells = {"region": sheet.region, "thickness_mm": sheet.thickness, "side": sheet.side,
+             "thickness_front_mm": sheet.thickness_front, "thickness_back_mm": sheet.thickness_back,
+             "k1_per_mm": k[:, 0], "k2_per_mm": k[:, 1], "mean_curvature_per_mm": H,
+             "gaussian_curvature_per_mm2": K}
+    meshio.write(path, meshio.Mesh(sim.positions, [("triangle", sheet.triangles)],
+                                   point_data={"reference": ref},
+                                   cell_data={name: [np.asarray(v)] for name, v in cells.items()}))
+
+
+def simulate_pattern_file(pattern_path, out_dir, *, size_mm=None, seed=None, render=True, max_iterations=None,
+                          verbose=False) -> dict:
+    """`selfshape simulate`: writes DIR/deployed.vtu, DIR/summary.json, DIR/deployed.png.
+    summary.json is written last; on failure nothing produced by this run is left."""
+    from geometry.patterns import load_pattern
+    pattern = load_pattern(pattern_path)
+    sim = simulate(pattern, size_mm=size_mm, seed=seed, max_iterations=max_iterations, verbose=verbose)
+    os.makedirs(out_dir, exist_ok=True)
+    written = []
+    try:
+        vtu = os.path.join(out_dir, "deployed.vtu")
+        write_vtu(sim, vtu)
+        written.append(vtu)
+        summary = sim.summary()
+        summary["pattern"] = os.path.abspath(str(pattern_path))
+        summary["seed"] = pattern.seed if seed is None else seed
+        if render:
+            from shellfem.render import render_deployed
+            png = os.path.join(out_dir, "deployed.png")
+            render_deployed(sim, png, title=os.path.basename(str(pattern_path)))
+            written.append(png)
+        path = os.path.join(out_dir, "summary.json")
+        with open(path, "w") as f:
+            json.dump(summary, f, indent=2)
+        return summary
+    except BaseException:
+        for p in written:
+            if os.path.exists(p):
+                os.remove(p)
+        raise

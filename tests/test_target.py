@@ -1,0 +1,136 @@
+import glob
+import os
+
+import numpy as np
+import pytest
+
+from geometry.target import (check_disk, cylinder_patch, levels_for_faces, load_target, plane_patch,
+                             read_mesh, refine, sphere_cap)
+from selfshape.errors import SelfshapeError
+
+TARGETS = sorted(glob.glob("/work/shared/meshes/targets/*.obj"))
+
+
+def write_obj(path, V, F, extra=""):
+    with open(path, "w") as fh:
+        fh.write(extra)
+        for v in V:
+            fh.write("v %.17g %.17g %.17g\n" % tuple(v))
+        for f in F:
+            fh.write("f " + " ".join(str(i + 1) for i in f) + "\n")
+    return str(path)
+
+
+@pytest.mark.skipif(not TARGETS, reason="shared targets not present")
+@pytest.mark.parametrize("path", TARGETS)
+def test_shipped_targets_load_scaled_and_centred(path):
+    V, F = load_target(path, diagonal_mm=110.0)
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    assert np.linalg.norm(hi - lo) == pytest.approx(110.0, rel=1e-12)
+    np.testing.assert_allclose(0.5 * (lo + hi), 0.0, atol=1e-9)
+    assert len(np.unique(F)) == len(V)          # no unreferenced vertices
+
+
+def test_keep_units_when_diagonal_none(tmp_path):
+    V, F = plane_patch(6.0, 8.0, 3, 4)
+    V = V + [100.0, 0, 0]
+    W, G = load_target(write_obj(tmp_path / "p.obj", V, F), diagonal_mm=None)
+    assert np.linalg.norm(W.max(0) - W.min(0)) == pytest.approx(10.0)
+    np.testing.assert_allclose(0.5 * (W.max(0) + W.min(0)), 0.0, atol=1e-12)
+
+
+def test_obj_reader_polygons_slashes_negative_indices_unreferenced(tmp_path):
+    text = ("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 0 0\nv 2 1 0\nv 9 9 9\nvt 0 0\nvn 0 0 1\n"
+            "f 1/1/1 2/1/1 3/1/1 4/1/1\n"      # quad with texture/normal indices
+            "f -6//1 -3//1 -2//1 -5//1\n")      # negative indices: 2 5 6 3
+    p = tmp_path / "quads.obj"
+    p.write_text(text)
+    V, F = read_mesh(str(p))
+    assert F.shape == (4, 3)
+    W, G = load_target(str(p), diagonal_mm=None)
+    assert len(W) == 6                             # vertex 7 dropped
+    assert np.isclose(np.abs(np.cross(W[G[:, 1]] - W[G[:, 0]], W[G[:, 2]] - W[G[:, 0]])).sum() / 2, 2.0)
+
+
+def test_ply_and_stl_through_meshio(tmp_path):
+    import meshio
+
+    V, F = plane_patch(10.0, 10.0, 4, 4)
+    meshio.write(str(tmp_path / "p.ply"), meshio.Mesh(V, [("triangle", F)]))
+    W, G = load_target(str(tmp_path / "p.ply"), diagonal_mm=None)
+    assert len(G) == len(F) and len(W) == len(V)
+    # STL: every triangle stored with its own corners, must be welded into one disk
+    meshio.write(str(tmp_path / "p.stl"), meshio.Mesh(V[F].reshape(-1, 3), [("triangle", np.arange(3 * len(F)).reshape(-1, 3))]))
+    W, G = load_target(str(tmp_path / "p.stl"), diagonal_mm=None)
+    assert len(G) == len(F) and len(W) == len(V)
+
+
+def test_synthetic_targets_are_disks():
+    for V, F in (sphere_cap(), cylinder_patch(), plane_patch()):
+        W, G = check_disk(V, F)
+        assert len(W) - len({tuple(e) for e in np.sort(np.r_[G[:, :2], G[:, 1:], G[:, ::2]], 1)}) + len(G) == 1
+
+
+def _bad_cases():
+    V, F = plane_patch(4.0, 4.0, 2, 2)           # 9 vertices, 8 faces
+    cases = {}
+    # a third face on an interior edge
+    E = (F[0, 1], F[0, 2])                          # an interior edge of face 0
+    cases["non-manifold edge"] = (np.r_[V, [[0, 0, 5.0]]], np.r_[F, [[E[1], E[0], len(V)]]])
+    # closed tetrahedron
+    cases["closed surface"] = (np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]),
+                               np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]]))
+    # two separate patches
+    cases["2 connected components"] = (np.r_[V, V + [10, 0, 0]], np.r_[F, F + len(V)])
+    cases["degenerate"] = (V, np.r_[F, [[0, 0, 1]]])
+    Vz = np.r_[V, [0.5 * (V[0] + V[3])]]          # collinear with vertices 0 and 3
+    cases["zero area"] = (Vz, np.r_[F[:1], [[0, len(V), 3]]])
+    Fo = F.copy()
+    Fo[0] = Fo[0, ::-1]
+    cases["not consistently oriented"] = (V, Fo)
+    # two fans sharing one vertex (bow tie)
+    bow = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [-1, 0, 0], [-1, -1, 0.0]])
+    cases["non-manifold vertex"] = (bow, np.array([[0, 1, 2], [0, 3, 4]]))
+    # annulus: a square ring
+    A, G = plane_patch(6.0, 6.0, 3, 3)
+    centre = {5, 6, 9, 10}.__contains__            # the middle cell of the 4 x 4 vertex grid
+    cases["2 boundary loops"] = (A, G[~np.array([all(centre(i) for i in f[:2]) and centre(f[2]) for f in G])])
+    return cases
+
+
+@pytest.mark.parametrize("problem", list(_bad_cases()))
+def test_bad_input_one_line_naming_file_and_problem(tmp_path, problem):
+    V, F = _bad_cases()[problem]
+    path = write_obj(tmp_path / "bad.obj", V, F)
+    with pytest.raises(SelfshapeError) as err:
+        load_target(path)
+    msg = str(err.value)
+    assert "\n" not in msg and msg.startswith("bad.obj:")
+    key = {"closed surface": "closed", "degenerate": "degenerate", "zero area": "zero area",
+           "non-manifold edge": "non-manifold edge", "non-manifold vertex": "non-manifold vertex",
+           "not consistently oriented": "not consistently oriented",
+           "2 connected components": "2 connected components", "2 boundary loops": "2 boundary loops"}[problem]
+    assert key in msg
+
+
+def test_missing_file_and_nan(tmp_path):
+    with pytest.raises(SelfshapeError, match="nope.obj: file not found"):
+        load_target(str(tmp_path / "nope.obj"))
+    V, F = plane_patch(2.0, 2.0, 1, 1)
+    V[1, 2] = np.nan
+    with pytest.raises(SelfshapeError, match="non-finite"):
+        check_disk(V, F, "x.obj")
+
+
+def test_refine_counts_and_midpoint_keeps_shape():
+    V, F = cylinder_patch(n_arc=6, n_len=5)
+    for method in ("loop", "midpoint"):
+        W, G = refine(V, F, 2, method)
+        assert len(G) == 16 * len(F)
+        check_disk(W, G)
+    W, G = refine(V, F, 1, "midpoint")
+    np.testing.assert_allclose(W[: len(V)], V)    # original vertices kept, new ones at midpoints
+    assert levels_for_faces(2112, 100_000) == 3 and levels_for_faces(812, 100_000) == 3
+    assert levels_for_faces(2752, 100_000) == 2
+    with pytest.raises(SelfshapeError):
+        refine(V, F, 1, "cubic")
