@@ -13,21 +13,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from selfshape.errors import SelfshapeError
+from selfshape.errors import SelfshapeError, check_number
 
 
 def _number(name, value, lo=None, lo_open=False, hi=None):
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise SelfshapeError(f"printer.{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v):
-        raise SelfshapeError(f"printer.{name} must be finite, got {value!r}")
-    if lo is not None and (v <= lo if lo_open else v < lo):
-        raise SelfshapeError(f"printer.{name} must be {'>' if lo_open else '>='} {lo:g}, got {v:g}")
-    if hi is not None and v > hi:
-        raise SelfshapeError(f"printer.{name} must be <= {hi:g}, got {v:g}")
-    return v
+    return check_number(f"printer.{name}", value, lo=lo, hi=hi, lo_open=lo_open)
 
 
 def _pair(name, value, lo=None, lo_open=False):

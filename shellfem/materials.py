@@ -5,10 +5,9 @@ These are plain records with validation; the energies that use them live in
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
-from selfshape.errors import SelfshapeError
+from selfshape.errors import SelfshapeError, check_number
 
 #: Seed Table 4.1 orthotropic log-barrier parameters, converted from Pa to MPa.
 TABLE_4_1_ORTHOTROPIC = {"a1": 0.024161, "a2": 0.090890, "a3": 0.063419,
@@ -16,17 +15,7 @@ TABLE_4_1_ORTHOTROPIC = {"a1": 0.024161, "a2": 0.090890, "a3": 0.063419,
 
 
 def _check(name: str, value, lo=None, hi=None, lo_open=False):
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise SelfshapeError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v):
-        raise SelfshapeError(f"{name} must be finite, got {value!r}")
-    if lo is not None and (v <= lo if lo_open else v < lo):
-        raise SelfshapeError(f"{name} must be {'>' if lo_open else '>='} {lo}, got {v:g}")
-    if hi is not None and v > hi:
-        raise SelfshapeError(f"{name} must be <= {hi}, got {v:g}")
-    return v
+    return check_number(name, value, lo=lo, hi=hi, lo_open=lo_open)
 
 
 @dataclass
