@@ -25,7 +25,7 @@ from geometry import outlines
 from geometry.elements import PrintedElement, Support
 from geometry.expressions import compile_field
 from geometry.stars import star_elements
-from selfshape.errors import SelfshapeError
+from selfshape.errors import SelfshapeError, check_number
 from shellfem.materials import Fabric, Plastic
 
 GCODE_MARGIN_MM = 10.0
@@ -80,14 +80,7 @@ def _num(table: dict, key: str, where: str, default=None, lo=None, lo_open=False
     v = table[key]
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise SelfshapeError(f"{where}: {key} must be a number, got {v!r:.60}")
-    v = float(v)
-    if not math.isfinite(v):
-        raise SelfshapeError(f"{where}: {key} must be finite, got {v}")
-    if lo is not None and (v <= lo if lo_open else v < lo):
-        raise SelfshapeError(f"{where}: {key} must be {'>' if lo_open else '>='} {lo:g}, got {v:g}")
-    if hi is not None and v > hi:
-        raise SelfshapeError(f"{where}: {key} must be <= {hi:g}, got {v:g}")
-    return v
+    return check_number(f"{where}: {key}", v, lo=lo, hi=hi, lo_open=lo_open)
 
 
 def _choice(table: dict, key: str, where: str, options: tuple, default: str):

@@ -154,12 +154,14 @@ def first_fundamental_form(xf: np.ndarray):
 
 
 # --- heights h_i = |N| / |e_i| -----------------------------------------------------
-def _norm_derivs(v, Jv, Hv_const=None, Hv=None):
-    """|v| with gradient and Hessian given v's Jacobian Jv (m,3,d) and constant (3,d,d)
-    Hessian Hv_const (or per-item Hv (m,3,d,d), or none for linear v)."""
+def _norm_derivs(v, Jv, Hv_const=None, hessian=True):
+    """|v| with gradient and (if ``hessian``) Hessian, given v's Jacobian Jv (m,3,d) and
+    its constant (3,d,d) Hessian Hv_const (None for linear v)."""
     n = np.linalg.norm(v, axis=1)
     u = v / n[:, None]
     g = np.einsum("mk,mkd->md", u, Jv)
+    if not hessian:
+        return n, g, None
     P = (np.eye(3)[None] - u[:, :, None] * u[:, None, :]) / n[:, None, None]
     JvT = np.swapaxes(Jv, 1, 2)
     H = JvT @ P @ Jv
@@ -175,7 +177,7 @@ def face_heights(xf: np.ndarray, with_hessian: bool = True):
     E1, E2 = xf[:, 1] - xf[:, 0], xf[:, 2] - xf[:, 0]
     N = np.cross(E1, E2)
     JN = (X @ N_HESS_FACE.reshape(27, 9).T).reshape(m, 3, 9)  # N_c = 1/2 x^T H_c x, so dN_c/dx = H_c x
-    nN, gN, HN = _norm_derivs(N, JN, N_HESS_FACE if with_hessian else None)
+    nN, gN, HN = _norm_derivs(N, JN, N_HESS_FACE, hessian=with_hessian)
     h = np.empty((m, 3))
     g = np.empty((m, 3, 9))
     H = np.empty((m, 3, 9, 9)) if with_hessian else None
@@ -183,7 +185,7 @@ def face_heights(xf: np.ndarray, with_hessian: bool = True):
         S = _SE[i]
         e = np.einsum("ad,md->ma", S, X)
         Je = np.broadcast_to(S, (m, 3, 9))
-        l, gl, Hl = _norm_derivs(e, Je)
+        l, gl, Hl = _norm_derivs(e, Je, hessian=with_hessian)
         h[:, i] = nN / l
         g[:, i] = gN / l[:, None] - (nN / l ** 2)[:, None] * gl
         if with_hessian:
