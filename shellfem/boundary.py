@@ -19,22 +19,31 @@ def rigid_modes(x: np.ndarray) -> np.ndarray:
 
 def gauge_dofs(x: np.ndarray, fixed_position_dofs: np.ndarray) -> np.ndarray:
     """Position DOFs to hold so that no rigid motion is left free (none if the supports
-    already block all six). Holding a DOF of an energy invariant under rigid motions is
-    a pure gauge choice: it does not change the equilibrium shape."""
+    already block all six).
+
+    Holding a DOF of an energy invariant under rigid motions is a pure gauge choice only
+    if a rigid motion of the free equilibrium can meet the held values, at any deformed
+    shape. So: p0 (nearest the centre) holds x, y, z; p1, offset from p0 mostly along x
+    at a moderate distance, holds only the components ACROSS that offset (y, z); p2, offset
+    mostly along y, holds z. Holding a component along an offset would prescribe a
+    distance, which the contracting, rolling sheet does not keep (the constraint then
+    carries load). ``gauge_reaction`` checks this after a solve."""
     R = rigid_modes(x)
     n = len(x)
     c = x.mean(0)
-    d = np.linalg.norm(x - c, axis=1)
-    p0 = int(np.argmin(d))
-    far = x - x[p0]
-    dist = np.linalg.norm(far, axis=1)
-    p1 = int(np.argmax(dist))                               # farthest from the centre
-    u = far[p1] / max(dist[p1], 1e-300)
-    off = np.linalg.norm(far - np.outer(far @ u, u), axis=1)  # distance from the axis p0-p1
-    p2 = int(np.argmax(off - 1e-3 * np.abs(far @ u)))       # across that axis, near the centre
-    k1 = int(np.argmin(np.abs(u)))                          # the component of p1 across the axis
-    candidates = [3 * p0, 3 * p0 + 1, 3 * p0 + 2, 3 * p1 + k1, 3 * p1 + 2, 3 * p2 + 2,
-                  3 * p1, 3 * p1 + 1, 3 * p2, 3 * p2 + 1]
+    p0 = int(np.argmin(np.linalg.norm(x - c, axis=1)))
+    off = x[:, :2] - x[p0, :2]
+    dist = np.linalg.norm(off, axis=1)
+    size = max(float(dist.max()), 1e-300)
+    band = (dist >= 0.05 * size) & (dist <= 0.25 * size)
+    if not band.any():
+        band = dist > 0
+    cand = []
+    for axis in (0, 1):
+        score = np.where(band, np.abs(off[:, 1 - axis]) / np.maximum(np.abs(off[:, axis]), 1e-300), np.inf)
+        cand.append(int(np.argmin(score)))
+    p1, p2 = cand
+    candidates = [3 * p0, 3 * p0 + 1, 3 * p0 + 2, 3 * p1 + 1, 3 * p1 + 2, 3 * p2 + 2, 3 * p2 + 0]
     chosen = list(np.asarray(fixed_position_dofs, dtype=np.int64))
     rank = np.linalg.matrix_rank(R[chosen]) if chosen else 0
     gauge = []
@@ -57,6 +66,20 @@ def gauge_dofs(x: np.ndarray, fixed_position_dofs: np.ndarray) -> np.ndarray:
                 gauge.append(dof)
                 rank += 1
     return np.array(gauge, dtype=np.int64)
+
+
+def gauge_reaction(model, q: np.ndarray, gauge: np.ndarray) -> float:
+    """Energy (N mm) that releasing the gauge DOFs would still free, sum r_i^2 / (2 k_ii)
+    over their reactions r and Hessian diagonal k: ~0 when the gauge is pure (the returned
+    shape is the free equilibrium), > 0 when a held DOF carries load."""
+    if len(gauge) == 0:
+        return 0.0
+    E, g, (Hf, Hh) = model.hessian_blocks(q)
+    diag = np.zeros(model.n_dofs)
+    for blocks, dofs in ((Hf, model.face_dofs), (Hh, model.hinge_dofs)):
+        diag += np.bincount(dofs.ravel(), weights=np.diagonal(blocks, axis1=1, axis2=2).ravel(), minlength=model.n_dofs)
+    r = g[gauge]
+    return float(np.sum(r * r / (2 * np.maximum(np.abs(diag[gauge]), 1e-300))))
 
 
 def nearest_vertices(points2d: np.ndarray, query: np.ndarray, tol: float, label: str = "support") -> np.ndarray:

@@ -240,6 +240,14 @@ class ShellModel:
         psi = self._psi(x, theta, False)[0]
         return a, en.second_fundamental_form(h, psi)
 
+    def cartesian_forms(self, q):
+        """First and second fundamental forms (m, 2, 2) in the printed Cartesian coordinates
+        (X, Y) of each triangle (a = I and b = 0 in the flat printed state; mm units)."""
+        a, b = self.fundamental_forms(q)
+        P = self.sheet.points[self.sheet.triangles]
+        Dinv = np.linalg.inv(np.stack([P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]], 1))   # rows: edge vectors
+        return tuple(Dinv @ en.sym_to_mat(f) @ np.swapaxes(Dinv, 1, 2) for f in (a, b))
+
     def curvatures(self, q):
         """Principal curvatures (m, 2) (1/mm, k1 >= k2; > 0 = centre of curvature on the +normal
         side) and mean/Gaussian curvature per triangle, from the shape operator a^-1 b."""
