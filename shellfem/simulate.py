@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from selfshape.errors import SelfshapeError
-from shellfem.boundary import gauge_dofs, nearest_vertices, smooth_perturbation
+from shellfem.boundary import gauge_dofs, gauge_reaction, nearest_vertices, smooth_perturbation
 from shellfem.model import ShellModel
 from shellfem.sheet import Sheet
 from shellfem.solver import SolveResult, newton
@@ -143,6 +143,14 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
             print(f"release step {k}/{steps}: {result.iterations} iterations, |g| {result.gradient_norm:.2e}",
                   flush=True)
     result.iterations = total_it
+    if result.converged and len(gauge):
+        # the gauge must be pure: a held DOF carrying load means a constrained, wrong shape
+        freed = gauge_reaction(model, result.q, gauge)
+        result.timings["gauge_energy"] = freed
+        if freed > 1e-9 * max(abs(result.energy), 1e-300):
+            result.converged = False
+            result.reason = (f"the rigid-motion gauge carries load (releasing it frees {freed:.3g} N mm): "
+                             "the shape is constrained, not free")
     return Simulation(sheet, model, result, fixed, gauge, time.perf_counter() - t0)
 
 

@@ -1,0 +1,81 @@
+"""Form-finding benchmark: a ~10,000-vertex sheet with a dense printed pattern to equilibrium.
+
+The seed's C++ solver took 17-40 minutes for 7,000-12,000 vertices (seed Table 3.1).
+Case: a uniform 3-pointed-star tiling (spacing 10 mm, arms 7 x 0.8 mm, 0.3 mm TPU on the
+front) on an 85 x 60 mm fabric at s = 1.35, meshed with one triangle across each arm
+(``[mesh] across = 1``), free boundary: it rolls into a tube (seed Fig. 3.2).
+Prints ONE JSON line: sizes, Newton iterations, wall time, and the per-iteration split
+(assembly vs factorisation vs line search). Target: under 60 s on 2 cores.
+
+Run: python -m validation.bench_solver [--width 85 --height 60 --across 1]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+
+def pattern(width: float = 85.0, height: float = 60.0, across: float = 1.0) -> dict:
+    return {"fabric": {"rectangle": [width, height], "stretch": 1.35, "thickness_mm": 0.8},
+            "plastic": {"young_modulus_mpa": 72.3, "poisson": 0.5},
+            "stars": {"spacing_mm": 10.0, "arm_length": 0.7, "thickness_mm": 0.3, "arm_width_mm": 0.8,
+                      "side": "front"},
+            "mesh": {"size_mm": 2.0, "across": across},
+            "solver": {"seed": 0}}
+
+
+def run(width: float = 85.0, height: float = 60.0, across: float = 1.0, max_iterations: int = 300) -> dict:
+    import os
+    import tempfile
+
+    import tomli_w
+
+    from geometry.meshing import mesh_pattern
+    from geometry.patterns import load_pattern
+    from shellfem.simulate import simulate_sheet
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "bench.toml")
+        with open(path, "wb") as f:
+            tomli_w.dump(pattern(width, height, across), f)
+        pat = load_pattern(path)
+    t0 = time.perf_counter()
+    sheet = mesh_pattern(pat)
+    t_mesh = time.perf_counter() - t0
+    sim = simulate_sheet(sheet, pat.fabric, pat.plastic, pat.supports, seed=pat.seed, max_iterations=max_iterations)
+    r = sim.result
+    tm = r.timings
+    its = max(r.iterations, 1)
+    k, H, K = sim.model.curvatures(r.q)
+    kabs = np.sort(np.abs(k), axis=1)
+    return {
+        "case": f"stars {width:g}x{height:g} mm, across={across:g}",
+        "n_vertices": int(sheet.n_vertices), "n_triangles": int(sheet.n_triangles), "n_dofs": int(sim.model.n_dofs),
+        "converged": bool(r.converged), "reason": r.reason, "newton_iterations": int(r.iterations),
+        "mesh_s": round(t_mesh, 2), "solve_wall_s": round(sim.wall_time_s, 2),
+        "assembly_s": round(tm["assembly"], 2), "factorisation_s": round(tm["factorisation"], 2),
+        "line_search_s": round(tm["line_search"], 2), "factorisations": int(tm["factorisations"]),
+        "per_iteration_s": {"assembly": round(tm["assembly"] / its, 3),
+                            "factorisation": round(tm["factorisation"] / its, 3),
+                            "line_search": round(tm["line_search"] / its, 3)},
+        "setup_s": round(sim.wall_time_s - tm["total"], 2),
+        "median_abs_curvature_ratio": round(float(np.median(kabs[:, 0] / np.maximum(kabs[:, 1], 1e-12))), 3),
+        "target_s": 60.0,
+    }
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--width", type=float, default=85.0)
+    ap.add_argument("--height", type=float, default=60.0)
+    ap.add_argument("--across", type=float, default=1.0)
+    ap.add_argument("--max-iterations", type=int, default=300)
+    a = ap.parse_args(argv)
+    print(json.dumps(run(a.width, a.height, a.across, a.max_iterations)))
+
+
+if __name__ == "__main__":
+    main()
