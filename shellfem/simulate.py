@@ -126,11 +126,16 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
         fab_k = replace(fabric, stretch=(1 + (sx - 1) * t, 1 + (sy - 1) * t))
         pla_k = replace(plastic, rest_curvature=plastic.rest_curvature * t)
         model_k = model if k == steps else ShellModel.from_materials(sheet, fab_k, pla_k)
-        guess = q if q_prev is None else q + (q - q_prev)
-        guess[fixed] = start + (values - start) * t
-        if not np.isfinite(model_k.energy(guess)):
-            guess = q.copy()
-            guess[fixed] = start + (values - start) * t
+        plain = q.copy()
+        plain[fixed] = start + (values - start) * t
+        guess = plain
+        if q_prev is not None and result is not None and result.converged:
+            # secant predictor, kept only if it beats the previous equilibrium: extrapolating
+            # a rolling motion linearly can push edge angles to the edge of the admissible set
+            secant = q + (q - q_prev)
+            secant[fixed] = plain[fixed]
+            if model_k.energy(secant) < model_k.energy(plain):
+                guess = secant
         last = k == steps
         result = newton(model_k, guess, free, max_iterations=max_iterations, verbose=verbose,
                         rtol=rtol if last else 1e-5)
