@@ -1,0 +1,246 @@
+"""The curvature law kappa(thickness, transverse spacing, side) and its monotone inverse
+(seed section 5.3.5, Fig. 5.6-5.7).
+
+A law is a CSV table: lines starting with ``#`` are provenance comments (free text, kept in
+``ThicknessLaw.provenance``), then a header with the columns
+
+    thickness_mm, spacing_mm, side, kappa_per_mm
+
+thickness_mm: printed plastic thickness of a ribbon (mm); spacing_mm: transverse
+centre-to-centre spacing mu2 of neighbouring ribbon rows in the printed state (mm, Eq. 5.15);
+side: "front" or "back"; kappa_per_mm: magnitude of the deployed normal curvature along the
+ribbons (1/mm, per unit deployed length). Extra columns are allowed and ignored. Each side is
+a full grid (every thickness with every spacing, at least 2 x 2), and for every spacing kappa
+is strictly monotone in thickness, in the same direction for all spacings of a side (so the
+bilinear interpolant is monotone in thickness at any spacing and can be inverted).
+
+Interpolation is bilinear in (thickness, spacing); spacings outside the table are clamped to
+its range (counted). The inverse returns thicknesses rounded to multiples of the printer's
+layer height within the printable part of the table's range; targets outside the achievable
+curvature range are clamped (counted).
+"""
+from __future__ import annotations
+
+import csv
+import io
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from selfshape.errors import SelfshapeError
+
+COLUMNS = ("thickness_mm", "spacing_mm", "side", "kappa_per_mm")
+SIDES = ("front", "back")
+#: The law shipped with the project (see the file's provenance header).
+DEFAULT_LAW = os.path.join(os.path.dirname(__file__), "data", "thickness_law_s1.6.csv")
+
+
+@dataclass
+class SideTable:
+    """One side's grid: kappa[i, j] at thickness[i], spacing[j] (both strictly increasing)."""
+    thickness: np.ndarray
+    spacing: np.ndarray
+    kappa: np.ndarray
+    increasing: bool          # kappa increases with thickness
+
+
+@dataclass
+class ThicknessLaw:
+    """A loaded law: per side a SideTable; provenance = the comment lines; source = file."""
+    sides: dict
+    provenance: list = field(default_factory=list)
+    source: str = "<table>"
+
+    def table(self, side: str) -> SideTable:
+        if side not in self.sides:
+            raise SelfshapeError(f"{self.source}: no rows for side {side!r} (has {', '.join(self.sides)})")
+        return self.sides[side]
+
+
+# ----------------------------------------------------------------------------- reading
+def _float(value, where):
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise SelfshapeError(f"{where}: not a number ({value!r})") from None
+    if not np.isfinite(v):
+        raise SelfshapeError(f"{where}: {value!r} is not a finite number")
+    return v
+
+
+def parse_thickness_law(text: str, source: str = "<table>") -> ThicknessLaw:
+    """Parse the CSV text of a law (see the module doc); one-line SelfshapeError on a bad table."""
+    lines = text.splitlines()
+    provenance = [ln[1:].strip() for ln in lines if ln.lstrip().startswith("#")]
+    body = [(i + 1, ln) for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
+    if not body:
+        raise SelfshapeError(f"{source}: no header line (expected columns {', '.join(COLUMNS)})")
+    reader = csv.reader(io.StringIO("\n".join(ln for _, ln in body)))
+    rows = list(reader)
+    header = [h.strip() for h in rows[0]]
+    missing = [c for c in COLUMNS if c not in header]
+    if missing:
+        raise SelfshapeError(f"{source}: line {body[0][0]}: missing column {missing[0]!r} "
+                             f"(need {', '.join(COLUMNS)})")
+    col = {c: header.index(c) for c in COLUMNS}
+    data = {s: [] for s in SIDES}
+    for (lineno, _), row in zip(body[1:], rows[1:]):
+        where = f"{source}: line {lineno}"
+        if len(row) < len(header):
+            raise SelfshapeError(f"{where}: {len(row)} fields, the header has {len(header)}")
+        side = row[col["side"]].strip()
+        if side not in SIDES:
+            raise SelfshapeError(f"{where}: side must be \"front\" or \"back\", got {side!r}")
+        t = _float(row[col["thickness_mm"]], f"{where}: thickness_mm")
+        mu = _float(row[col["spacing_mm"]], f"{where}: spacing_mm")
+        k = _float(row[col["kappa_per_mm"]], f"{where}: kappa_per_mm")
+        if t <= 0 or mu <= 0:
+            raise SelfshapeError(f"{where}: thickness_mm and spacing_mm must be > 0, got {t:g}, {mu:g}")
+        if k < 0:
+            raise SelfshapeError(f"{where}: kappa_per_mm is a magnitude and must be >= 0, got {k:g}")
+        data[side].append((t, mu, k, lineno))
+    sides = {s: _grid(rows_, s, source) for s, rows_ in data.items() if rows_}
+    if not sides:
+        raise SelfshapeError(f"{source}: no data rows")
+    return ThicknessLaw(sides, provenance, source)
+
+
+def _grid(rows, side, source) -> SideTable:
+    a = np.array(rows, dtype=float)
+    T, S = np.unique(a[:, 0]), np.unique(a[:, 1])
+    where = f"{source}: side {side}"
+    if len(T) < 2 or len(S) < 2:
+        raise SelfshapeError(f"{where}: need at least 2 thicknesses and 2 spacings, got {len(T)} x {len(S)}")
+    K = np.full((len(T), len(S)), np.nan)
+    i, j = np.searchsorted(T, a[:, 0]), np.searchsorted(S, a[:, 1])
+    seen = np.zeros_like(K, dtype=bool)
+    for r, (ii, jj) in enumerate(zip(i, j)):
+        if seen[ii, jj]:
+            raise SelfshapeError(f"{source}: line {int(a[r, 3])}: duplicate row for side {side}, "
+                                 f"thickness {a[r, 0]:g} mm, spacing {a[r, 1]:g} mm")
+        seen[ii, jj] = True
+    K[i, j] = a[:, 2]
+    if not seen.all():
+        ii, jj = np.argwhere(~seen)[0]
+        raise SelfshapeError(f"{where}: missing row for thickness {T[ii]:g} mm, spacing {S[jj]:g} mm "
+                             f"(the table must be a full grid)")
+    d = np.diff(K, axis=0)
+    inc, dec = (d > 0).all(), (d < 0).all()
+    if not (inc or dec):
+        # name the first spacing column that is not strictly monotone (or disagrees in direction)
+        up = (d > 0).all(axis=0)
+        down = (d < 0).all(axis=0)
+        bad = ~(up | down)
+        j = int(np.argmax(bad)) if bad.any() else int(np.argmax(up != up[0]))
+        raise SelfshapeError(f"{where}: kappa_per_mm is not strictly monotone in thickness_mm "
+                             f"(same direction for every spacing) at spacing {S[j]:g} mm")
+    return SideTable(T, S, K, bool(inc))
+
+
+def load_thickness_law(path=None) -> ThicknessLaw:
+    """Read a law CSV (default: the shipped ``inverse/data/thickness_law_s1.6.csv``)."""
+    path = DEFAULT_LAW if path is None else os.fspath(path)
+    try:
+        with open(path, "r") as f:
+            text = f.read()
+    except FileNotFoundError:
+        raise SelfshapeError(f"{path}: thickness law file not found") from None
+    except UnicodeDecodeError:
+        raise SelfshapeError(f"{path}: not a UTF-8 text file") from None
+    return parse_thickness_law(text, path)
+
+
+def format_thickness_law(rows, provenance_lines) -> str:
+    """CSV text of a law: ``provenance_lines`` as ``#`` comments, then the header and
+    ``rows`` (thickness_mm, spacing_mm, side, kappa_per_mm[, extra...])."""
+    out = [f"# {ln}" for ln in provenance_lines]
+    out.append(",".join(COLUMNS))
+    for r in rows:
+        out.append(f"{r[0]:.4g},{r[1]:.6g},{r[2]},{r[3]:.6g}")
+    return "\n".join(out) + "\n"
+
+
+# ----------------------------------------------------------------------------- evaluation
+def _spacing_weights(tab: SideTable, spacing):
+    """Cell index j and weight w in [0, 1] along the spacing axis, clamped; and a clamped mask."""
+    mu = np.asarray(spacing, dtype=float)
+    clamped = (mu < tab.spacing[0]) | (mu > tab.spacing[-1])
+    muc = np.clip(mu, tab.spacing[0], tab.spacing[-1])
+    j = np.clip(np.searchsorted(tab.spacing, muc, side="right") - 1, 0, len(tab.spacing) - 2)
+    w = (muc - tab.spacing[j]) / (tab.spacing[j + 1] - tab.spacing[j])
+    return j, w, clamped
+
+
+def _columns(tab: SideTable, spacing):
+    """kappa at every grid thickness for each query spacing: (q, nt), plus the clamp mask."""
+    j, w, clamped = _spacing_weights(tab, spacing)
+    return (1 - w)[..., None] * tab.kappa[:, j].T + w[..., None] * tab.kappa[:, j + 1].T, clamped
+
+
+def curvature(law: ThicknessLaw, thickness_mm, spacing_mm, side: str) -> np.ndarray:
+    """kappa (1/mm) by bilinear interpolation in (thickness, spacing); thickness must lie in the
+    table's range, spacing is clamped to it. Arrays broadcast."""
+    tab = law.table(side)
+    t, mu = np.broadcast_arrays(np.asarray(thickness_mm, float), np.asarray(spacing_mm, float))
+    if ((t < tab.thickness[0] - 1e-12) | (t > tab.thickness[-1] + 1e-12)).any():
+        raise SelfshapeError(f"{law.source}: thickness outside the table's range "
+                             f"[{tab.thickness[0]:g}, {tab.thickness[-1]:g}] mm")
+    cols, _ = _columns(tab, mu.ravel())
+    tt = np.clip(t.ravel(), tab.thickness[0], tab.thickness[-1])
+    i = np.clip(np.searchsorted(tab.thickness, tt, side="right") - 1, 0, len(tab.thickness) - 2)
+    u = (tt - tab.thickness[i]) / (tab.thickness[i + 1] - tab.thickness[i])
+    r = np.arange(len(tt))
+    return ((1 - u) * cols[r, i] + u * cols[r, i + 1]).reshape(t.shape)
+
+
+def printable_range(tab: SideTable, layer_height_mm: float) -> tuple[float, float]:
+    """The table's thickness range shrunk to layer-height multiples (mm)."""
+    h = float(layer_height_mm)
+    lo = max(np.ceil(tab.thickness[0] / h - 1e-9), 1.0) * h
+    hi = np.floor(tab.thickness[-1] / h + 1e-9) * h
+    return float(lo), float(hi)
+
+
+def thickness_for_curvature(law: ThicknessLaw, kappa, spacing_mm, side: str, layer_height_mm: float = 0.2,
+                            quantize: bool = True):
+    """Thickness (mm) whose interpolated curvature at ``spacing_mm`` is |kappa| (1/mm).
+
+    The inverse is exact on the bilinear interpolant (piecewise linear in thickness at a fixed
+    spacing). Targets outside the achievable range at that spacing get the end thickness
+    (clamped); with ``quantize`` the result is rounded to the nearest multiple of
+    ``layer_height_mm`` inside the printable range (`printable_range`). Returns (thickness
+    array, info) with info counts: n, clamped_low (wanted less curvature than the law gives),
+    clamped_high (wanted more), spacing_clamped, and the printable range."""
+    tab = law.table(side)
+    k = np.abs(np.asarray(kappa, dtype=float))
+    mu = np.broadcast_to(np.asarray(spacing_mm, dtype=float), k.shape)
+    if not np.isfinite(k).all() or not np.isfinite(mu).all():
+        raise SelfshapeError("thickness_for_curvature: kappa and spacing must be finite")
+    if layer_height_mm is None or not layer_height_mm > 0:
+        raise SelfshapeError(f"thickness_for_curvature: layer height must be > 0, got {layer_height_mm}")
+    cols, sclamp = _columns(tab, mu.ravel())       # (q, nt), monotone along axis 1
+    kq = k.ravel()
+    if not tab.increasing:
+        cols, T = cols[:, ::-1], tab.thickness[::-1]
+    else:
+        T = tab.thickness
+    low = kq < cols[:, 0]
+    high = kq > cols[:, -1]
+    kc = np.clip(kq, cols[:, 0], cols[:, -1])
+    # first grid interval whose upper value reaches the target
+    i = np.clip((cols < kc[:, None]).sum(axis=1) - 1, 0, cols.shape[1] - 2)
+    r = np.arange(len(kq))
+    a, b = cols[r, i], cols[r, i + 1]
+    u = np.where(b > a, (kc - a) / np.where(b > a, b - a, 1.0), 0.0)
+    t = T[i] + u * (T[i + 1] - T[i])
+    lo, hi = printable_range(tab, layer_height_mm)
+    if quantize:
+        if hi < lo:
+            raise SelfshapeError(f"{law.source}: side {side}: no multiple of the layer height "
+                                 f"{layer_height_mm:g} mm within the table's thickness range")
+        t = np.clip(np.round(t / layer_height_mm) * layer_height_mm, lo, hi)
+    info = {"n": int(len(kq)), "clamped_low": int(low.sum()), "clamped_high": int(high.sum()),
+            "spacing_clamped": int(sclamp.sum()), "printable_range_mm": [lo, hi],
+            "layer_height_mm": float(layer_height_mm)}
+    return t.reshape(k.shape), info

@@ -1,0 +1,324 @@
+import json
+import os
+
+import numpy as np
+import pytest
+import shapely
+
+from geometry.gcode_import import read_gcode
+from geometry.patterns import load_pattern, ribbon_polygon
+from geometry.target import cylinder_patch, face_areas, plane_patch
+from inverse import pipeline
+from inverse.pipeline import design, design_file, kabsch, register
+from selfshape.errors import SelfshapeError
+
+REPORT_KEYS = ("time_s", "n_faces", "k1_deviation_deg", "sigma_bound_violation", "sigma_out_of_bounds_pct",
+               "residual_energy", "stages_s", "ribbons_per_side", "thickness_histogram")
+
+
+def write_obj(path, V, F):
+    with open(path, "w") as f:
+        f.writelines(f"v {x:.9g} {y:.9g} {z:.9g}\n" for x, y, z in V)
+        f.writelines(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in F)
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def cylinder_design():
+    V, F = cylinder_patch()                       # R = 30 mm, normals away from the axis
+    return design(V, F, diagonal_mm=None, edge_mm=None)
+
+
+def test_cylinder_isometric_along_k1_within_bounds(cylinder_design):
+    d = cylinder_design
+    # developable: the bounds (1, 1.3, 1.3, 1.509) are feasible, sigma1 = 1 along the curved direction
+    np.testing.assert_allclose(d.flat.sigma1, 1.0, atol=1e-6)
+    assert d.flat.sigma2.min() >= d.bounds[2] - 1e-6 and d.flat.sigma2.max() <= d.bounds[3] + 1e-6
+    assert max(d.flat.sigma_bound_violation) < 1e-6 and d.flat.sigma_out_of_bounds_pct == [0.0, 0.0]
+    # the ribbon direction is the curved one: k1 = 1/30 along it
+    np.testing.assert_allclose(np.median(d.kappa1), 1 / 30, rtol=0.02)
+
+
+def test_cylinder_ribbons_all_on_one_side_and_area_identity(cylinder_design):
+    d = cylinder_design
+    assert len(d.ribbons) > 20
+    assert {r.side for r in d.ribbons} == {"front"}     # convex towards the normal: printed on top
+    A = face_areas(d.V, d.F)
+    flat_area = abs(shapely.Polygon(d.outline).area)
+    assert flat_area == pytest.approx(float(np.sum(A * d.flat.sigma1 * d.flat.sigma2)), rel=1e-4)
+    # every ribbon has a printable thickness (layer multiples) and lies inside the outline
+    outline = shapely.Polygon(d.outline)
+    for r in d.ribbons:
+        assert r.thickness_mm / 0.2 == pytest.approx(round(r.thickness_mm / 0.2), abs=1e-9)
+        assert outline.buffer(1e-6).contains(ribbon_polygon(r.path, r.width_mm))
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("design")
+    V, F = cylinder_patch(n_arc=16, n_len=12)
+    target = write_obj(tmp / "cyl.obj", V, F)
+    out = tmp / "out"
+    rep = design_file(target, out, edge_mm=2.0)
+    return out, rep
+
+
+def test_design_file_outputs_and_report(written):
+    out, rep = written
+    for name in ("pattern.toml", "flat.vtu", "front.gcode", "pattern.png", "report.json"):
+        assert (out / name).is_file()
+    assert not (out / "back.gcode").exists()              # all ribbons on the front
+    on_disk = json.loads((out / "report.json").read_text())
+    for k in REPORT_KEYS:
+        assert k in on_disk
+    assert on_disk["n_faces"] == rep["n_faces"] and len(on_disk["sigma_out_of_bounds_pct"]) == 2
+    assert on_disk["ribbons_per_side"]["back"] == 0 and on_disk["ribbons_per_side"]["front"] == rep["n_ribbons"]
+    assert sum(on_disk["thickness_histogram"]["front"].values()) == rep["n_ribbons"]
+    import meshio
+    m = meshio.read(out / "flat.vtu")
+    assert np.abs(m.points[:, 2]).max() == 0
+    assert m.point_data["target"].shape == (len(m.points), 3)
+    assert len(m.cell_data["sigma1"][0]) == rep["n_faces"]
+
+
+def test_pattern_toml_round_trip(written):
+    out, rep = written
+    pat = load_pattern(out / "pattern.toml")
+    assert pat.fabric.stretch == (1.6, 1.6)
+    assert pat.outline.area == pytest.approx(rep["flat_area_mm2"], rel=1e-4)
+    assert len(pat.elements) == rep["n_ribbons"]
+    assert all(e.kind == "ribbon" and e.side == "front" for e in pat.elements)
+    hist = {}
+    for e in pat.elements:
+        key = f"{e.thickness_mm:g}"
+        hist[key] = hist.get(key, 0) + 1
+    assert hist == rep["thickness_histogram"]["front"]
+
+
+def test_gcode_reads_back_as_the_ribbons(written):
+    out, rep = written
+    pat = load_pattern(out / "pattern.toml")
+    els = read_gcode(out / "front.gcode", cap="flat")     # the pattern cuts ribbons at their ends
+    assert len(els) == len(pat.elements)
+    area_pat = sum(e.geometry.area for e in pat.elements)
+    area_gc = sum(e.geometry.area for e in els)
+    assert area_gc == pytest.approx(area_pat, rel=0.02)
+    assert sorted(round(e.thickness_mm, 6) for e in els) == sorted(round(e.thickness_mm, 6) for e in pat.elements)
+    # each G-code shape sits on a pattern ribbon
+    union = shapely.union_all([e.geometry for e in pat.elements]).buffer(0.05)
+    assert all(union.contains(e.geometry) for e in els)
+
+
+def _closed_cube():
+    V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
+    F = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5],
+                  [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7]])
+    return V, F
+
+
+def _bad_meshes():
+    Vp, Fp = plane_patch(20, 10, 4, 2)
+    two = (np.vstack([Vp, Vp + [0, 0, 5]]), np.vstack([Fp, Fp + len(Vp)]))
+    nm_V = np.vstack([Vp, [[0, 0, 5]]])
+    e = Fp[0, :2]
+    nonmanifold = (nm_V, np.vstack([Fp, [[e[1], e[0], len(Vp)]], [[e[0], e[1], len(Vp)]]]))
+    degenerate = (Vp, np.vstack([Fp, [[0, 0, 1]]]))
+    V0 = Vp.copy()
+    V0[:, 1] = 0.0                                   # every face collapses to a line
+    return {"closed": (_closed_cube(), "closed surface"), "components": (two, "2 connected components"),
+            "nonmanifold": (nonmanifold, "non-manifold edge"), "degenerate": (degenerate, "degenerate"),
+            "zero_area": ((V0, Fp), "zero area")}
+
+
+@pytest.mark.parametrize("kind", ["closed", "components", "nonmanifold", "degenerate", "zero_area"])
+def test_bad_input_one_line_error_and_no_output(tmp_path, kind):
+    (V, F), word = _bad_meshes()[kind]
+    target = write_obj(tmp_path / f"{kind}.obj", V, F)
+    out = tmp_path / "out"
+    with pytest.raises(SelfshapeError) as e:
+        design_file(target, out)
+    msg = str(e.value)
+    assert word in msg and f"{kind}.obj" in msg and "\n" not in msg
+    assert not out.exists()
+
+
+def test_failure_after_writing_removes_this_runs_files(tmp_path, monkeypatch):
+    V, F = cylinder_patch(n_arc=16, n_len=12)
+    target = write_obj(tmp_path / "c.obj", V, F)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "report.json").write_text("{}")           # stale report of an earlier run
+    (out / "notes.txt").write_text("user file")
+
+    def boom(*a, **k):
+        raise RuntimeError("disk full")
+    monkeypatch.setattr(pipeline, "plot_pattern", boom)
+    with pytest.raises(RuntimeError):
+        design_file(target, out, edge_mm=2.0)
+    assert sorted(os.listdir(out)) == ["notes.txt"]      # the stale report went too
+
+
+def test_kabsch_and_icp_recover_a_rigid_motion():
+    V, F = plane_patch(40, 30, 20, 15)
+    x, y = V[:, 0] / 20, V[:, 1] / 15
+    V[:, 2] = 8 * x * x - 5 * y * y + 3 * x ** 3 + 2 * x * y      # no rigid symmetry
+    a = 0.3
+    R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    X = V @ R.T + [3.0, -2.0, 1.0]
+    R2, t2 = kabsch(X, V)
+    np.testing.assert_allclose(X @ R2.T + t2, V, atol=1e-9)
+    # ICP alone from a small perturbation: back onto the surface
+    b = 0.03
+    Rs = np.array([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]])
+    Xr, dist, _ = register(V @ Rs.T + 0.1, V, F)
+    assert dist.max() < 1e-3 and np.abs(Xr - V).max() < 1e-2
+
+
+def test_stretch_must_exceed_one(tmp_path):
+    V, F = plane_patch(10, 10, 2, 2)
+    with pytest.raises(SelfshapeError, match="stretch"):
+        design(V, F, stretch=1.0)
+
+
+def test_written_ribbons_are_separated_and_inside(written):
+    out, rep = written
+    pat = load_pattern(out / "pattern.toml")
+    polys = np.array([e.geometry for e in pat.elements], dtype=object)
+    tree = shapely.STRtree(polys)
+    a, b = tree.query(polys, predicate="dwithin", distance=0.5 - 1e-3)
+    assert (a == b).all()                                  # no two ribbons closer than the 0.5 mm gap
+    boundary = pat.outline.exterior
+    assert min(boundary.distance(p) for p in polys) >= 0.5 - 1e-3
+    assert rep["ribbons_separated"]["dropped"] >= 0
+
+
+def test_separate_ribbons_trims_overlaps_and_clips():
+    from geometry.elements import Ribbon
+    from inverse.pipeline import separate_ribbons
+    outline = np.array([[0, 0], [40, 0], [40, 20], [0, 20]], float)
+    rs = [Ribbon(np.array([[2.0, 10.0], [17.0, 10.0]])), Ribbon(np.array([[16.0, 10.0], [31.0, 10.0]])),
+          Ribbon(np.array([[30.0, 5.0], [45.0, 5.0]])), Ribbon(np.array([[5.0, 19.5], [5.5, 19.5]]))]
+    out, st = separate_ribbons(rs, outline, gap_mm=0.5, min_length=2.0)
+    assert st == {"clipped": 2, "trimmed": 1, "dropped": 1}
+    assert len(out) == 3
+    # the third ribbon ends w/2 + gap = 1.25 mm inside the right edge x = 40
+    assert out[2].path[:, 0].max() == pytest.approx(38.75)
+    # the second one (processed after the longer first, equal lengths: index order) starts
+    # 1.25 mm after the first one's end
+    assert out[1].path[:, 0].min() == pytest.approx(17.0 + 1.25)
+
+
+def _fake_simulation(converged, positions_fn):
+    """A stand-in for shellfem.simulate.simulate: the 'deployed' sheet is the flat mesh of the
+    design itself, placed by positions_fn(design)."""
+    from types import SimpleNamespace
+
+    def fake(pattern, **kw):
+        d = _fake_simulation.design
+        sheet = SimpleNamespace(points=d.flat.uv, triangles=d.F, side=np.zeros(len(d.F), int))
+        summary = {"converged": converged, "reason": "converged" if converged else "iteration limit",
+                   "newton_iterations": 7, "n_triangles": len(d.F)}
+        return SimpleNamespace(sheet=sheet, positions=positions_fn(d), summary=lambda: summary)
+    return fake
+
+
+@pytest.mark.parametrize("converged", [True, False])
+def test_verify_deviation_zero_for_an_exact_deployment_and_nonconvergence_reported(tmp_path, monkeypatch,
+                                                                                  converged):
+    import shellfem.simulate
+
+    V, F = cylinder_patch(n_arc=40, n_len=32)     # fine enough for the stripes without refinement
+    target = write_obj(tmp_path / "c.obj", V, F)
+    a = 0.7
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    real_design = pipeline.design
+
+    def keep(*args, **kw):
+        _fake_simulation.design = real_design(*args, **kw)
+        return _fake_simulation.design
+    monkeypatch.setattr(pipeline, "design", keep)
+    # the deployed sheet lands exactly on the target, in another rigid placement
+    monkeypatch.setattr(shellfem.simulate, "simulate", _fake_simulation(converged, lambda d: d.V @ R.T + 5.0))
+    rep = design_file(target, tmp_path / "out", verify=True, edge_mm=None)
+    assert rep["verify_converged"] is converged
+    if converged:
+        assert rep["deviation_pct_bbox"][1] < 1e-6
+        assert (tmp_path / "out" / "deployed.vtu").is_file() and (tmp_path / "out" / "verify.png").is_file()
+    else:
+        assert rep["deviation_pct_bbox"] is None and "did not converge" in rep["verify_note"]
+        assert not (tmp_path / "out" / "deployed.vtu").exists()
+    on_disk = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert on_disk["verify_converged"] is converged
+
+
+@pytest.mark.slow
+def test_verify_simulates_a_small_cap(tmp_path):
+    from geometry.target import sphere_cap
+    V, F = sphere_cap(40.0, 30.0, 8)
+    rep = design_file(write_obj(tmp_path / "cap.obj", V, F), tmp_path / "out", verify=True, diagonal_mm=40.0)
+    assert "verify_converged" in rep
+    if rep["verify_converged"]:
+        assert 0 <= rep["deviation_pct_bbox"][0] <= rep["deviation_pct_bbox"][1] < 50
+    else:
+        assert rep["deviation_pct_bbox"] is None
+
+
+def test_coarsen_for_layout_restricts_the_hierarchy():
+    import igl
+    from inverse.pipeline import coarsen_for_layout
+    V0, F0 = plane_patch(20, 10, 4, 2)
+    V2, F2 = igl.upsample(V0, F0, 2)
+    uv = V2[:, :2] * 1.3
+    m = len(F2)
+    rng = np.random.default_rng(0)
+    sign = rng.choice([-1.0, 1.0], m)[:, None]
+    d = sign * np.array([[np.cos(0.4), np.sin(0.4)]])          # one line, random orientation per face
+    s1 = np.repeat(np.arange(len(F0), dtype=float), 16)          # constant over each coarse face's children
+    uvc, Fc, dc, s1c, s2c, kc = coarsen_for_layout(F0, 2, 0, uv, np.ones(m), d, s1, s1 + 1, -s1)
+    np.testing.assert_array_equal(Fc, F0)
+    np.testing.assert_allclose(uvc, V0[:, :2] * 1.3)
+    np.testing.assert_allclose(np.abs(dc @ [np.cos(0.4), np.sin(0.4)]), 1.0)
+    np.testing.assert_allclose(s1c, np.arange(len(F0)))
+    np.testing.assert_allclose(kc, -np.arange(len(F0)))
+
+
+def test_clean_path_removes_tiny_end_segments():
+    from inverse.pipeline import clean_path
+    p = np.array([[0.0, 0.0], [0.1, 0.0], [5.0, 0.0], [9.0, 1.0], [9.02, 1.01]])
+    q = clean_path(p, 0.25)
+    np.testing.assert_array_equal(q, [[0.0, 0.0], [5.0, 0.0], [9.02, 1.01]])
+    np.testing.assert_array_equal(clean_path(p[:2], 0.25), p[:2])
+
+
+def test_written_pattern_meshes_without_slivers(written):
+    from geometry.meshing import mesh_pattern, mesh_quality
+    out, _ = written
+    q = mesh_quality(mesh_pattern(load_pattern(out / "pattern.toml"), size_mm=3.0))
+    assert q["min_angle_deg"] > 5.0
+
+
+def test_sign_change_gives_front_and_back_and_mirrored_back_gcode_reads_back(tmp_path):
+    V, F = plane_patch(80, 40, 48, 24)
+    V[:, 2] = 8.0 * np.sin(V[:, 0] / 12.0)        # normal curvature along x changes sign every 38 mm
+    target = write_obj(tmp_path / "wave.obj", V, F)
+    rep = design_file(target, tmp_path / "out", diagonal_mm=None, edge_mm=None)
+    assert rep["ribbons_per_side"]["front"] > 5 and rep["ribbons_per_side"]["back"] > 5
+    pat = load_pattern(tmp_path / "out" / "pattern.toml")
+    for side in ("front", "back"):
+        mine = [e for e in pat.elements if e.side == side]
+        els = read_gcode(tmp_path / "out" / f"{side}.gcode", cap="flat")   # side and mirror from the header
+        assert len(els) == len(mine) == rep["ribbons_per_side"][side]
+        union = shapely.union_all([e.geometry for e in mine]).buffer(0.05)
+        assert all(e.side == side and union.contains(e.geometry) for e in els)
+
+
+def test_verify_reports_a_simulation_that_cannot_run(tmp_path, monkeypatch):
+    import shellfem.simulate
+
+    def fails(pattern, **kw):
+        raise SelfshapeError("mesh: gmsh failed")
+    monkeypatch.setattr(shellfem.simulate, "simulate", fails)
+    V, F = cylinder_patch(n_arc=16, n_len=12)
+    rep = design_file(write_obj(tmp_path / "c.obj", V, F), tmp_path / "out", verify=True, edge_mm=2.0)
+    assert rep["verify_converged"] is False and rep["deviation_pct_bbox"] is None
+    assert "gmsh failed" in rep["verify_reason"] and (tmp_path / "out" / "report.json").is_file()

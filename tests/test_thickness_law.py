@@ -1,0 +1,168 @@
+import numpy as np
+import pytest
+
+from inverse.thickness_law import (curvature, format_thickness_law, load_thickness_law, parse_thickness_law,
+                                   printable_range, thickness_for_curvature)
+from selfshape.errors import SelfshapeError
+
+T = [0.2, 0.4, 0.6, 1.0]
+MU = [4.0, 6.0, 10.0]
+
+
+def bilinear(t, mu, side):
+    # strictly decreasing in t for every mu in range (like a bilayer beyond its peak)
+    base = 0.30 if side == "front" else 0.20
+    return base - 0.2 * t + 0.004 * mu + 0.01 * t * mu
+
+
+def table_text(fn=bilinear, sides=("front", "back")):
+    rows = [(t, mu, s, fn(t, mu, s)) for s in sides for t in T for mu in MU]
+    return format_thickness_law(rows, ["test table", "bilinear"])
+
+
+def test_interpolation_exact_on_a_bilinear_table():
+    law = parse_thickness_law(table_text())
+    rng = np.random.default_rng(1)
+    t = rng.uniform(0.2, 1.0, 50)
+    mu = rng.uniform(4.0, 10.0, 50)
+    for side in ("front", "back"):
+        np.testing.assert_allclose(curvature(law, t, mu, side), bilinear(t, mu, side), rtol=0, atol=1e-12)
+    assert law.provenance == ["test table", "bilinear"]
+    assert law.table("front").increasing is False
+
+
+def test_inverse_round_trips_and_quantizes():
+    law = parse_thickness_law(table_text())
+    rng = np.random.default_rng(2)
+    t = rng.uniform(0.2, 1.0, 40)
+    mu = rng.uniform(4.0, 10.0, 40)
+    k = curvature(law, t, mu, "back")
+    t2, info = thickness_for_curvature(law, k, mu, "back", quantize=False)
+    np.testing.assert_allclose(t2, t, atol=1e-12)
+    assert info["clamped_low"] == info["clamped_high"] == info["spacing_clamped"] == 0
+    # quantized: the nearest multiple of 0.2 mm (here the exact thicknesses of the grid)
+    tq, _ = thickness_for_curvature(law, curvature(law, [0.4, 0.6], [5.0, 5.0], "front"), [5.0, 5.0], "front",
+                                    layer_height_mm=0.2)
+    np.testing.assert_allclose(tq, [0.4, 0.6], atol=1e-12)
+    tq, _ = thickness_for_curvature(law, curvature(law, [0.47], [5.0], "front"), [5.0], "front",
+                                    layer_height_mm=0.1)
+    np.testing.assert_allclose(tq, [0.5], atol=1e-12)
+
+
+def test_increasing_table_inverts_too_and_sign_is_ignored():
+    inc = lambda t, mu, s: 0.01 + 0.05 * t + 0.001 * mu + 0.002 * t * mu  # noqa: E731
+    law = parse_thickness_law(table_text(inc))
+    assert law.table("front").increasing
+    t2, _ = thickness_for_curvature(law, -inc(0.7, 8.0, "front"), 8.0, "front", quantize=False)
+    assert t2 == pytest.approx(0.7, abs=1e-12)
+
+
+def test_clamping_is_counted():
+    law = parse_thickness_law(table_text())
+    # decreasing law: too little curvature -> thickest; too much -> thinnest; spacing clamped to range
+    k = [0.0, 10.0, bilinear(0.6, 10.0, "front")]
+    t, info = thickness_for_curvature(law, k, [5.0, 5.0, 30.0], "front", layer_height_mm=0.2)
+    np.testing.assert_allclose(t, [1.0, 0.2, 0.6], atol=1e-12)
+    assert (info["clamped_low"], info["clamped_high"], info["spacing_clamped"]) == (1, 1, 1)
+    assert printable_range(law.table("front"), 0.3) == pytest.approx((0.3, 0.9))
+
+
+@pytest.mark.parametrize("mutate, word", [
+    (lambda s: s.replace("kappa_per_mm", "kappa"), "missing column 'kappa_per_mm'"),
+    (lambda s: s.replace(f",{bilinear(0.4, 6.0, 'front'):.6g}", ",nan", 1), "not a finite number"),
+    (lambda s: s.replace(f",{bilinear(0.6, 6.0, 'front'):.6g}", ",0.9", 1), "not strictly monotone"),
+    (lambda s: "\n".join(ln for ln in s.splitlines() if not ln.startswith("1,10,back")), "missing row"),
+    (lambda s: s.replace("0.2,4,front", "0.2,4,top"), "side must be"),
+    (lambda s: s + "0.2,4,front,0.5\n", "duplicate row"),
+    (lambda s: s.replace("0.2,4,front", "0.2,abc,front"), "spacing_mm: not a number"),
+])
+def test_bad_tables_one_line_errors(mutate, word):
+    with pytest.raises(SelfshapeError) as e:
+        parse_thickness_law(mutate(table_text()), "law.csv")
+    assert word in str(e.value) and "law.csv" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_shipped_law_loads_with_provenance():
+    law = load_thickness_law()
+    assert set(law.sides) == {"front", "back"}
+    text = " ".join(law.provenance)
+    assert "SOURCE" in text and "git" in text
+    tab = law.table("front")
+    assert tab.kappa.shape == (len(tab.thickness), len(tab.spacing)) and (tab.kappa > 0).all()
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(SelfshapeError, match="not found"):
+        load_thickness_law(tmp_path / "nope.csv")
+
+
+def test_simulation_patch_has_the_layout_stagger():
+    from geometry.patterns import load_pattern
+    from validation.thickness_law_sim import MU1, RIBBON_LENGTH, patch_pattern
+    raw = patch_pattern(0.6, 5.0, "back", 1.6, n_rows=4, n_motifs=3)
+    pat = load_pattern(raw)
+    W, H = 3 * MU1, 4 * 5.0
+    assert pat.outline.bounds == (0.0, 0.0, W, H) and pat.fabric.stretch == (1.6, 1.6)
+    rows = {}
+    for r in raw["ribbon"]:
+        (x0, y0), (x1, y1) = r["path"]
+        assert y0 == y1 and r["side"] == "back" and r["thickness_mm"] == 0.6
+        rows.setdefault(y0, []).append(0.5 * (x0 + x1) if x1 - x0 == RIBBON_LENGTH else None)
+    assert sorted(rows) == [2.5, 7.5, 12.5, 17.5]                     # rows mu2 apart
+    full0 = [c for c in rows[2.5] if c is not None]
+    full1 = [c for c in rows[7.5] if c is not None]
+    assert np.allclose(np.diff(full0), MU1) and np.allclose((np.array(full1) - full0[0]) % MU1, MU1 / 2)
+    assert len(pat.elements) == len(raw["ribbon"])
+
+
+def test_strip_table_is_the_coverage_blend():
+    from shellfem.materials import Fabric, Plastic
+    from shellfem.strip import strip_curvature
+    from validation.thickness_law_sim import strip_rows
+    fab, pla = Fabric(), Plastic()
+    rows = strip_rows([0.4, 0.8], [1.5, 6.0], 1.6, fab, pla)
+    assert len(rows) == 8
+    k = {(t, mu, s): v for t, mu, s, v in rows}
+    ratio = pla.young_modulus / fab.young_modulus
+    plate = strip_curvature(0.4, fab.thickness, 1.6, ratio, mode="plate")
+    narrow = strip_curvature(0.8, fab.thickness, 1.6, ratio, mode="narrow")
+    plate8 = strip_curvature(0.8, fab.thickness, 1.6, ratio, mode="plate")
+    assert k[(0.4, 1.5, "front")] == pytest.approx(abs(plate))            # full coverage: a plate
+    assert k[(0.8, 6.0, "back")] == pytest.approx(abs(0.25 * plate8 + 0.75 * narrow))
+    # the shipped law is this model at the default materials (until the simulated one exists)
+    law = load_thickness_law()
+    t = law.table("front")
+    i, j = list(t.thickness).index(0.8), list(t.spacing).index(15.0)
+    kk = strip_rows([0.8], [15.0], 1.6, fab, pla)[0][3]
+    assert t.kappa[i, j] == pytest.approx(kk, rel=1e-5)
+
+
+@pytest.mark.slow
+def test_simulated_row_runs():
+    from validation.thickness_law_sim import simulate_row
+    r = simulate_row(0.6, 6.5, "front", 1.6, mesh_size=3.0, across=1.0, n_rows=4, n_motifs=2, max_iterations=100)
+    assert r["kappa_per_mm"] >= 0 and isinstance(r["converged"], bool)
+
+
+def test_curvature_measurement_is_exact_on_a_rolled_sheet():
+    from types import SimpleNamespace
+
+    from geometry.target import grid_triangles
+    from shellfem.model import ShellModel
+    from shellfem.sheet import Sheet
+    from validation.thickness_law_sim import curvature_along_x
+    X, Y = np.meshgrid(np.linspace(0, 60, 31), np.linspace(0, 24, 13), indexing="ij")
+    P = np.column_stack([X.ravel(), Y.ravel()])
+    sheet = Sheet(P, grid_triangles(30, 12))
+    model = ShellModel.homogeneous(sheet, 1.0, 0.3, 0.5)
+    R = 20.0
+
+    def measured(pos):
+        q = np.concatenate([pos.ravel(), np.zeros(model.n_dofs - pos.size)])
+        return curvature_along_x(SimpleNamespace(sheet=sheet, model=model, result=SimpleNamespace(q=q)),
+                                 (15, 6, 45, 18))
+    # rolled about y (along the ribbons, x): 1/R; rolled about x: 0 along x
+    assert measured(np.column_stack([R * np.sin(P[:, 0] / R), P[:, 1], R * (1 - np.cos(P[:, 0] / R))])) \
+        == pytest.approx(1 / R, rel=0.005)
+    assert measured(np.column_stack([P[:, 0], R * np.sin(P[:, 1] / R), R * (1 - np.cos(P[:, 1] / R))])) \
+        == pytest.approx(0.0, abs=1e-9)

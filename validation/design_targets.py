@@ -1,0 +1,155 @@
+"""Design every target in /work/shared/meshes/targets (+ --verify where feasible) for the README.
+
+For each TARGET.obj: `inverse.pipeline.design_file` -> out/design/TARGET/ (all outputs), then
+docs/design/TARGET_{target,flat,ribbons,simulated}.png pictures and docs/design/table.md, a
+Markdown table with the seed's Table 5.1 columns and the simulated deviation. Prints ONE JSON
+line per target and a final summary line.
+
+    python -m validation.design_targets [--no-verify] [--mesh-size 2] [--out out/design] [--docs docs/design]
+                                        [names...]
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import time
+
+import numpy as np
+
+TARGETS = "/work/shared/meshes/targets/*.obj"
+
+
+def _plot_target(V, F, path, title):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from geometry.curvature import principal_curvature
+    c = principal_curvature(V, F)
+    fig = plt.figure(figsize=(5, 4.2))
+    ax = fig.add_subplot(projection="3d")
+    s = ax.plot_trisurf(V[:, 0], V[:, 1], V[:, 2], triangles=F, cmap="coolwarm", linewidth=0)
+    k = c.face_k1
+    lim = max(float(np.percentile(np.abs(k), 98)), 1e-9)
+    s.set_array(k)
+    s.set_clim(-lim, lim)
+    ax.set_box_aspect(np.ptp(V, axis=0))
+    ax.set_axis_off()
+    fig.colorbar(s, ax=ax, shrink=0.6, label="k1 (1/mm)")
+    ax.set_title(title, fontsize=9)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _plot_flat(out_dir, path, title):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import meshio
+
+    m = meshio.read(os.path.join(out_dir, "flat.vtu"))
+    P, T = m.points[:, :2], m.cells_dict["triangle"]
+    s1 = m.cell_data["sigma1"][0]
+    fig, ax = plt.subplots(figsize=(5.5, 4.8))
+    tp = ax.tripcolor(P[:, 0], P[:, 1], T, facecolors=s1, cmap="viridis", vmin=1.0, vmax=1.3)
+    fig.colorbar(tp, ax=ax, label="sigma1 (stretch along the ribbons)")
+    ax.set_aspect("equal")
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _fmt(v, nd=3):
+    if v is None:
+        return "-"
+    if isinstance(v, (list, tuple)):
+        return " / ".join(_fmt(x, nd) for x in v)
+    return f"{v:.{nd}g}" if isinstance(v, float) else str(v)
+
+
+def table_markdown(rows) -> str:
+    head = ("| target | faces | time (s) | lambda | dev. % bbox (mean / max) | k1 dev. (deg) | "
+            "max bound dev. (s1 / s2) | out of bounds % (s1 / s2) | residual energy | ribbons (front / back) | "
+            "thickness (mm) |\n|---|---|---|---|---|---|---|---|---|---|---|\n")
+    lines = []
+    for r in rows:
+        hist = {**r["thickness_histogram"]["front"], **r["thickness_histogram"]["back"]}
+        th = sorted(float(k) for k in hist) if hist else []
+        thick = f"{th[0]:g}-{th[-1]:g}" if th else "-"
+        if r.get("deviation_pct_bbox"):
+            dev = _fmt(r["deviation_pct_bbox"])
+        elif "verify_converged" in r:
+            dev = f"not converged ({r.get('verify_reason')})"
+        else:
+            dev = "not run"
+        sides = r["ribbons_per_side"]
+        lines.append(f"| {r['name']} | {r['n_faces']} | {r['time_s']:.1f} | {r.get('lambda', 0):g} | {dev} | "
+                     f"{r['k1_deviation_deg']:.3f} | {_fmt(r['sigma_bound_violation'], 2)} | "
+                     f"{_fmt(r['sigma_out_of_bounds_pct'], 3)} | {r['residual_energy']:.2e} | "
+                     f"{sides['front']} / {sides['back']} | {thick} |")
+    return head + "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("names", nargs="*", help="target names (default: all)")
+    ap.add_argument("--no-verify", action="store_true")
+    ap.add_argument("--out", default="out/design")
+    ap.add_argument("--docs", default="docs/design")
+    ap.add_argument("--edge", type=float, default=1.0, help="refine until the mean edge is below (mm)")
+    ap.add_argument("--mesh-size", type=float, default=2.0, help="[mesh] size_mm written to pattern.toml (verify)")
+    ap.add_argument("--across", type=float, default=None, help="[mesh] across written to pattern.toml (verify)")
+    a = ap.parse_args(argv)
+    np.seterr(all="ignore")
+    from geometry.target import load_target
+    from inverse.pipeline import design_file
+
+    os.makedirs(a.docs, exist_ok=True)
+    paths = sorted(glob.glob(TARGETS))
+    if a.names:
+        paths = [p for p in paths if os.path.splitext(os.path.basename(p))[0] in a.names]
+    rows = []
+    for path in paths:
+        name = os.path.splitext(os.path.basename(path))[0]
+        out = os.path.join(a.out, name)
+        t0 = time.perf_counter()
+        try:
+            rep = design_file(path, out, verify=not a.no_verify, edge_mm=a.edge, mesh_size_mm=a.mesh_size,
+                              mesh_across=a.across)
+        except Exception as e:  # report and go on with the other targets
+            print(json.dumps({"name": name, "error": f"{type(e).__name__}: {e}"}), flush=True)
+            continue
+        rep["name"] = name
+        rows.append(rep)
+        V, F = load_target(path)
+        _plot_target(V, F, os.path.join(a.docs, f"{name}_target.png"), f"{name}: target, k1")
+        _plot_flat(out, os.path.join(a.docs, f"{name}_flat.png"), f"{name}: flattening (printed mm)")
+        import shutil
+        shutil.copy(os.path.join(out, "pattern.png"), os.path.join(a.docs, f"{name}_ribbons.png"))
+        if os.path.exists(os.path.join(out, "verify.png")):
+            shutil.copy(os.path.join(out, "verify.png"), os.path.join(a.docs, f"{name}_simulated.png"))
+        keys = ("name", "n_faces", "time_s", "k1_deviation_deg", "sigma_bound_violation", "sigma_out_of_bounds_pct",
+                "residual_energy", "ribbons_per_side", "flatten_iterations", "flatten_converged",
+                "verify_converged", "verify_reason", "deviation_pct_bbox", "verify_simulation_s", "stages_s")
+        print(json.dumps({k: rep.get(k) for k in keys} | {"wall_s": round(time.perf_counter() - t0, 1)}), flush=True)
+        write_table(a.out, a.docs)
+    print(json.dumps({"targets": len(paths), "designed": len(rows), "table": os.path.join(a.docs, "table.md")}))
+
+
+def write_table(out_root: str, docs: str):
+    """docs/table.md from every out_root/*/report.json (so targets can be re-run one by one)."""
+    rows = []
+    for path in sorted(glob.glob(os.path.join(out_root, "*", "report.json"))):
+        with open(path) as f:
+            rep = json.load(f)
+        rep["name"] = os.path.basename(os.path.dirname(path))
+        rows.append(rep)
+    with open(os.path.join(docs, "table.md"), "w") as f:
+        f.write(table_markdown(rows))
+
+
+if __name__ == "__main__":
+    main()
