@@ -30,7 +30,8 @@ def _cmd_simulate(a):
 
 def _cmd_design(a):
     from inverse.pipeline import design_file
-    r = design_file(a.target, a.output, verify=a.verify, diagonal_mm=a.diagonal, stretch=a.stretch)
+    r = design_file(a.target, a.output, verify=a.verify, diagonal_mm=a.diagonal, stretch=a.stretch,
+                    thickness_law=a.law, lam=a.lam)
     print(f"design written to {a.output} in {r['time_s']:.1f} s")
 
 
@@ -84,6 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--verify", action="store_true", help="simulate the design and report its deviation")
     d.add_argument("--diagonal", type=float, default=110.0, help="scale the target to this bounding-box diagonal, mm")
     d.add_argument("--stretch", type=float, default=1.6, help="fabric pre-stretch s")
+    d.add_argument("--law", default=None, help="curvature-law CSV (default: the shipped inverse/data table)")
+    d.add_argument("--lam", type=float, default=0.0, help="line-field lambda of the seed (<= 0, 1/mm^2)")
     d.set_defaults(fn=_cmd_design)
 
     c = sub.add_parser("calibrate", help="fit material parameters (validation.strips / validation.fabric)")
