@@ -161,11 +161,46 @@ def run(names=None, out_root="out/gallery", docs="docs/gallery", examples="examp
     return results
 
 
+CLAIMS = {
+    "tube": ("median \\|k_max\\| / \\|k_min\\|", "median_kmax_over_kmin", "> 2: one curvature dominates"),
+    "dome": ("Gaussian curvature centre (1/mm^2)", "gauss_centre", "> 0: dome"),
+    "flat_centre": ("mean curvature centre / rim", "centre_over_rim", "below the dome's"),
+    "ribbons": ("curvature along / across ribbons", "along_over_across", "> 1: axis across the ribbons"),
+    "ortho_0": ("curvature along / across ribbons", "along_over_across", "seed 4.1: one of 0/90 along, one across"),
+    "ortho_90": ("curvature along / across ribbons", "along_over_across", "seed 4.1: one of 0/90 along, one across"),
+    "half_annulus": ("inner / outer edge length ratio", None, "inner < outer"),
+}
+
+
+def markdown_table(out_root="out/gallery", docs="docs/gallery") -> str:
+    """README table of the cases that have a result.json."""
+    rows = ["| case | pattern | vertices | Newton it. | converged | measure | value | expected |",
+            "|---|---|---|---|---|---|---|---|"]
+    imgs = []
+    for name, (label, key, expect) in CLAIMS.items():
+        p = os.path.join(out_root, name, "result.json")
+        if not os.path.exists(p):
+            continue
+        r = json.load(open(p))
+        if key is None:
+            value = f"{r['inner_length_ratio']:.3f} / {r['outer_length_ratio']:.3f}"
+        else:
+            value = f"{r[key]:.3g}"
+        imgs.append(f'<img src="{docs}/{name}.png" width="210" alt="{name}">')
+        rows.append(f"| {name} | `{r['pattern']}` | {r['n_vertices']} | "
+                    f"{r['newton_iterations']} | {r['converged']} | {label} | {value} | {expect} |")
+    return "\n".join(rows) + "\n\n" + " ".join(imgs)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", nargs="*", choices=list(CASES))
     ap.add_argument("--max-iterations", type=int, default=400)
+    ap.add_argument("--table", action="store_true", help="print the README table of existing results and stop")
     a = ap.parse_args(argv)
+    if a.table:
+        print(markdown_table())
+        return
     print(json.dumps(run(a.only, max_iterations=a.max_iterations)))
 
 
