@@ -122,6 +122,12 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
     is_position[:3 * n] = True
     pos_free = is_position[free]
     step_tol = step_tolerance * size
+
+    def _step_size(d_free):
+        """Largest position change of a step and the energy it promises, -g.d/2."""
+        step = float(np.abs(d_free[pos_free]).max()) if pos_free.any() else 0.0
+        return step, -0.5 * float(g @ d_free)
+
     for it in range(max_iterations + 1):
         if fresh:
             t0 = time.perf_counter()
@@ -149,8 +155,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
             timings["factorisation"] += time.perf_counter() - t0
         if exact and fresh:
             d_free = -factor(g)
-            step = float(np.abs(d_free[pos_free]).max()) if pos_free.any() else 0.0
-            promise = -0.5 * float(g @ d_free)
+            step, promise = _step_size(d_free)
             if gnorm <= tol and step <= step_tol and promise <= energy_tolerance * abs(E):
                 reason = "gradient norm and Newton step below tolerance at a stable state"
                 history.append(dict(iteration=it, energy=E, gradient_norm=gnorm, lam=0.0, step=step))
@@ -204,8 +209,8 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
             # near-neutral modes below what the factorisation resolves (pencil eigenvalues
             # ~ -1e-11, e.g. the twist of a narrow strip): check the step as for Newton
             d_free = -factor(g)
-            step = float(np.abs(d_free[pos_free]).max()) if pos_free.any() else 0.0
-            if step <= step_tol and -0.5 * float(g @ d_free) <= energy_tolerance * abs(E):
+            step, promise = _step_size(d_free)
+            if step <= step_tol and promise <= energy_tolerance * abs(E):
                 reason = "gradient norm and step below tolerance at a stable state"
                 history.append(dict(iteration=it, energy=E, gradient_norm=gnorm, lam=lam_try, step=step))
                 return SolveResult(q, True, it, E, gnorm, reason, True, history, _finish(timings, t_start))
