@@ -101,3 +101,35 @@ def bead_width(area_mm2, height_mm):
     """Inverse of :func:`bead_area`: the width (mm) of a bead of given cross-section
     and height. Vectorised."""
     return area_mm2 / height_mm + height_mm * (1.0 - math.pi / 4.0)
+
+
+def load_printer(path: str) -> Printer:
+    """A :class:`Printer` from a TOML file: its keys are Printer's field names (mm, mm/s,
+    deg C), either at the top level or under ``[printer]``; missing keys keep the defaults.
+
+        [printer]
+        bed_size = [300, 300]
+        nozzle_mm = 0.6
+        print_speed_mm_s = 20
+    """
+    import dataclasses
+    import tomllib
+
+    try:
+        with open(path, "rb") as f:
+            raw = tomllib.load(f)
+    except OSError as e:
+        raise SelfshapeError(f"printer file {path}: cannot read ({e.strerror})") from None
+    except tomllib.TOMLDecodeError as e:
+        raise SelfshapeError(f"printer file {path}: not valid TOML ({e})") from None
+    table = raw.get("printer", raw)
+    if not isinstance(table, dict):
+        raise SelfshapeError(f"printer file {path}: [printer] must be a table")
+    known = {f.name for f in dataclasses.fields(Printer)}
+    unknown = sorted(set(table) - known)
+    if unknown:
+        raise SelfshapeError(f"printer file {path}: unknown key {unknown[0]!r} (known: {', '.join(sorted(known))})")
+    try:
+        return Printer(**table)
+    except SelfshapeError as e:
+        raise SelfshapeError(f"printer file {path}: {e}") from None

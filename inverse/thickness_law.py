@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from selfshape.errors import SelfshapeError
+from selfshape.errors import SelfshapeError, check_number
 
 COLUMNS = ("thickness_mm", "spacing_mm", "side", "kappa_per_mm")
 SIDES = ("front", "back")
@@ -60,13 +60,7 @@ class ThicknessLaw:
 
 # ----------------------------------------------------------------------------- reading
 def _float(value, where):
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise SelfshapeError(f"{where}: not a number ({value!r})") from None
-    if not np.isfinite(v):
-        raise SelfshapeError(f"{where}: {value!r} is not a finite number")
-    return v
+    return check_number(where, value)
 
 
 def parse_thickness_law(text: str, source: str = "<table>") -> ThicknessLaw:

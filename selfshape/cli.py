@@ -30,8 +30,10 @@ def _cmd_simulate(a):
 
 def _cmd_design(a):
     from inverse.pipeline import design_file
+    from inverse.printer import load_printer
+    printer = load_printer(a.printer) if a.printer else None
     r = design_file(a.target, a.output, verify=a.verify, diagonal_mm=a.diagonal, stretch=a.stretch,
-                    thickness_law=a.law, lam=a.lam)
+                    thickness_law=a.law, lam=a.lam, printer=printer)
     print(f"design written to {a.output} in {r['time_s']:.1f} s")
 
 
@@ -87,6 +89,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--stretch", type=float, default=1.6, help="fabric pre-stretch s")
     d.add_argument("--law", default=None, help="curvature-law CSV (default: the shipped inverse/data table)")
     d.add_argument("--lam", type=float, default=0.0, help="line-field lambda of the seed (<= 0, 1/mm^2)")
+    d.add_argument("--printer", default=None,
+                   help="printer TOML (inverse.printer.Printer fields: bed_size, nozzle_mm, print_speed_mm_s, ...)")
     d.set_defaults(fn=_cmd_design)
 
     c = sub.add_parser("calibrate", help="fit material parameters (validation.strips / validation.fabric)")

@@ -11,7 +11,7 @@ from geometry.elements import Ribbon
 from geometry.gcode_import import parse_gcode, read_gcode
 from inverse.gcode import (greedy_order, layer_counts, ribbons_to_gcode_files, to_bed, from_bed,
                            write_gcode)
-from inverse.printer import Printer, bead_area, bead_width
+from inverse.printer import Printer, bead_area, bead_width, load_printer
 from selfshape.errors import SelfshapeError
 
 
@@ -286,3 +286,32 @@ def test_round_trip_back_side_with_an_explicit_axis(tmp_path):
     assert els[0].geometry.symmetric_difference(ref).area < 1e-3 * ref.area
     wrong = read_gcode(tmp_path / "plain.gcode", side="back", mirror_axis_x=100.0, origin_mm=(50.0, 60.0))
     assert wrong[0].geometry.centroid.x == pytest.approx(ref.centroid.x + 20.0)    # shifts by 2 (a' - a)
+
+
+def test_load_printer_reads_a_printer_table_and_keeps_defaults(tmp_path):
+    p = tmp_path / "printer.toml"
+    p.write_text("[printer]\nbed_size = [300, 250]\nnozzle_mm = 0.6\nprint_speed_mm_s = 20\n")
+    pr = load_printer(str(p))
+    assert pr.bed_size == (300.0, 250.0) and pr.nozzle_mm == 0.6 and pr.print_speed_mm_s == 20.0
+    assert pr.layer_height_mm == Printer().layer_height_mm          # untouched keys keep the defaults
+    flat = tmp_path / "flat.toml"
+    flat.write_text("nozzle_mm = 0.4\nlayer_height_mm = 0.1\n")     # top-level keys work too
+    assert load_printer(str(flat)).nozzle_mm == 0.4
+
+
+@pytest.mark.parametrize("text, word", [
+    ("[printer]\nnozle_mm = 0.6\n", "unknown key 'nozle_mm'"),
+    ("[printer]\nnozzle_mm = -1\n", "nozzle_mm must be >"),
+    ("[printer\n", "not valid TOML"),
+])
+def test_load_printer_errors_are_one_line(tmp_path, text, word):
+    p = tmp_path / "printer.toml"
+    p.write_text(text)
+    with pytest.raises(SelfshapeError) as e:
+        load_printer(str(p))
+    assert word in str(e.value) and "\n" not in str(e.value) and "printer.toml" in str(e.value)
+
+
+def test_load_printer_missing_file():
+    with pytest.raises(SelfshapeError, match="cannot read"):
+        load_printer("/nonexistent/printer.toml")

@@ -322,3 +322,20 @@ def test_verify_reports_a_simulation_that_cannot_run(tmp_path, monkeypatch):
     rep = design_file(write_obj(tmp_path / "c.obj", V, F), tmp_path / "out", verify=True, edge_mm=2.0)
     assert rep["verify_converged"] is False and rep["deviation_pct_bbox"] is None
     assert "gmsh failed" in rep["verify_reason"] and (tmp_path / "out" / "report.json").is_file()
+
+
+def test_cli_design_uses_the_printer_file(tmp_path):
+    from selfshape.cli import main
+    V, F = cylinder_patch()
+    target = write_obj(tmp_path / "cyl.obj", V, F)
+    printer = tmp_path / "printer.toml"
+    printer.write_text("[printer]\nbed_size = [300, 300]\nprint_speed_mm_s = 20\nnozzle_temperature_c = 230\n")
+    out = tmp_path / "out"
+    assert main(["design", target, "-o", str(out), "--printer", str(printer)]) == 0
+    gcode = [p for p in ("front.gcode", "back.gcode") if (out / p).exists()]
+    assert gcode
+    text = (out / gcode[0]).read_text()
+    assert "; bed_shape = 300 x 300" in text and "; print_speed = 20" in text and "M104 S230" in text
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[printer]\nspeed = 20\n")
+    assert main(["design", target, "-o", str(tmp_path / "out2"), "--printer", str(bad)]) == 2

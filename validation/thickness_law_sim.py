@@ -147,6 +147,9 @@ def main(argv=None):
     ap.add_argument("--rows", type=int, default=6, help="ribbon rows in the patch (sim)")
     ap.add_argument("--motifs", type=int, default=3, help="dash periods along the patch (sim)")
     ap.add_argument("--max-iterations", type=int, default=200)
+    ap.add_argument("--back", choices=["simulate", "mirror"], default="simulate",
+                    help="back-side rows: simulate each, or copy the front rows (the model is mirror-symmetric "
+                         "through the fabric mid-surface without gravity) after one simulated check row (sim)")
     ap.add_argument("--out", default=None, help=f"output CSV (default {DEFAULT_LAW})")
     a = ap.parse_args(argv)
     out = a.out or DEFAULT_LAW
@@ -170,7 +173,9 @@ def main(argv=None):
                  "  simulated table exists; front and back are identical in this model."]
     else:
         rows = []
-        for side in a.sides:
+        mirror = a.model == "sim" and a.back == "mirror" and "back" in a.sides
+        simulated_sides = [sd for sd in a.sides if not (mirror and sd == "back")]
+        for side in simulated_sides:
             for t in a.thickness:
                 for mu in a.spacing:
                     r = simulate_row(t, mu, side, a.stretch, mesh_size=a.mesh_size, across=a.across,
@@ -180,11 +185,28 @@ def main(argv=None):
                         rows.append((t, mu, side, r["kappa_per_mm"]))
                     else:
                         dropped.append(r)
+        mirror_note = []
+        if mirror:
+            front = {(t, mu): k for t, mu, sd, k in rows if sd == "front"}
+            if not front:
+                raise SystemExit("thickness_law_sim: --back mirror needs converged front rows")
+            t_c, mu_c = sorted(front)[len(front) // 2]
+            chk = simulate_row(t_c, mu_c, "back", a.stretch, mesh_size=a.mesh_size, across=a.across,
+                               max_iterations=a.max_iterations, n_rows=a.rows, n_motifs=a.motifs)
+            log.append(chk)
+            rel = abs(chk["kappa_per_mm"] - front[(t_c, mu_c)]) / front[(t_c, mu_c)]
+            mirror_note = [f"  back rows = front rows by mirror symmetry through the fabric mid-surface (no gravity);",
+                           f"  check: back simulated at t={t_c:g} mu2={mu_c:g}: |kappa| {chk['kappa_per_mm']:.6g} vs front "
+                           f"{front[(t_c, mu_c)]:.6g} (relative difference {rel:.1e}, converged={chk['converged']})"]
+            if not chk["converged"] or rel > 1e-3:
+                raise SystemExit(f"thickness_law_sim: mirror check failed (relative difference {rel:.2e}, "
+                                 f"converged={chk['converged']}); run with --back simulate")
+            rows += [(t, mu, "back", k) for (t, mu), k in front.items()]
         head += ["SOURCE: forward simulation of parallel staggered ribbon sheets (shellfem.simulate.simulate_sheet):",
                  f"  patch {a.motifs} x mu1 = {a.motifs * MU1:g} mm along, {a.rows} rows across, mu1 {MU1:g} mm, "
                  f"odd rows shifted mu1/2; mesh size {a.mesh_size:g} mm, {a.across:g} rows across a ribbon;",
                  "  kappa = area-weighted mean of b(x,x)/a(x,x) over the central quarter of the patch.",
-                 f"  rows simulated {len(log)}, not converged (dropped, not written) {len(dropped)}"]
+                 f"  rows simulated {len(log)}, not converged (dropped, not written) {len(dropped)}"] + mirror_note
         for r in log:
             head.append(f"  row t={r['thickness_mm']:g} mu2={r['spacing_mm']:g} {r['side']}: "
                         f"converged={r['converged']} ({r['reason']}), {r['newton_iterations']} Newton it., "
