@@ -159,6 +159,12 @@ def main(argv=None):
     ap.add_argument("--back", choices=["simulate", "mirror"], default="simulate",
                     help="back-side rows: simulate each, or copy the front rows (the model is mirror-symmetric "
                          "through the fabric mid-surface without gravity) after one simulated check row (sim)")
+    ap.add_argument("--from-json", default=None,
+                    help="reuse the simulated rows of an earlier run's JSON line instead of simulating (sim)")
+    ap.add_argument("--table-thickness", type=float, nargs="+", default=None,
+                    help="thicknesses written to the table (default: all simulated); the rest stay in the provenance")
+    ap.add_argument("--table-spacing", type=float, nargs="+", default=None,
+                    help="spacings written to the table (default: all simulated)")
     ap.add_argument("--out", default=None, help=f"output CSV (default {DEFAULT_LAW})")
     a = ap.parse_args(argv)
     out = a.out or DEFAULT_LAW
@@ -182,12 +188,24 @@ def main(argv=None):
                  "  simulated table exists; front and back are identical in this model."]
     else:
         rows = []
+        previous = {}
+        if a.from_json:
+            with open(a.from_json) as f:
+                for r in json.load(f)["rows"]:
+                    previous[(float(r["thickness_mm"]), float(r["spacing_mm"]), r["side"])] = r
+
+        def run_row(t, mu, side, *args, **kw):           # simulate, or reuse a previous run's row
+            if a.from_json:
+                if (t, mu, side) not in previous:
+                    raise SystemExit(f"thickness_law_sim: {a.from_json} has no row t={t:g} mu2={mu:g} {side}")
+                return previous[(t, mu, side)]
+            return simulate_row(t, mu, side, *args, **kw)
         mirror = a.model == "sim" and a.back == "mirror" and "back" in a.sides
         simulated_sides = [sd for sd in a.sides if not (mirror and sd == "back")]
         for side in simulated_sides:
             for t in a.thickness:
                 for mu in a.spacing:
-                    r = simulate_row(t, mu, side, a.stretch, mesh_size=a.mesh_size, across=a.across,
+                    r = run_row(t, mu, side, a.stretch, mesh_size=a.mesh_size, across=a.across,
                                      max_iterations=a.max_iterations, n_rows=a.rows, n_motifs=a.motifs)
                     log.append(r)
                     if r["converged"] and np.isfinite(r["kappa_per_mm"]):
@@ -200,7 +218,7 @@ def main(argv=None):
             if not front:
                 raise SystemExit("thickness_law_sim: --back mirror needs converged front rows")
             t_c, mu_c = sorted(front)[len(front) // 2]
-            chk = simulate_row(t_c, mu_c, "back", a.stretch, mesh_size=a.mesh_size, across=a.across,
+            chk = run_row(t_c, mu_c, "back", a.stretch, mesh_size=a.mesh_size, across=a.across,
                                max_iterations=a.max_iterations, n_rows=a.rows, n_motifs=a.motifs)
             log.append(chk)
             rel = abs(chk["kappa_per_mm"] - front[(t_c, mu_c)]) / front[(t_c, mu_c)]
@@ -222,6 +240,13 @@ def main(argv=None):
             head.append(f"  row t={r['thickness_mm']:g} mu2={r['spacing_mm']:g} {r['side']}: "
                         f"converged={r['converged']} ({r['reason']}), {r['newton_iterations']} Newton it., "
                         f"{r['n_triangles']} triangles, {r['time_s']:g} s")
+    if a.model == "sim" and (a.table_thickness or a.table_spacing):
+        tt = set(a.table_thickness or a.thickness)
+        ts = set(a.table_spacing or a.spacing)
+        left = [r for r in rows if not (r[0] in tt and r[1] in ts)]
+        rows = [r for r in rows if r[0] in tt and r[1] in ts]
+        head += [f"  TABLE: the sub-grid thickness {sorted(tt)} x spacing {sorted(ts)} mm; simulated rows left out:"]
+        head += [f"    t={t:g} mu2={mu:g} {sd}: kappa {k:.4g}" for t, mu, sd, k in left]
     text = format_thickness_law(rows, head)
     summary = {"law": a.model, "out": out, "rows_written": len(rows), "rows_dropped": len(dropped),
                "time_s": round(time.perf_counter() - t0, 2),
