@@ -129,8 +129,11 @@ def test_strip_table_is_the_coverage_blend():
     plate8 = strip_curvature(0.8, fab.thickness, 1.6, ratio, mode="plate")
     assert k[(0.4, 1.5, "front")] == pytest.approx(abs(plate))            # full coverage: a plate
     assert k[(0.8, 6.0, "back")] == pytest.approx(abs(0.25 * plate8 + 0.75 * narrow))
-    # the shipped law is this model at the default materials (until the simulated one exists)
-    law = load_thickness_law()
+    # the shipped strip-model table is this model at the default materials
+    import os
+
+    from inverse.thickness_law import DEFAULT_LAW
+    law = load_thickness_law(os.path.join(os.path.dirname(DEFAULT_LAW), "thickness_law_s1.6_strip.csv"))
     t = law.table("front")
     i, j = list(t.thickness).index(0.8), list(t.spacing).index(15.0)
     kk = strip_rows([0.8], [15.0], 1.6, fab, pla)[0][3]
@@ -166,3 +169,24 @@ def test_curvature_measurement_is_exact_on_a_rolled_sheet():
         == pytest.approx(1 / R, rel=0.005)
     assert measured(np.column_stack([P[:, 0], R * np.sin(P[:, 1] / R), R * (1 - np.cos(P[:, 1] / R))])) \
         == pytest.approx(0.0, abs=1e-9)
+
+
+def test_shipped_default_law_is_the_simulated_table():
+    """The default law comes from forward simulation (validation.thickness_law_sim), says so,
+    is a full grid decreasing in thickness, and its back rows mirror the front rows."""
+    import json
+    import os
+
+    from inverse.thickness_law import DEFAULT_LAW
+    law = load_thickness_law()
+    text = "\n".join(law.provenance)
+    assert "SOURCE: forward simulation" in text and "relative difference" in text
+    f, b = law.table("front"), law.table("back")
+    assert np.all(np.diff(f.kappa, axis=0) < 0)
+    assert np.array_equal(f.kappa, b.kappa)
+    with open(os.path.join(os.path.dirname(DEFAULT_LAW), "thickness_law_s1.6_sim_rows.json")) as fh:
+        rows = {(r["thickness_mm"], r["spacing_mm"]): r for r in json.load(fh)["rows"] if r["side"] == "front"}
+    for i, tk in enumerate(f.thickness):
+        for j, mu in enumerate(f.spacing):
+            r = rows[(float(tk), float(mu))]
+            assert r["converged"] and f.kappa[i, j] == pytest.approx(r["kappa_per_mm"], rel=1e-5)
