@@ -190,3 +190,29 @@ def test_shipped_default_law_is_the_simulated_table():
         for j, mu in enumerate(f.spacing):
             r = rows[(float(tk), float(mu))]
             assert r["converged"] and f.kappa[i, j] == pytest.approx(r["kappa_per_mm"], rel=1e-5)
+
+
+def test_law_from_previous_rows_writes_the_requested_subgrid(tmp_path):
+    """--from-json rebuilds a table without simulating; --table-* keep a sub-grid, the other
+    rows are listed in the provenance; --back mirror copies the front rows."""
+    import json
+
+    from validation.thickness_law_sim import main
+    rows = []
+    for t in (0.4, 0.8, 1.2):
+        for mu in (4.0, 8.0):
+            k = 1.0 / (t * mu) if t < 1.0 else 0.9          # not monotone at 1.2 mm
+            rows.append(dict(thickness_mm=t, spacing_mm=mu, side="front", kappa_per_mm=k, converged=True,
+                             reason="ok", newton_iterations=10, n_triangles=100, time_s=1.0))
+    rows.append(dict(rows[3], side="back"))                  # the mirror check row (t=0.8, mu=8)
+    src = tmp_path / "rows.json"
+    src.write_text(json.dumps({"rows": rows}))
+    out = tmp_path / "law.csv"
+    assert main(["--model", "sim", "--back", "mirror", "--thickness", "0.4", "0.8", "1.2", "--spacing", "4", "8",
+                 "--from-json", str(src), "--table-thickness", "0.4", "0.8", "--out", str(out)]) == 0
+    law = load_thickness_law(out)
+    f = law.table("front")
+    assert list(f.thickness) == [0.4, 0.8] and list(f.spacing) == [4.0, 8.0]
+    assert f.kappa[1, 1] == pytest.approx(1.0 / 6.4) and np.array_equal(law.table("back").kappa, f.kappa)
+    text = "\n".join(law.provenance)
+    assert "t=1.2 mu2=4 front: kappa 0.9" in text and "relative difference 0.0e+00" in text
