@@ -120,6 +120,8 @@ def load_printer(path: str) -> Printer:
             raw = tomllib.load(f)
     except OSError as e:
         raise SelfshapeError(f"printer file {path}: cannot read ({e.strerror})") from None
+    except UnicodeDecodeError as e:
+        raise SelfshapeError(f"printer file {path}: not a UTF-8 text file ({e.reason} at byte {e.start})") from None
     except tomllib.TOMLDecodeError as e:
         raise SelfshapeError(f"printer file {path}: not valid TOML ({e})") from None
     table = raw.get("printer", raw)

@@ -315,3 +315,10 @@ def test_load_printer_errors_are_one_line(tmp_path, text, word):
 def test_load_printer_missing_file():
     with pytest.raises(SelfshapeError, match="cannot read"):
         load_printer("/nonexistent/printer.toml")
+
+
+def test_load_printer_binary_file_is_a_one_line_error(tmp_path):
+    p = tmp_path / "printer.toml"
+    p.write_bytes(b"\xff\xfe\x00binary")
+    with pytest.raises(SelfshapeError, match="not a UTF-8 text file"):
+        load_printer(str(p))
