@@ -40,7 +40,6 @@ class RotationPath:
 
     def __init__(self, triangles: np.ndarray, n_vertices: int):
         t = np.asarray(triangles, dtype=np.int64)
-        self.t = t
         self.n = int(n_vertices)
         # the three edges of each triangle, tail -> head
         self.tail = t[:, [0, 1, 2]]
@@ -54,30 +53,32 @@ class RotationPath:
         L = L + sp.coo_matrix(([1.0], ([0], [0])), shape=(n, n)).tocsc()
         self._solve = spla.factorized(L)
 
-    def rotations(self, x: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """Per-triangle rotation vectors (m, 3) that best explain the edge increments of d."""
+    def step(self, x: np.ndarray, d: np.ndarray):
+        """(omega, at): per-triangle rotation vectors (m, 3) that best explain the edge
+        increments of d, and at(alpha) -> positions (n, 3) along the corrected path.
+        Everything independent of alpha is computed here, once per step."""
         E = x[self.head] - x[self.tail]                     # (m, 3, 3): edge k, xyz
         dE = d[self.head] - d[self.tail]
         A = (np.einsum("mkj,mkj->m", E, E)[:, None, None] * np.eye(3) - np.einsum("mki,mkj->mij", E, E))
-        rhs = np.cross(E, dE).sum(axis=1)
-        return np.linalg.solve(A, rhs[..., None])[..., 0]
-
-    def path(self, x: np.ndarray, d: np.ndarray, alpha: float, omega: np.ndarray | None = None) -> np.ndarray:
-        """Positions (n, 3) at step length alpha along the rotation-corrected path of d."""
-        if omega is None:
-            omega = self.rotations(x, d)
-        E = x[self.head] - x[self.tail]
-        dE = d[self.head] - d[self.tail]
-        lin = np.cross(np.broadcast_to(omega[:, None, :], E.shape), E)
-        target = rotate(E, alpha * omega) + alpha * (dE - lin)            # (m, 3, 3)
-        # normal equations of sum |y_head - y_tail - target|^2 (+ anchor on vertex 0)
+        omega = np.linalg.solve(A, np.cross(E, dE).sum(axis=1)[..., None])[..., 0]
+        stretch = dE - np.cross(np.broadcast_to(omega[:, None, :], E.shape), E)
         tv, hv = self.tail.ravel(), self.head.ravel()
-        T = target.reshape(-1, 3)
-        y0 = x[0] + alpha * d[0]
-        y = np.empty_like(x)
-        for c in range(3):
-            b = np.bincount(hv, weights=T[:, c], minlength=self.n) - np.bincount(tv, weights=T[:, c], minlength=self.n)
-            b[0] += y0[c]
-            y[:, c] = self._solve(b)
-        y += (x.mean(axis=0) + alpha * d.mean(axis=0)) - y.mean(axis=0)
-        return y
+        mean = x.mean(axis=0), d.mean(axis=0)
+
+        def at(alpha: float) -> np.ndarray:
+            target = (rotate(E, alpha * omega) + alpha * stretch).reshape(-1, 3)
+            # normal equations of sum |y_head - y_tail - target|^2 (+ anchor on vertex 0)
+            y0 = x[0] + alpha * d[0]
+            y = np.empty_like(x)
+            for c in range(3):
+                b = (np.bincount(hv, weights=target[:, c], minlength=self.n)
+                     - np.bincount(tv, weights=target[:, c], minlength=self.n))
+                b[0] += y0[c]
+                y[:, c] = self._solve(b)
+            y += (mean[0] + alpha * mean[1]) - y.mean(axis=0)
+            return y
+        return omega, at
+
+    def path(self, x: np.ndarray, d: np.ndarray, alpha: float) -> np.ndarray:
+        """Positions (n, 3) at step length alpha along the rotation-corrected path of d."""
+        return self.step(x, d)[1](alpha)

@@ -352,7 +352,7 @@ def _path(rpath, q, d, n, free):
     as well as a rigid motion allows; any remainder is then imposed."""
     from shellfem.corotational import rotate
     x, dx = q[:3 * n].reshape(-1, 3), d[:3 * n].reshape(-1, 3)
-    omega = rpath.rotations(x, dx)
+    omega, at = rpath.step(x, dx)
     if not np.all(np.isfinite(omega)) or float(np.abs(omega).max()) < 1e-3:
         return lambda a: q + a * d          # small rotations: the straight line is as good (and exact to round-off)
     fixed = ~free
@@ -361,7 +361,7 @@ def _path(rpath, q, d, n, free):
 
     def along(a):
         out = q + a * d
-        y = rpath.path(x, dx, a, omega)
+        y = at(a)
         if len(fpos):
             target = q[fpos]
             for _ in range(4):                   # Gauss-Newton on a rigid motion (w, t)
@@ -370,9 +370,8 @@ def _path(rpath, q, d, n, free):
                 if np.abs(r).max() < 1e-12:
                     break
                 J = np.zeros((len(fpos), 6))
-                e = np.eye(3)
                 for k in range(3):               # d(w x (y - c))/dw_k = e_k x (y - c)
-                    J[:, k] = np.cross(e[k], y[fv] - c)[np.arange(len(fv)), fc]
+                    J[:, k] = np.cross(np.eye(3)[k], y[fv] - c)[np.arange(len(fv)), fc]
                 J[np.arange(len(fpos)), 3 + fc] = 1.0
                 p = np.linalg.lstsq(J, -r, rcond=None)[0]
                 y = rotate((y - c)[None], p[None, :3])[0] + c + p[3:]

@@ -200,13 +200,13 @@ def main(argv=None):
                     raise SystemExit(f"thickness_law_sim: {a.from_json} has no row t={t:g} mu2={mu:g} {side}")
                 return previous[(t, mu, side)]
             return simulate_row(t, mu, side, *args, **kw)
-        mirror = a.model == "sim" and a.back == "mirror" and "back" in a.sides
+        mirror = a.back == "mirror" and "back" in a.sides
         simulated_sides = [sd for sd in a.sides if not (mirror and sd == "back")]
         for side in simulated_sides:
             for t in a.thickness:
                 for mu in a.spacing:
                     r = run_row(t, mu, side, a.stretch, mesh_size=a.mesh_size, across=a.across,
-                                     max_iterations=a.max_iterations, n_rows=a.rows, n_motifs=a.motifs)
+                                max_iterations=a.max_iterations, n_rows=a.rows, n_motifs=a.motifs)
                     log.append(r)
                     if r["converged"] and np.isfinite(r["kappa_per_mm"]):
                         rows.append((t, mu, side, r["kappa_per_mm"]))
@@ -219,7 +219,7 @@ def main(argv=None):
                 raise SystemExit("thickness_law_sim: --back mirror needs converged front rows")
             t_c, mu_c = sorted(front)[len(front) // 2]
             chk = run_row(t_c, mu_c, "back", a.stretch, mesh_size=a.mesh_size, across=a.across,
-                               max_iterations=a.max_iterations, n_rows=a.rows, n_motifs=a.motifs)
+                          max_iterations=a.max_iterations, n_rows=a.rows, n_motifs=a.motifs)
             log.append(chk)
             rel = abs(chk["kappa_per_mm"] - front[(t_c, mu_c)]) / front[(t_c, mu_c)]
             mirror_note = [f"  back rows = front rows by mirror symmetry through the fabric mid-surface (no gravity);",
