@@ -135,11 +135,9 @@ def gradient_case(size: float, length: float = 40.0, width: float = 3.0, t0: flo
 
 def rigid_align(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
     """X moved by the rotation + translation that best fits it to Y (Kabsch, least squares)."""
-    cx, cy = X.mean(0), Y.mean(0)
-    U, _, Vt = np.linalg.svd((X - cx).T @ (Y - cy))
-    d = np.sign(np.linalg.det(U @ Vt))
-    R = U @ np.diag([1.0, 1.0, d]) @ Vt
-    return (X - cx) @ R + cy
+    from inverse.pipeline import kabsch
+    R, t = kabsch(X, Y)
+    return X @ R.T + t
 
 
 def rms_to_reference(sheet: Sheet, x: np.ndarray, ref_sheet: Sheet, ref_x: np.ndarray) -> float:
