@@ -327,6 +327,9 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".") -> Patter
     seed = solver.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise SelfshapeError(f"{src}: [solver]: seed must be an integer, got {seed!r:.40}")
+    cap = solver.get("max_iterations", 300)
+    if isinstance(cap, bool) or not isinstance(cap, int) or cap < 1:
+        raise SelfshapeError(f"{src}: [solver]: max_iterations must be a positive integer, got {cap!r:.40}")
     _table(raw.get("meta", {}), f"{src}: [meta]", None)
     fabric, outline = _fabric(raw, src, mesh_size)
     plastic = _plastic(raw, src)

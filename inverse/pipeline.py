@@ -390,9 +390,11 @@ def design(V, F, *, stretch: float = 1.6, diagonal_mm: float | None = 110.0, pri
 
 # ----------------------------------------------------------------------------- outputs
 def pattern_dict(d: Design, *, fabric=None, plastic=None, mesh_size_mm: float = 2.0,
-                 mesh_across: float | None = None, seed: int = 0, target_name: str = "") -> dict:
+                 mesh_across: float | None = None, seed: int = 0, target_name: str = "",
+                 max_iterations: int | None = None) -> dict:
     """The pattern TOML (INTERFACE.md) of a design as a dict: [fabric] outline = flat boundary,
-    [[ribbon]] per ribbon, [plastic], [mesh], [solver], [meta] provenance."""
+    [[ribbon]] per ribbon, [plastic], [mesh], [solver] (seed, and max_iterations when given:
+    the Newton cap `selfshape simulate` uses for this pattern), [meta] provenance."""
     from shellfem.materials import Fabric, Plastic
 
     fab = fabric or Fabric()
@@ -409,7 +411,7 @@ def pattern_dict(d: Design, *, fabric=None, plastic=None, mesh_size_mm: float = 
         "ribbon": [{"path": r4(r.path), "width_mm": float(r.width_mm), "thickness_mm": float(r.thickness_mm),
                     "side": r.side} for r in d.ribbons],
         "mesh": {"size_mm": float(mesh_size_mm), **({} if mesh_across is None else {"across": float(mesh_across)})},
-        "solver": {"seed": int(seed)},
+        "solver": {"seed": int(seed), **({} if max_iterations is None else {"max_iterations": int(max_iterations)})},
     }
 
 
@@ -640,12 +642,14 @@ def plot_verify(d: Design, X, T, pct, path: str):
 # ----------------------------------------------------------------------------- the verb
 def design_file(target_path, out_dir, verify: bool = False, diagonal_mm: float = 110.0, stretch: float = 1.6,
                 *, printer=None, lam: float = 0.0, thickness_law=None, edge_mm: float = 1.0,
-                mesh_size_mm: float = 2.0, mesh_across: float | None = None, seed: int = 0) -> dict:
+                mesh_size_mm: float = 2.0, mesh_across: float | None = None, seed: int = 0,
+                verify_iterations: int | None = None) -> dict:
     """`selfshape design TARGET -o DIR`: writes DIR/pattern.toml, flat.vtu, front.gcode (and
     back.gcode when a ribbon is on the back), pattern.png and report.json (last); with
     ``verify`` also deployed.vtu and verify.png and the deviation in report.json. time_s is the
     design time (read to written outputs, Table 5.1's "Time"), total_time_s includes the
-    verification. Outputs of an earlier run in the directory are removed first; on failure
+    verification. verify_iterations: Newton cap of the verification, written to pattern.toml's
+    [solver] max_iterations (default: the simulator's 300). Outputs of an earlier run in the directory are removed first; on failure
     every file this run wrote is removed. Returns the report dict."""
     import tomli_w
 
@@ -672,7 +676,7 @@ def design_file(target_path, out_dir, verify: bool = False, diagonal_mm: float =
         written.append(p)
         with open(p, "wb") as f:
             tomli_w.dump(pattern_dict(d, mesh_size_mm=mesh_size_mm, mesh_across=mesh_across, seed=seed,
-                                      target_name=name), f)
+                                      target_name=name, max_iterations=verify_iterations), f)
         p = os.path.join(out_dir, "flat.vtu")
         written.append(p)
         write_flat_vtu(d, p)

@@ -33,7 +33,7 @@ def _cmd_design(a):
     from inverse.printer import load_printer
     printer = load_printer(a.printer) if a.printer else None
     r = design_file(a.target, a.output, verify=a.verify, diagonal_mm=a.diagonal, stretch=a.stretch,
-                    thickness_law=a.law, lam=a.lam, printer=printer)
+                    thickness_law=a.law, lam=a.lam, printer=printer, verify_iterations=a.verify_iterations)
     print(f"design written to {a.output} in {r['time_s']:.1f} s")
 
 
@@ -85,6 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("target")
     d.add_argument("-o", "--output", required=True)
     d.add_argument("--verify", action="store_true", help="simulate the design and report its deviation")
+    d.add_argument("--verify-iterations", type=int, default=None,
+                   help="Newton iteration cap of --verify, also written to pattern.toml [solver] (default 300)")
     d.add_argument("--diagonal", type=float, default=110.0, help="scale the target to this bounding-box diagonal, mm")
     d.add_argument("--stretch", type=float, default=1.6, help="fabric pre-stretch s")
     d.add_argument("--law", default=None, help="curvature-law CSV (default: the shipped inverse/data table)")

@@ -153,6 +153,8 @@ BAD = [
     (lambda r: r.update(mesh={"size_mm": 0}), "[mesh]: size_mm must be > 0"),
     (lambda r: r.update(mesh={"size": 1}), "[mesh]: unknown key 'size'"),
     (lambda r: r.update(solver={"seed": 1.5}), "[solver]: seed must be an integer"),
+    (lambda r: r.update(solver={"max_iterations": 0}), "[solver]: max_iterations must be a positive integer"),
+    (lambda r: r.update(solver={"max_iterations": "many"}), "[solver]: max_iterations must be a positive integer"),
     (lambda r: r.update(print={"gcode": 3}), "[print]: gcode must be a file name"),
 ]
 

@@ -331,7 +331,8 @@ def test_cli_design_uses_the_printer_file(tmp_path):
     printer = tmp_path / "printer.toml"
     printer.write_text("[printer]\nbed_size = [300, 300]\nprint_speed_mm_s = 20\nnozzle_temperature_c = 230\n")
     out = tmp_path / "out"
-    assert main(["design", target, "-o", str(out), "--printer", str(printer)]) == 0
+    assert main(["design", target, "-o", str(out), "--printer", str(printer), "--verify-iterations", "1500"]) == 0
+    assert load_pattern(out / "pattern.toml").raw["solver"]["max_iterations"] == 1500
     gcode = [p for p in ("front.gcode", "back.gcode") if (out / p).exists()]
     assert gcode
     text = (out / gcode[0]).read_text()

@@ -102,6 +102,7 @@ def main(argv=None):
     ap.add_argument("--edge", type=float, default=1.0, help="refine until the mean edge is below (mm)")
     ap.add_argument("--mesh-size", type=float, default=2.0, help="[mesh] size_mm written to pattern.toml (verify)")
     ap.add_argument("--across", type=float, default=None, help="[mesh] across written to pattern.toml (verify)")
+    ap.add_argument("--verify-iterations", type=int, default=None, help="Newton cap of the verification")
     a = ap.parse_args(argv)
     np.seterr(all="ignore")
     from geometry.target import load_target
@@ -118,7 +119,7 @@ def main(argv=None):
         t0 = time.perf_counter()
         try:
             rep = design_file(path, out, verify=not a.no_verify, edge_mm=a.edge, mesh_size_mm=a.mesh_size,
-                              mesh_across=a.across)
+                              mesh_across=a.across, verify_iterations=a.verify_iterations)
         except Exception as e:  # report and go on with the other targets
             print(json.dumps({"name": name, "error": f"{type(e).__name__}: {e}"}), flush=True)
             continue
