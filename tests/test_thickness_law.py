@@ -216,3 +216,30 @@ def test_law_from_previous_rows_writes_the_requested_subgrid(tmp_path):
     assert f.kappa[1, 1] == pytest.approx(1.0 / 6.4) and np.array_equal(law.table("back").kappa, f.kappa)
     text = "\n".join(law.provenance)
     assert "t=1.2 mu2=4 front: kappa 0.9" in text and "relative difference 0.0e+00" in text
+
+
+def test_calibrated_plastic_is_named_in_the_provenance(tmp_path):
+    """--calibration (a `selfshape calibrate strips` parameters.json) sets the plastic modulus of
+    the simulated law and the header says where it came from; a bad file is a one-line exit."""
+    import json
+
+    from validation.thickness_law_sim import main, read_modulus_ratio
+    cal = tmp_path / "parameters.json"
+    cal.write_text(json.dumps({"modulus_ratio": [1000.0, 20.0], "fit": {"data": "strips_X.csv"}}))
+    assert read_modulus_ratio(str(cal)) == (1000.0, 20.0, "strips_X.csv")
+    rows = [dict(thickness_mm=t, spacing_mm=mu, side="front", kappa_per_mm=0.1 / t, converged=True, reason="ok",
+                 newton_iterations=10, n_triangles=100, time_s=1.0) for t in (0.2, 0.4) for mu in (4.0, 8.0)]
+    src = tmp_path / "rows.json"
+    src.write_text(json.dumps({"rows": rows}))
+    out = tmp_path / "law.csv"
+    assert main(["--model", "sim", "--sides", "front", "--thickness", "0.2", "0.4", "--spacing", "4", "8",
+                 "--from-json", str(src), "--calibration", str(cal), "--out", str(out)]) == 0
+    text = out.read_text()
+    assert "plastic: E 1050 MPa" in text and "modulus_ratio 1000.0 +- 20.0" in text and "strips_X.csv" in text
+    for content, word in (("{}", "not a `selfshape calibrate strips`"), ('{"modulus_ratio": [-1, 1]}', "must be > 0")):
+        cal.write_text(content)
+        with pytest.raises(SystemExit) as e:
+            read_modulus_ratio(str(cal))
+        assert word in str(e.value) and "\n" not in str(e.value)
+    with pytest.raises(SystemExit, match="file not found"):
+        read_modulus_ratio(str(tmp_path / "missing.json"))

@@ -30,6 +30,7 @@ import json
 import os
 import subprocess
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -143,6 +144,23 @@ def simulate_row(thickness, spacing, side, stretch, *, mesh_size=2.0, across=2.0
             "time_s": round(time.perf_counter() - t0, 2)}
 
 
+def read_modulus_ratio(path: str):
+    """(modulus_ratio, standard error, data file) from a `selfshape calibrate strips` parameters.json;
+    SystemExit with one line if the file is missing or is not one."""
+    try:
+        with open(path) as f:
+            p = json.load(f)
+        ratio, se = (float(v) for v in p["modulus_ratio"])
+    except FileNotFoundError:
+        raise SystemExit(f"thickness_law_sim: {path}: file not found") from None
+    except (OSError, ValueError, KeyError, TypeError):
+        raise SystemExit(f"thickness_law_sim: {path}: not a `selfshape calibrate strips` parameters.json "
+                         "(needs modulus_ratio [value, standard error])") from None
+    if not (np.isfinite(ratio) and ratio > 0):
+        raise SystemExit(f"thickness_law_sim: {path}: modulus_ratio must be > 0, got {ratio:g}")
+    return ratio, se, p.get("fit", {}).get("data", "?")
+
+
 # ----------------------------------------------------------------------------- main
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -165,10 +183,19 @@ def main(argv=None):
                     help="thicknesses written to the table (default: all simulated); the rest stay in the provenance")
     ap.add_argument("--table-spacing", type=float, nargs="+", default=None,
                     help="spacings written to the table (default: all simulated)")
+    ap.add_argument("--calibration", default=None,
+                    help="parameters.json of `selfshape calibrate strips` (measured strips): the plastic's Young's "
+                         "modulus = its modulus_ratio x the fabric's (default: the seed's Table 4.1 plastic)")
     ap.add_argument("--out", default=None, help=f"output CSV (default {DEFAULT_LAW})")
     a = ap.parse_args(argv)
     out = a.out or DEFAULT_LAW
     fabric, plastic = Fabric(), Plastic()
+    plastic_source = "seed Table 4.1 defaults"
+    if a.calibration:
+        ratio, se, data = read_modulus_ratio(a.calibration)
+        plastic = replace(plastic, young_modulus=ratio * fabric.young_modulus)
+        plastic_source = (f"E = modulus_ratio {ratio:.1f} +- {se:.1f} x fabric E, from {os.path.basename(a.calibration)} "
+                          f"(selfshape calibrate strips on {data})")
     t0 = time.perf_counter()
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     head = [f"selfshape curvature law kappa(thickness, transverse spacing, side) at fabric stretch {a.stretch:g}",
@@ -177,7 +204,7 @@ def main(argv=None):
             f"generated {stamp} by validation/thickness_law_sim.py --model {a.model}, git {git_hash()}",
             f"fabric: E {fabric.young_modulus:g} MPa, nu {fabric.poisson:g}, thickness {fabric.thickness:g} mm, "
             f"k_B {fabric.bending_stiffness:g} N mm ({fabric.model}); plastic: E {plastic.young_modulus:g} MPa, "
-            f"nu {plastic.poisson:g}, rest curvature {plastic.rest_curvature:g} /mm (seed Table 4.1 defaults)",
+            f"nu {plastic.poisson:g}, rest curvature {plastic.rest_curvature:g} /mm ({plastic_source})",
             f"ribbons {RIBBON_LENGTH:g} x {RIBBON_WIDTH:g} mm"]
     dropped, log = [], []
     if a.model == "strip":
@@ -206,7 +233,8 @@ def main(argv=None):
             for t in a.thickness:
                 for mu in a.spacing:
                     r = run_row(t, mu, side, a.stretch, mesh_size=a.mesh_size, across=a.across,
-                                max_iterations=a.max_iterations, n_rows=a.rows, n_motifs=a.motifs)
+                                max_iterations=a.max_iterations, n_rows=a.rows, n_motifs=a.motifs,
+                                fabric=fabric, plastic=plastic)
                     log.append(r)
                     if r["converged"] and np.isfinite(r["kappa_per_mm"]):
                         rows.append((t, mu, side, r["kappa_per_mm"]))
@@ -219,7 +247,8 @@ def main(argv=None):
                 raise SystemExit("thickness_law_sim: --back mirror needs converged front rows")
             t_c, mu_c = sorted(front)[len(front) // 2]
             chk = run_row(t_c, mu_c, "back", a.stretch, mesh_size=a.mesh_size, across=a.across,
-                          max_iterations=a.max_iterations, n_rows=a.rows, n_motifs=a.motifs)
+                          max_iterations=a.max_iterations, n_rows=a.rows, n_motifs=a.motifs,
+                          fabric=fabric, plastic=plastic)
             log.append(chk)
             rel = abs(chk["kappa_per_mm"] - front[(t_c, mu_c)]) / front[(t_c, mu_c)]
             mirror_note = [f"  back rows = front rows by mirror symmetry through the fabric mid-surface (no gravity);",

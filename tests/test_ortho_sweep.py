@@ -1,0 +1,26 @@
+"""validation.ortho_sweep: the seed's section 4.1 cases and the mode comparison."""
+from validation.ortho_sweep import case, markdown_table, summarise
+
+
+def test_case_is_the_gallery_ribbons_with_thickness_pitch_and_course():
+    raw = case(0.8, 6.0, 90.0)
+    assert raw["fabric"]["model"] == "orthotropic" and raw["fabric"]["course_angle_deg"] == 90.0
+    ys = sorted(r["path"][0][1] for r in raw["ribbon"])
+    assert all(abs(b - a - 6.0) < 1e-12 for a, b in zip(ys, ys[1:]))
+    assert {r["thickness_mm"] for r in raw["ribbon"]} == {0.8}
+
+
+def _row(t, p, c, along, across, converged=True):
+    return dict(thickness_mm=t, pitch_mm=p, course_deg=c, converged=converged, kappa_along_per_mm=along,
+                kappa_across_per_mm=across, mode="along" if abs(along) > abs(across) else "across")
+
+
+def test_modes_differ_only_where_both_orientations_converged_and_disagree():
+    rows = [_row(0.4, 3, 0.0, 0.3, 0.1), _row(0.4, 3, 90.0, 0.1, -0.2),      # along vs across: differ
+            _row(0.8, 3, 0.0, 0.3, 0.1), _row(0.8, 3, 90.0, 0.5, 0.1),       # both along
+            _row(1.2, 3, 0.0, 0.3, 0.1), _row(1.2, 3, 90.0, 0.1, 0.5, converged=False)]
+    s = summarise(rows)
+    assert [(r["thickness_mm"], r["modes_differ"]) for r in s] == [(0.4, True), (0.8, False)]
+    assert s[0]["ratio_90"] == 0.5
+    table = markdown_table(rows)
+    assert "| 0.4 | 3 | 3.00, along | 0.50, across | yes |" in table and "1.2" not in table
