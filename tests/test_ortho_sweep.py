@@ -24,3 +24,10 @@ def test_modes_differ_only_where_both_orientations_converged_and_disagree():
     assert s[0]["ratio_90"] == 0.5
     table = markdown_table(rows)
     assert "| 0.4 | 3 | 3.00, along | 0.50, across | yes |" in table and "1.2" not in table
+
+
+def test_other_seeds_are_listed_next_to_seed_0():
+    rows = [_row(0.6, 3, 0.0, 0.1, 0.2), _row(0.6, 3, 90.0, 0.3, 0.2)]
+    rows += [dict(r, seed=1, mode="along") for r in rows]
+    assert [s["modes_differ"] for s in summarise(rows, 1)] == [False]
+    assert "| yes | seed 1: along / along |" in markdown_table(rows)

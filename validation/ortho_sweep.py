@@ -14,7 +14,8 @@ the two orientations give different modes.
 Each case is appended to OUT/rows.jsonl as soon as it is done (a rerun skips cases already
 there); prints ONE JSON line with all rows and, per (thickness, pitch), whether the modes differ.
 
-Run: python -m validation.ortho_sweep [--thickness 0.2 0.4 0.8 1.2] [--pitch 3 6] [--out out/ortho_sweep]
+Run: python -m validation.ortho_sweep [--thickness 0.2 0.4 0.8 1.2] [--pitch 3 6] [--seeds 0]
+                                     [--out out/ortho_sweep] [--table]
 """
 from __future__ import annotations
 
@@ -24,16 +25,19 @@ import os
 import time
 
 
-def case(thickness_mm: float, pitch_mm: float, course_deg: float) -> dict:
-    """Pattern dict of one case (the gallery's parallel ribbons with this thickness and pitch)."""
+def case(thickness_mm: float, pitch_mm: float, course_deg: float, seed: int = 0) -> dict:
+    """Pattern dict of one case (the gallery's parallel ribbons with this thickness and pitch;
+    seed: the solver's symmetry-breaking perturbation)."""
     from validation.gallery import _parallel_ribbons
     raw = _parallel_ribbons(pitch=pitch_mm, model="orthotropic", course=course_deg)
     for r in raw["ribbon"]:
         r["thickness_mm"] = float(thickness_mm)
+    raw["solver"]["seed"] = int(seed)
     return raw
 
 
-def simulate_case(thickness_mm: float, pitch_mm: float, course_deg: float, max_iterations: int = 600) -> dict:
+def simulate_case(thickness_mm: float, pitch_mm: float, course_deg: float, max_iterations: int = 600,
+                  seed: int = 0) -> dict:
     import tempfile
 
     import tomli_w
@@ -45,22 +49,24 @@ def simulate_case(thickness_mm: float, pitch_mm: float, course_deg: float, max_i
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "case.toml")
         with open(path, "wb") as f:
-            tomli_w.dump(case(thickness_mm, pitch_mm, course_deg), f)
+            tomli_w.dump(case(thickness_mm, pitch_mm, course_deg, seed), f)
         pat = load_pattern(path)
     t0 = time.perf_counter()
     sim = simulate(pat, max_iterations=max_iterations)
     m = measure("ortho_0", sim)
     along, across = m["curvature_along_ribbons"], m["curvature_across_ribbons"]
-    return {"thickness_mm": thickness_mm, "pitch_mm": pitch_mm, "course_deg": course_deg,
+    return {"thickness_mm": thickness_mm, "pitch_mm": pitch_mm, "course_deg": course_deg, "seed": int(seed),
             "converged": bool(sim.result.converged), "newton_iterations": int(sim.result.iterations),
             "n_vertices": int(sim.sheet.n_vertices), "wall_s": round(time.perf_counter() - t0, 1),
             "kappa_along_per_mm": along, "kappa_across_per_mm": across, "twist_per_mm": m["twist"],
             "mode": "along" if abs(along) > abs(across) else "across"}
 
 
-def summarise(rows: list) -> list:
-    """Per (thickness, pitch) with both orientations converged: the modes and whether they differ."""
+def summarise(rows: list, seed: int = 0) -> list:
+    """Per (thickness, pitch) with both orientations converged (solver seed ``seed``): the modes
+    and whether they differ."""
     out = []
+    rows = [r for r in rows if r.get("seed", 0) == seed]
     keys = sorted({(r["thickness_mm"], r["pitch_mm"]) for r in rows})
     for t, p in keys:
         by = {r["course_deg"]: r for r in rows if (r["thickness_mm"], r["pitch_mm"]) == (t, p) and r["converged"]}
@@ -73,11 +79,17 @@ def summarise(rows: list) -> list:
 
 
 def markdown_table(rows: list) -> str:
-    lines = ["| thickness (mm) | pitch (mm) | course 0 deg: along/across, mode | course 90 deg: along/across, mode | modes differ |",
-             "|---|---|---|---|---|"]
+    """One line per (thickness, pitch) at seed 0; other seeds' modes, where run, in the last column."""
+    lines = ["| thickness (mm) | pitch (mm) | course 0 deg: along/across, mode | course 90 deg: along/across, mode | "
+             "modes differ | other seeds (0 / 90 deg modes) |", "|---|---|---|---|---|---|"]
+    seeds = sorted({r.get("seed", 0) for r in rows} - {0})
+    other = {sd: {(s["thickness_mm"], s["pitch_mm"]): s for s in summarise(rows, sd)} for sd in seeds}
     for s in summarise(rows):
+        key = (s["thickness_mm"], s["pitch_mm"])
+        more = "; ".join(f"seed {sd}: {other[sd][key]['mode_0']} / {other[sd][key]['mode_90']}"
+                         for sd in seeds if key in other[sd])
         lines.append(f"| {s['thickness_mm']:g} | {s['pitch_mm']:g} | {s['ratio_0']:.2f}, {s['mode_0']} | "
-                     f"{s['ratio_90']:.2f}, {s['mode_90']} | {'yes' if s['modes_differ'] else 'no'} |")
+                     f"{s['ratio_90']:.2f}, {s['mode_90']} | {'yes' if s['modes_differ'] else 'no'} | {more} |")
     return "\n".join(lines)
 
 
@@ -85,6 +97,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--thickness", type=float, nargs="+", default=[0.2, 0.4, 0.8, 1.2])
     ap.add_argument("--pitch", type=float, nargs="+", default=[3.0, 6.0])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="solver seeds (symmetry-breaking perturbation)")
     ap.add_argument("--max-iterations", type=int, default=600)
     ap.add_argument("--out", default="out/ortho_sweep")
     ap.add_argument("--table", action="store_true", help="print the Markdown table of OUT/rows.jsonl and stop")
@@ -98,16 +111,17 @@ def main(argv=None):
         print(markdown_table(rows))
         return
     os.makedirs(a.out, exist_ok=True)
-    done = {(r["thickness_mm"], r["pitch_mm"], r["course_deg"]) for r in rows}
-    for t in a.thickness:
-        for p in a.pitch:
-            for c in (0.0, 90.0):
-                if (t, p, c) in done:
-                    continue
-                row = simulate_case(t, p, c, a.max_iterations)
-                rows.append(row)
-                with open(path, "a") as f:
-                    f.write(json.dumps(row) + "\n")
+    done = {(r["thickness_mm"], r["pitch_mm"], r["course_deg"], r.get("seed", 0)) for r in rows}
+    for sd in a.seeds:
+        for t in a.thickness:
+            for p in a.pitch:
+                for c in (0.0, 90.0):
+                    if (t, p, c, sd) in done:
+                        continue
+                    row = simulate_case(t, p, c, a.max_iterations, seed=sd)
+                    rows.append(row)
+                    with open(path, "a") as f:
+                        f.write(json.dumps(row) + "\n")
     print(json.dumps({"rows": rows, "summary": summarise(rows)}))
 
 
