@@ -12,10 +12,10 @@ across the ribbons over the inner 60 % of the sheet. The mode is "along" when
 the two orientations give different modes.
 
 Each case is appended to OUT/rows.jsonl as soon as it is done (a rerun skips cases already
-there); prints ONE JSON line with all rows and, per (thickness, pitch), whether the modes differ.
+there); OUT/table.md is the comparison table; prints ONE JSON line with all rows and, per (thickness, pitch), whether the modes differ.
 
 Run: python -m validation.ortho_sweep [--thickness 0.2 0.4 0.8 1.2] [--pitch 3 6] [--seeds 0]
-                                     [--out out/ortho_sweep] [--table]
+                                     [--out docs/gallery/ortho_sweep] [--table]
 """
 from __future__ import annotations
 
@@ -99,7 +99,7 @@ def main(argv=None):
     ap.add_argument("--pitch", type=float, nargs="+", default=[3.0, 6.0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="solver seeds (symmetry-breaking perturbation)")
     ap.add_argument("--max-iterations", type=int, default=600)
-    ap.add_argument("--out", default="out/ortho_sweep")
+    ap.add_argument("--out", default="docs/gallery/ortho_sweep")
     ap.add_argument("--table", action="store_true", help="print the Markdown table of OUT/rows.jsonl and stop")
     a = ap.parse_args(argv)
     path = os.path.join(a.out, "rows.jsonl")
@@ -122,6 +122,8 @@ def main(argv=None):
                     rows.append(row)
                     with open(path, "a") as f:
                         f.write(json.dumps(row) + "\n")
+    with open(os.path.join(a.out, "table.md"), "w") as f:
+        f.write(markdown_table(rows) + "\n")
     print(json.dumps({"rows": rows, "summary": summarise(rows)}))
 
 
