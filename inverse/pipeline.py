@@ -76,6 +76,7 @@ class Design:
     stop: str = "mean"
     thickness_info: dict = field(default_factory=dict)
     law_source: str = ""
+    law_plastic_mpa: float | None = None     # the plastic modulus the law holds for (MPa), if it says
     times: dict = field(default_factory=dict)
     cpu_times: dict = field(default_factory=dict)
     coarse_iterations: int = 0
@@ -383,7 +384,7 @@ def design(V, F, *, stretch: float = 1.6, diagonal_mm: float | None = 110.0, pri
     return Design(V=Vf, F=Ff, V_input=V0, F_input=F0, curvature=curv, field=lf, flat=flat, kappa1=kappa1,
                   outline=outline, ribbons=ribbons, stretch=float(stretch), bounds=tuple(bounds),
                   refine_levels=levels, layout_levels=lay_levels, lam=float(lam), stop=stop, thickness_info=tinfo,
-                  law_source=law.source,
+                  law_source=law.source, law_plastic_mpa=law.plastic_young_modulus_mpa,
                   times=times, cpu_times=cpu, separation=sep,
                   coarse_iterations=coarse.iterations if coarse is not None else 0)
 
@@ -393,12 +394,13 @@ def pattern_dict(d: Design, *, fabric=None, plastic=None, mesh_size_mm: float = 
                  mesh_across: float | None = None, seed: int = 0, target_name: str = "",
                  max_iterations: int | None = None) -> dict:
     """The pattern TOML (INTERFACE.md) of a design as a dict: [fabric] outline = flat boundary,
-    [[ribbon]] per ribbon, [plastic], [mesh], [solver] (seed, and max_iterations when given:
+    [[ribbon]] per ribbon, [plastic] (default: the modulus the thickness law states), [mesh], [solver] (seed, and max_iterations when given:
     the Newton cap `selfshape simulate` uses for this pattern), [meta] provenance."""
     from shellfem.materials import Fabric, Plastic
 
     fab = fabric or Fabric()
-    pla = plastic or Plastic()
+    # the plastic the thickness law was computed for, so the pattern simulates what was designed
+    pla = plastic or (Plastic(young_modulus=d.law_plastic_mpa) if d.law_plastic_mpa else Plastic())
     r4 = lambda a: np.round(np.asarray(a, float), 4).tolist()  # noqa: E731
     return {
         "meta": {"generator": "selfshape design (inverse.pipeline)", "target": target_name,
@@ -496,6 +498,7 @@ def report_dict(d: Design) -> dict:
         "thickness_histogram": thickness_histogram(d.ribbons),
         "ribbons_separated": d.separation,
         "thickness_clamped": d.thickness_info, "thickness_law": d.law_source,
+        "plastic_young_modulus_mpa": d.law_plastic_mpa,
     }
 
 

@@ -13,6 +13,9 @@ ribbons (1/mm, per unit deployed length). Extra columns are allowed and ignored.
 a full grid (every thickness with every spacing, at least 2 x 2), and for every spacing kappa
 is strictly monotone in thickness, in the same direction for all spacings of a side (so the
 bilinear interpolant is monotone in thickness at any spacing and can be inverted).
+One comment line may state the plastic the law holds for, ``# plastic_young_modulus_mpa = E``
+(MPa): `selfshape design` then writes that modulus into pattern.toml's [plastic], so that the
+pattern simulates with the material its thicknesses were chosen for.
 
 Interpolation is bilinear in (thickness, spacing); spacings outside the table are clamped to
 its range (counted). The inverse returns thicknesses rounded to multiples of the printer's
@@ -32,6 +35,7 @@ from selfshape.errors import SelfshapeError, check_number
 
 COLUMNS = ("thickness_mm", "spacing_mm", "side", "kappa_per_mm")
 SIDES = ("front", "back")
+PLASTIC_KEY = "plastic_young_modulus_mpa"
 #: The law shipped with the project (see the file's provenance header).
 DEFAULT_LAW = os.path.join(os.path.dirname(__file__), "data", "thickness_law_s1.6.csv")
 
@@ -47,10 +51,12 @@ class SideTable:
 
 @dataclass
 class ThicknessLaw:
-    """A loaded law: per side a SideTable; provenance = the comment lines; source = file."""
+    """A loaded law: per side a SideTable; provenance = the comment lines; source = file;
+    plastic_young_modulus_mpa: the plastic the law holds for (MPa), None if not stated."""
     sides: dict
     provenance: list = field(default_factory=list)
     source: str = "<table>"
+    plastic_young_modulus_mpa: float | None = None
 
     def table(self, side: str) -> SideTable:
         if side not in self.sides:
@@ -97,7 +103,14 @@ def parse_thickness_law(text: str, source: str = "<table>") -> ThicknessLaw:
     sides = {s: _grid(rows_, s, source) for s, rows_ in data.items() if rows_}
     if not sides:
         raise SelfshapeError(f"{source}: no data rows")
-    return ThicknessLaw(sides, provenance, source)
+    modulus = None
+    for ln in provenance:
+        key, eq, value = ln.partition("=")
+        if eq and key.strip() == PLASTIC_KEY:
+            modulus = _float(value.strip(), f"{source}: {PLASTIC_KEY}")
+            if not modulus > 0:
+                raise SelfshapeError(f"{source}: {PLASTIC_KEY} must be > 0, got {modulus:g}")
+    return ThicknessLaw(sides, provenance, source, modulus)
 
 
 def _grid(rows, side, source) -> SideTable:

@@ -85,6 +85,10 @@ def test_pattern_toml_round_trip(written):
     out, rep = written
     pat = load_pattern(out / "pattern.toml")
     assert pat.fabric.stretch == (1.6, 1.6)
+    # the pattern's plastic is the one the (shipped) thickness law was simulated with
+    from inverse.thickness_law import load_thickness_law
+    assert pat.plastic.young_modulus == pytest.approx(load_thickness_law().plastic_young_modulus_mpa)
+    assert rep["plastic_young_modulus_mpa"] == pytest.approx(pat.plastic.young_modulus)
     assert pat.outline.area == pytest.approx(rep["flat_area_mm2"], rel=1e-4)
     assert len(pat.elements) == rep["n_ribbons"]
     assert all(e.kind == "ribbon" and e.side == "front" for e in pat.elements)

@@ -57,6 +57,12 @@ def test_increasing_table_inverts_too_and_sign_is_ignored():
     assert t2 == pytest.approx(0.7, abs=1e-12)
 
 
+def test_the_law_states_its_plastic():
+    assert parse_thickness_law(table_text()).plastic_young_modulus_mpa is None
+    law = parse_thickness_law("# made with\n#  plastic_young_modulus_mpa = 1180.5\n" + table_text())
+    assert law.plastic_young_modulus_mpa == 1180.5
+
+
 def test_clamping_is_counted():
     law = parse_thickness_law(table_text())
     # decreasing law: too little curvature -> thickest; too much -> thinnest; spacing clamped to range
@@ -75,6 +81,8 @@ def test_clamping_is_counted():
     (lambda s: s.replace("0.2,4,front", "0.2,4,top"), "side must be"),
     (lambda s: s + "0.2,4,front,0.5\n", "duplicate row"),
     (lambda s: s.replace("0.2,4,front", "0.2,abc,front"), "spacing_mm must be a number"),
+    (lambda s: "# plastic_young_modulus_mpa = -3\n" + s, "plastic_young_modulus_mpa must be > 0"),
+    (lambda s: "# plastic_young_modulus_mpa = soft\n" + s, "plastic_young_modulus_mpa must be a number"),
 ])
 def test_bad_tables_one_line_errors(mutate, word):
     with pytest.raises(SelfshapeError) as e:
@@ -181,6 +189,10 @@ def test_shipped_default_law_is_the_simulated_table():
     law = load_thickness_law()
     text = "\n".join(law.provenance)
     assert "SOURCE: forward simulation" in text and "relative difference" in text
+    assert "from strips_S1_calibration.json" in text      # the plastic modulus comes from measured strips
+    with open(os.path.join(os.path.dirname(DEFAULT_LAW), "strips_S1_calibration.json")) as fh:
+        ratio = json.load(fh)["modulus_ratio"][0]
+    assert f"plastic: E {ratio * 1.05:g} MPa" in text
     f, b = law.table("front"), law.table("back")
     assert np.all(np.diff(f.kappa, axis=0) < 0)
     assert np.array_equal(f.kappa, b.kappa)

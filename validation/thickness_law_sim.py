@@ -34,7 +34,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from inverse.thickness_law import DEFAULT_LAW, format_thickness_law, parse_thickness_law
+from inverse.thickness_law import DEFAULT_LAW, PLASTIC_KEY, format_thickness_law, parse_thickness_law
 from selfshape.errors import SelfshapeError
 from shellfem.materials import Fabric, Plastic
 
@@ -205,7 +205,8 @@ def main(argv=None):
             f"fabric: E {fabric.young_modulus:g} MPa, nu {fabric.poisson:g}, thickness {fabric.thickness:g} mm, "
             f"k_B {fabric.bending_stiffness:g} N mm ({fabric.model}); plastic: E {plastic.young_modulus:g} MPa, "
             f"nu {plastic.poisson:g}, rest curvature {plastic.rest_curvature:g} /mm ({plastic_source})",
-            f"ribbons {RIBBON_LENGTH:g} x {RIBBON_WIDTH:g} mm"]
+            f"ribbons {RIBBON_LENGTH:g} x {RIBBON_WIDTH:g} mm",
+            f"{PLASTIC_KEY} = {plastic.young_modulus:.6g}"]
     dropped, log = [], []
     if a.model == "strip":
         rows = [r for r in strip_rows(a.thickness, a.spacing, a.stretch, fabric, plastic) if r[2] in a.sides]
@@ -217,9 +218,14 @@ def main(argv=None):
         rows = []
         previous = {}
         if a.from_json:
-            with open(a.from_json) as f:
-                for r in json.load(f)["rows"]:
-                    previous[(float(r["thickness_mm"]), float(r["spacing_mm"]), r["side"])] = r
+            try:
+                with open(a.from_json) as f:
+                    loaded = json.load(f)["rows"]
+            except (OSError, ValueError, KeyError, TypeError) as e:
+                raise SystemExit(f"thickness_law_sim: {a.from_json}: cannot read its rows "
+                                 f"({type(e).__name__}: {str(e)[:80]})") from None
+            for r in loaded:
+                previous[(float(r["thickness_mm"]), float(r["spacing_mm"]), r["side"])] = r
 
         def run_row(t, mu, side, *args, **kw):           # simulate, or reuse a previous run's row
             if a.from_json:
