@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import math
 import os
-import tomllib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,6 +25,7 @@ from geometry.elements import PrintedElement, Support
 from geometry.expressions import compile_field
 from geometry.stars import star_elements
 from selfshape.errors import SelfshapeError, check_number
+from selfshape.tomlfile import read_toml
 from shellfem.materials import Fabric, Plastic
 
 GCODE_MARGIN_MM = 10.0
@@ -362,15 +362,5 @@ def load_pattern(source) -> Pattern:
     src = os.fspath(source)
     if src.lower().endswith((".gcode", ".gco", ".g")):
         return pattern_from_gcode(src)
-    try:
-        with open(src, "rb") as f:
-            raw = tomllib.load(f)
-    except FileNotFoundError:
-        raise SelfshapeError(f"{src}: file not found") from None
-    except IsADirectoryError:
-        raise SelfshapeError(f"{src}: is a directory, not a pattern file") from None
-    except UnicodeDecodeError as e:
-        raise SelfshapeError(f"{src}: not a UTF-8 text file ({e.reason} at byte {e.start})") from None
-    except tomllib.TOMLDecodeError as e:
-        raise SelfshapeError(f"{src}: malformed TOML: {e}") from None
+    raw = read_toml(src)
     return parse_pattern(raw, src, os.path.dirname(os.path.abspath(src)))

@@ -113,17 +113,9 @@ def load_printer(path: str) -> Printer:
         print_speed_mm_s = 20
     """
     import dataclasses
-    import tomllib
 
-    try:
-        with open(path, "rb") as f:
-            raw = tomllib.load(f)
-    except OSError as e:
-        raise SelfshapeError(f"printer file {path}: cannot read ({e.strerror})") from None
-    except UnicodeDecodeError as e:
-        raise SelfshapeError(f"printer file {path}: not a UTF-8 text file ({e.reason} at byte {e.start})") from None
-    except tomllib.TOMLDecodeError as e:
-        raise SelfshapeError(f"printer file {path}: not valid TOML ({e})") from None
+    from selfshape.tomlfile import read_toml
+    raw = read_toml(path, f"printer file {path}")
     table = raw.get("printer", raw)
     if not isinstance(table, dict):
         raise SelfshapeError(f"printer file {path}: [printer] must be a table")

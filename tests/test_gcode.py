@@ -302,7 +302,7 @@ def test_load_printer_reads_a_printer_table_and_keeps_defaults(tmp_path):
 @pytest.mark.parametrize("text, word", [
     ("[printer]\nnozle_mm = 0.6\n", "unknown key 'nozle_mm'"),
     ("[printer]\nnozzle_mm = -1\n", "nozzle_mm must be >"),
-    ("[printer\n", "not valid TOML"),
+    ("[printer\n", "malformed TOML"),
 ])
 def test_load_printer_errors_are_one_line(tmp_path, text, word):
     p = tmp_path / "printer.toml"
@@ -313,7 +313,7 @@ def test_load_printer_errors_are_one_line(tmp_path, text, word):
 
 
 def test_load_printer_missing_file():
-    with pytest.raises(SelfshapeError, match="cannot read"):
+    with pytest.raises(SelfshapeError, match="printer file /nonexistent/printer.toml: file not found"):
         load_printer("/nonexistent/printer.toml")
 
 

@@ -1,0 +1,24 @@
+"""selfshape.tomlfile.read_toml: one reader, one wording, for pattern and printer files."""
+import pytest
+
+from selfshape.errors import SelfshapeError
+from selfshape.tomlfile import read_toml
+
+
+def test_reads_a_table(tmp_path):
+    p = tmp_path / "a.toml"
+    p.write_text("[mesh]\nsize_mm = 2.0\n")
+    assert read_toml(str(p)) == {"mesh": {"size_mm": 2.0}}
+
+
+@pytest.mark.parametrize("make, word", [
+    (lambda d: d / "missing.toml", "file not found"),
+    (lambda d: d, "is a directory"),
+    (lambda d: (d / "b.toml").write_bytes(b"\xff\xfe\x00") and d / "b.toml", "not a UTF-8 text file"),
+    (lambda d: (d / "c.toml").write_text("[mesh\n") and d / "c.toml", "malformed TOML: "),
+])
+def test_failures_are_one_line_with_the_label(tmp_path, make, word):
+    with pytest.raises(SelfshapeError) as e:
+        read_toml(str(make(tmp_path)), "my file")
+    msg = str(e.value)
+    assert msg.startswith("my file: ") and word in msg and "\n" not in msg
