@@ -5,8 +5,8 @@ docs/design/TARGET_{target,flat,ribbons,simulated}.png pictures and docs/design/
 Markdown table with the seed's Table 5.1 columns and the simulated deviation. Prints ONE JSON
 line per target and a final summary line.
 
-    python -m validation.design_targets [--no-verify] [--mesh-size 2] [--out out/design] [--docs docs/design]
-                                        [names...]
+    python -m validation.design_targets [--no-verify] [--mesh-size 2] [--across 1] [--verify-iterations N]
+                                        [--law LAW.csv] [--out out/design] [--docs docs/design] [names...]
 """
 from __future__ import annotations
 
@@ -103,6 +103,7 @@ def main(argv=None):
     ap.add_argument("--mesh-size", type=float, default=2.0, help="[mesh] size_mm written to pattern.toml (verify)")
     ap.add_argument("--across", type=float, default=None, help="[mesh] across written to pattern.toml (verify)")
     ap.add_argument("--verify-iterations", type=int, default=None, help="Newton cap of the verification")
+    ap.add_argument("--law", default=None, help="curvature-law CSV (default: the shipped law)")
     a = ap.parse_args(argv)
     np.seterr(all="ignore")
     from geometry.target import load_target
@@ -119,7 +120,7 @@ def main(argv=None):
         t0 = time.perf_counter()
         try:
             rep = design_file(path, out, verify=not a.no_verify, edge_mm=a.edge, mesh_size_mm=a.mesh_size,
-                              mesh_across=a.across, verify_iterations=a.verify_iterations)
+                              mesh_across=a.across, verify_iterations=a.verify_iterations, thickness_law=a.law)
         except Exception as e:  # report and go on with the other targets
             print(json.dumps({"name": name, "error": f"{type(e).__name__}: {e}"}), flush=True)
             continue
