@@ -524,8 +524,10 @@ def register(X: np.ndarray, V: np.ndarray, F: np.ndarray, Y0: np.ndarray | None 
              tol: float = 1e-9):
     """Rigid registration (scale fixed) of points X (k, 3) to the surface (V, F): Kabsch on the
     correspondences Y0 (if given), then point-to-plane ICP against the closest surface points
-    (linearised rotation per step, mapped back to a rotation by Rodrigues). Returns (registered
-    X, closest-point distances (k,), ICP iterations)."""
+    (linearised rotation per step, mapped back to a rotation by Rodrigues). Point-to-plane steps
+    can overshoot when the shapes differ a lot, so the pose with the smallest RMS distance seen
+    (the Kabsch start included) is returned. Returns (registered X, closest-point distances
+    (k,), ICP iterations)."""
     import igl
 
     F = np.ascontiguousarray(F, dtype=np.int64)
@@ -535,10 +537,13 @@ def register(X: np.ndarray, V: np.ndarray, F: np.ndarray, Y0: np.ndarray | None 
     N = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
     N /= np.linalg.norm(N, axis=1)[:, None]
     prev = None
+    best = (np.inf, X, None)
     it = 0
     for it in range(1, iterations + 1):
         d2, I, C = igl.point_mesh_squared_distance(X, V, F)
         rms = float(np.sqrt(d2.mean()))
+        if rms < best[0]:
+            best = (rms, X, d2)
         if prev is not None and prev - rms <= tol * prev:
             break
         prev = rms
@@ -552,6 +557,8 @@ def register(X: np.ndarray, V: np.ndarray, F: np.ndarray, Y0: np.ndarray | None 
         R = np.eye(3) + np.sin(ang) * K + (1 - np.cos(ang)) * K @ K
         X = (X - c) @ R.T + c + t
     d2, _, _ = igl.point_mesh_squared_distance(X, V, F)
+    if float(np.sqrt(d2.mean())) > best[0]:
+        _, X, d2 = best
     return X, np.sqrt(d2), it
 
 

@@ -344,3 +344,19 @@ def test_cli_design_uses_the_printer_file(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text("[printer]\nspeed = 20\n")
     assert main(["design", target, "-o", str(tmp_path / "out2"), "--printer", str(bad)]) == 2
+
+
+def test_registration_is_never_worse_than_its_kabsch_start():
+    """A tightly rolled sheet against a gently curved target: point-to-plane ICP can walk off;
+    the returned pose is the best seen, so its RMS distance is at most the Kabsch start's."""
+    import igl
+    V, F = plane_patch(60, 40, 24, 16)
+    V[:, 2] = 0.004 * (V[:, 0] - 30) ** 2 - 0.003 * (V[:, 1] - 20) ** 2
+    P, _ = plane_patch(60, 40, 24, 16)
+    R = 8.0                                                     # rolled up: 60 mm around r = 8 mm
+    X = np.column_stack([R * np.sin(P[:, 0] / R), P[:, 1], R * (1 - np.cos(P[:, 0] / R))])
+    Y0 = V.copy()
+    R0, t0 = kabsch(X, Y0)
+    start = np.sqrt(igl.point_mesh_squared_distance(X @ R0.T + t0, V, np.asarray(F, np.int64))[0].mean())
+    _, dist, _ = register(X, V, F, Y0)
+    assert np.sqrt(np.mean(dist ** 2)) <= start + 1e-12
