@@ -394,8 +394,9 @@ def pattern_dict(d: Design, *, fabric=None, plastic=None, mesh_size_mm: float = 
                  mesh_across: float | None = None, seed: int = 0, target_name: str = "",
                  max_iterations: int | None = None) -> dict:
     """The pattern TOML (INTERFACE.md) of a design as a dict: [fabric] outline = flat boundary,
-    [[ribbon]] per ribbon, [plastic] (default: the modulus the thickness law states), [mesh], [solver] (seed, and max_iterations when given:
-    the Newton cap `selfshape simulate` uses for this pattern), [meta] provenance."""
+    [[ribbon]] per ribbon, [plastic] (default: the modulus the thickness law states), [mesh],
+    [solver] (seed, and max_iterations when given: the Newton cap `selfshape simulate` uses for
+    this pattern), [meta] provenance."""
     from shellfem.materials import Fabric, Plastic
 
     fab = fabric or Fabric()

@@ -12,7 +12,8 @@ across the ribbons over the inner 60 % of the sheet. The mode is "along" when
 the two orientations give different modes.
 
 Each case is appended to OUT/rows.jsonl as soon as it is done (a rerun skips cases already
-there); OUT/table.md is the comparison table; prints ONE JSON line with all rows and, per (thickness, pitch), whether the modes differ.
+there); OUT/table.md is the comparison table; prints ONE JSON line with all rows and, per
+(thickness, pitch), whether the modes differ.
 
 Run: python -m validation.ortho_sweep [--thickness 0.2 0.4 0.8 1.2] [--pitch 3 6] [--seeds 0]
                                      [--out docs/gallery/ortho_sweep] [--table]
@@ -62,6 +63,10 @@ def simulate_case(thickness_mm: float, pitch_mm: float, course_deg: float, max_i
             "mode": "along" if abs(along) > abs(across) else "across"}
 
 
+def _along_over_across(row: dict) -> float:
+    return round(abs(row["kappa_along_per_mm"]) / max(abs(row["kappa_across_per_mm"]), 1e-12), 3)
+
+
 def summarise(rows: list, seed: int = 0) -> list:
     """Per (thickness, pitch) with both orientations converged (solver seed ``seed``): the modes
     and whether they differ."""
@@ -72,8 +77,7 @@ def summarise(rows: list, seed: int = 0) -> list:
         by = {r["course_deg"]: r for r in rows if (r["thickness_mm"], r["pitch_mm"]) == (t, p) and r["converged"]}
         if 0.0 in by and 90.0 in by:
             out.append({"thickness_mm": t, "pitch_mm": p, "mode_0": by[0.0]["mode"], "mode_90": by[90.0]["mode"],
-                        "ratio_0": round(abs(by[0.0]["kappa_along_per_mm"]) / max(abs(by[0.0]["kappa_across_per_mm"]), 1e-12), 3),
-                        "ratio_90": round(abs(by[90.0]["kappa_along_per_mm"]) / max(abs(by[90.0]["kappa_across_per_mm"]), 1e-12), 3),
+                        "ratio_0": _along_over_across(by[0.0]), "ratio_90": _along_over_across(by[90.0]),
                         "modes_differ": by[0.0]["mode"] != by[90.0]["mode"]})
     return out
 
