@@ -54,7 +54,8 @@ class Pattern:
     the outline, in file order ([[region]], [[ribbon]], [stars], [print]). supports:
     boundary conditions. mesh_size: target edge length in bare fabric, mm. mesh_across:
     triangle rows across the narrowest printed feature ([mesh] across, default 2). seed: the
-    solver's symmetry-breaking seed. source: file path or "<dict>". raw: the parsed TOML
+    solver's symmetry-breaking seed. max_iterations: the Newton cap ([solver] max_iterations,
+    default 300). source: file path or "<dict>". raw: the parsed TOML
     (unknown [solver] and [meta] keys are kept here for the solver).
     """
     fabric: Fabric
@@ -65,6 +66,7 @@ class Pattern:
     mesh_size: float = 1.0
     seed: int = 0
     mesh_across: float = 2.0
+    max_iterations: int = 300
     source: str = "<dict>"
     raw: dict = field(default_factory=dict)
 
@@ -337,7 +339,8 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".") -> Patter
                 + _print(raw, src, outline, base_dir))
     supports = _supports(raw, src, outline)
     return Pattern(fabric=fabric, plastic=plastic, outline=outline, elements=elements, supports=supports,
-                   mesh_size=mesh_size, seed=int(seed), mesh_across=across, source=src, raw=raw)
+                   mesh_size=mesh_size, seed=int(seed), mesh_across=across, max_iterations=cap, source=src,
+                   raw=raw)
 
 
 def pattern_from_gcode(path: str) -> Pattern:

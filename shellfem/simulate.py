@@ -163,8 +163,7 @@ def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=F
     """Mesh a geometry.patterns.Pattern and compute its released equilibrium."""
     from geometry.meshing import mesh_pattern
     sheet = mesh_pattern(pattern, size_mm=size_mm)
-    solver_opts = pattern.raw.get("solver", {}) if isinstance(pattern.raw, dict) else {}
-    mi = max_iterations or int(solver_opts.get("max_iterations", 300))
+    mi = max_iterations or pattern.max_iterations
     return simulate_sheet(sheet, pattern.fabric, pattern.plastic, pattern.supports,
                           seed=pattern.seed if seed is None else seed, max_iterations=mi, verbose=verbose)
 

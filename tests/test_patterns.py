@@ -34,7 +34,7 @@ def test_all_entries_round_trip(tmp_path):
     assert f.orthotropic == dict(a1=0.03, a2=0.09, a3=0.06, b1=0.03, b2=0.02, g1=1.5, g2=1.5)
     assert (p.plastic.young_modulus, p.plastic.poisson, p.plastic.rest_curvature) == (70.0, 0.45, 0.01)
     assert p.outline.area == 2400.0 and p.outline.bounds == (0.0, 0.0, 60.0, 40.0)
-    assert p.mesh_size == 2.0 and p.seed == 7 and p.raw["solver"]["max_iterations"] == 50
+    assert p.mesh_size == 2.0 and p.seed == 7 and p.raw["solver"]["max_iterations"] == 50 and p.max_iterations == 50
     kinds = [e.kind for e in p.elements]
     assert kinds[:2] == ["region", "ribbon"] and set(kinds[2:]) == {"star"}
     reg, rib = p.elements[:2]
