@@ -660,8 +660,9 @@ def design_file(target_path, out_dir, verify: bool = False, diagonal_mm: float =
     ``verify`` also deployed.vtu and verify.png and the deviation in report.json. time_s is the
     design time (read to written outputs, Table 5.1's "Time"), total_time_s includes the
     verification. verify_iterations: Newton cap of the verification, written to pattern.toml's
-    [solver] max_iterations (default: the simulator's 300). Outputs of an earlier run in the directory are removed first; on failure
-    every file this run wrote is removed. Returns the report dict."""
+    [solver] max_iterations (default: the simulator's 300). Outputs of an earlier run in the
+    directory are removed first; on failure every file this run wrote is removed. Returns the
+    report dict."""
     import tomli_w
 
     from geometry.target import read_mesh

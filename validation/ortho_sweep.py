@@ -39,19 +39,11 @@ def case(thickness_mm: float, pitch_mm: float, course_deg: float, seed: int = 0)
 
 def simulate_case(thickness_mm: float, pitch_mm: float, course_deg: float, max_iterations: int = 600,
                   seed: int = 0) -> dict:
-    import tempfile
-
-    import tomli_w
-
     from geometry.patterns import load_pattern
     from shellfem.simulate import simulate
     from validation.gallery import measure
 
-    with tempfile.TemporaryDirectory() as tmp:
-        path = os.path.join(tmp, "case.toml")
-        with open(path, "wb") as f:
-            tomli_w.dump(case(thickness_mm, pitch_mm, course_deg, seed), f)
-        pat = load_pattern(path)
+    pat = load_pattern(case(thickness_mm, pitch_mm, course_deg, seed))
     t0 = time.perf_counter()
     sim = simulate(pat, max_iterations=max_iterations)
     m = measure("ortho_0", sim)
