@@ -669,6 +669,9 @@ def design_file(target_path, out_dir, verify: bool = False, diagonal_mm: float =
     from inverse.gcode import ribbons_to_gcode_files
 
     t_start = time.perf_counter()
+    if verify_iterations is not None and (isinstance(verify_iterations, bool) or not isinstance(verify_iterations, int)
+                                          or verify_iterations < 1):
+        raise SelfshapeError(f"--verify-iterations must be a positive integer, got {verify_iterations!r:.40}")
     name = os.path.basename(str(target_path))
     V, F = read_mesh(target_path)
     out_dir = os.fspath(out_dir)

@@ -344,6 +344,9 @@ def test_cli_design_uses_the_printer_file(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text("[printer]\nspeed = 20\n")
     assert main(["design", target, "-o", str(tmp_path / "out2"), "--printer", str(bad)]) == 2
+    # a cap that would write an unsimulable pattern.toml is refused before anything is written
+    assert main(["design", target, "-o", str(tmp_path / "out3"), "--verify-iterations", "0"]) == 2
+    assert not (tmp_path / "out3").exists()
 
 
 def test_registration_is_never_worse_than_its_kabsch_start():
