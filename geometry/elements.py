@@ -28,11 +28,14 @@ class Support:
 
     fix: "z" (on the ground plane z = 0, free to slide) or "xyz" (held at
     ``position`` or, when None, at the relaxed-fabric position (x/sx, y/sy, 0)).
+    boundary: hold every mesh vertex on the fabric's outline (``points`` empty), as the
+    seed's Fig. 3.8 sheets "fixed at the boundary".
     """
     points: np.ndarray            # (k, 2) printed-state mm
     fix: str = "z"
     position: np.ndarray | None = None  # (k, 3) mm, deployed frame
     label: str = ""
+    boundary: bool = False
 
 
 @dataclass

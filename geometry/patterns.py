@@ -38,7 +38,7 @@ KEYS = {
     "region": {"polygon", "thickness_mm", "side"},
     "ribbon": {"path", "width_mm", "thickness_mm", "side", "ends"},
     "stars": {"spacing_mm", "arm_length", "thickness_mm", "arm_width_mm", "side", "origin", "angle_deg"},
-    "support": {"points", "fix", "position"},
+    "support": {"points", "fix", "position", "boundary"},
     "mesh": {"size_mm", "across"},
     "print": {"gcode", "side", "origin_mm"},
 }
@@ -294,14 +294,22 @@ def _supports(raw, src, outline) -> list[Support]:
     grown = outline.buffer(tol)
     for i, t in enumerate(_array_of_tables(raw, "support", src)):
         where = f"{src}: [[support]] #{i + 1}"
+        boundary = t.get("boundary", False)
+        if not isinstance(boundary, bool):
+            raise SelfshapeError(f"{where}: boundary must be true or false, got {boundary!r:.40}")
+        fix = _choice(t, "fix", where, ("z", "xyz"), "z")
+        if boundary:
+            if "points" in t or "position" in t:
+                raise SelfshapeError(f"{where}: boundary = true holds the whole outline; drop points/position")
+            out.append(Support(points=np.zeros((0, 2)), fix=fix, label=f"support #{i + 1}", boundary=True))
+            continue
         if "points" not in t:
-            raise SelfshapeError(f"{where}: missing points")
+            raise SelfshapeError(f"{where}: missing points (or boundary = true)")
         pts = outlines.as_points(t["points"], f"{where} points", 1)
         inside = shapely.contains_xy(grown, pts[:, 0], pts[:, 1])
         if not inside.all():
             k = int(np.argmin(inside))
             raise SelfshapeError(f"{where}: point {k + 1} ({pts[k, 0]:.4g}, {pts[k, 1]:.4g}) is outside the fabric")
-        fix = _choice(t, "fix", where, ("z", "xyz"), "z")
         pos = None
         if "position" in t:
             if fix != "xyz":

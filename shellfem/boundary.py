@@ -110,3 +110,38 @@ def smooth_perturbation(points2d: np.ndarray, seed: int, amplitude: float, n_mod
     z = np.sin((points2d - lo) @ k.T + ph) @ c
     z -= z.mean()
     return amplitude * z / max(float(np.abs(z).max()), 1e-300)
+
+
+def harmonic_extension(n_vertices: int, triangles: np.ndarray, held: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Extend values (k, d) given at the vertices ``held`` to all vertices by the graph-Laplacian
+    (uniform weights) harmonic interpolant; returns (n_vertices, d). Vertices in components with
+    no held vertex get 0. Used to carry a support's in-plane motion into the sheet so that the
+    first iterate has no inverted triangles (a fixed boundary moved to the relaxed fabric is a
+    uniform scaling, which this reproduces exactly)."""
+    import scipy.sparse as sp
+    import scipy.sparse.csgraph as csg
+    import scipy.sparse.linalg as spla
+    e = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+    A = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_vertices, n_vertices)).tocsr()
+    A = ((A + A.T) > 0).astype(float)
+    L = sp.diags(np.asarray(A.sum(1)).ravel()) - A
+    values = np.asarray(values, float).reshape(len(held), -1)
+    out = np.zeros((n_vertices, values.shape[1]))
+    out[held] = values
+    free = np.ones(n_vertices, bool)
+    free[held] = False
+    ncomp, label = csg.connected_components(A, directed=False)
+    anchored = np.zeros(ncomp, bool)
+    anchored[label[held]] = True
+    solve = free & anchored[label]
+    if solve.any():
+        rhs = -(L[solve][:, ~free] @ out[~free])
+        out[solve] = spla.spsolve(L[solve][:, solve].tocsc(), rhs).reshape(-1, values.shape[1])
+    return out
+
+
+def boundary_vertices(triangles: np.ndarray) -> np.ndarray:
+    """Sorted indices of the vertices on the mesh boundary (edges used by one triangle)."""
+    e = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+    u, count = np.unique(e, axis=0, return_counts=True)
+    return np.unique(u[count == 1])

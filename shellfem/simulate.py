@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from selfshape.errors import SelfshapeError
-from shellfem.boundary import gauge_dofs, gauge_reaction, nearest_vertices, smooth_perturbation
+from shellfem.boundary import (boundary_vertices, gauge_dofs, gauge_reaction, harmonic_extension, nearest_vertices,
+                               smooth_perturbation)
 from shellfem.model import ShellModel
 from shellfem.sheet import Sheet
 from shellfem.solver import SolveResult, newton
@@ -61,7 +62,10 @@ def _support_constraints(sheet: Sheet, supports, fabric, tol: float):
     sx, sy = fabric.stretch
     for k, sup in enumerate(supports):
         label = sup.label or f"[[support]] #{k + 1}"
-        idx = nearest_vertices(sheet.points, sup.points, tol, label)
+        if getattr(sup, "boundary", False):
+            idx = boundary_vertices(sheet.triangles)
+        else:
+            idx = nearest_vertices(sheet.points, sup.points, tol, label)
         if sup.fix == "z":
             dofs.append(3 * idx + 2)
             vals.append(np.zeros(len(idx)))
@@ -80,6 +84,31 @@ def _support_constraints(sheet: Sheet, supports, fabric, tol: float):
     d, v = np.concatenate(dofs), np.concatenate(vals)
     d, first = np.unique(d, return_index=True)
     return d, v[first]
+
+
+def _carry_support_motion(model, sheet, plain, q, fixed, free):
+    """Supports that move ("xyz" at relaxed positions, or "z" on the ground under a perturbed
+    start) would leave their neighbours behind and invert or kink triangles: carry each held
+    component's motion into the free vertices harmonically, when that start has finite energy."""
+    n = sheet.n_vertices
+    held = np.zeros(3 * n, bool)
+    held[fixed] = True
+    held = held[:3 * n].reshape(n, 3)
+    movable = free[:3 * n].reshape(n, 3)
+    jump = (plain - q)[:3 * n].reshape(n, 3)
+    moved = plain.copy()
+    pos = moved[:3 * n].reshape(n, 3)
+    changed = False
+    for c in range(3):
+        h = np.flatnonzero(held[:, c])
+        if len(h) == 0 or np.abs(jump[h, c]).max() == 0:
+            continue
+        u = harmonic_extension(n, sheet.triangles, h, jump[h, c])[:, 0]
+        pos[:, c] += np.where(movable[:, c], u, 0.0)
+        changed = True
+    if changed and np.isfinite(model.energy(moved)):
+        return moved
+    return plain
 
 
 def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0, max_iterations: int = 300,
@@ -128,6 +157,7 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
         model_k = model if k == steps else ShellModel.from_materials(sheet, fab_k, pla_k)
         plain = q.copy()
         plain[fixed] = start + (values - start) * t
+        plain = _carry_support_motion(model_k, sheet, plain, q, fixed, free)
         guess = plain
         if q_prev is not None and result is not None and result.converged:
             # secant predictor, kept only if it beats the previous equilibrium: extrapolating

@@ -107,7 +107,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
     exact Hessian (up to ``stability_shift``) factorised, the Newton step's largest
     position change is below ``step_tolerance`` times the sheet's size and the energy the
     Newton step still promises (half the Newton decrement, -g.d/2) is below
-    ``energy_tolerance * |E|``. The last two matter: released sheets start with huge
+    ``energy_tolerance * max(|E|, |E_start|)``. The last two matter: released sheets start with huge
     misfit forces, so a gradient test relative to the start alone passes in the soft
     valleys of these problems (choice of rolling direction) far from the minimum.
 
@@ -129,6 +129,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
     timings = dict(assembly=0.0, factorisation=0.0, line_search=0.0, factorisations=0, rejected_steps=0,
                    newton_steps=0, regularised_steps=0)
     g_ref = gradient_reference
+    E_ref = None
     reason = "maximum number of iterations reached"
     lam, lam_min = 0.0, 1e-10
     lam_known = 0.0        # last shift that made H + lam D positive definite
@@ -168,6 +169,8 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
             gnorm = float(np.linalg.norm(g))
             if g_ref is None:
                 g_ref = gnorm
+            if E_ref is None:       # an equilibrium with E = 0 (a fully relaxed sheet) needs a scale
+                E_ref = abs(E)
             tol = max(atol, rtol * g_ref)
             D = np.abs(H.diagonal())
             D = D + 1e-8 * max(float(D.mean()), 1e-300)
@@ -193,7 +196,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
         if exact and fresh:
             d_free = -factor(g)
             step, promise = _step_size(d_free)
-            if not projected and gnorm <= tol and step <= step_tol and promise <= energy_tolerance * abs(E):
+            if not projected and gnorm <= tol and step <= step_tol and promise <= energy_tolerance * max(abs(E), E_ref):
                 reason = "gradient norm and Newton step below tolerance at a stable state"
                 history.append(dict(iteration=it, energy=E, gradient_norm=gnorm, lam=0.0, step=step))
                 return SolveResult(q, True, it, E, gnorm, reason, True, history, _finish(timings, t_start))
@@ -222,7 +225,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
                 lam = 0.0
                 fresh = True
                 continue
-            if not projected and gnorm <= tol and promise <= 1e3 * energy_tolerance * abs(E):
+            if not projected and gnorm <= tol and promise <= 1e3 * energy_tolerance * max(abs(E), E_ref):
                 # at round-off: no decrease is measurable any more along the Newton step
                 reason = "gradient norm below tolerance at a stable state (energy at round-off)"
                 return SolveResult(q, True, it, E, gnorm, reason, True, history, _finish(timings, t_start))
@@ -251,7 +254,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
             # ~ -1e-11, e.g. the twist of a narrow strip): check the step as for Newton
             d_free = -factor(g)
             step, promise = _step_size(d_free)
-            if step <= step_tol and promise <= energy_tolerance * abs(E):
+            if step <= step_tol and promise <= energy_tolerance * max(abs(E), E_ref):
                 reason = "gradient norm and step below tolerance at a stable state"
                 history.append(dict(iteration=it, energy=E, gradient_norm=gnorm, lam=lam_try, step=step))
                 return SolveResult(q, True, it, E, gnorm, reason, True, history, _finish(timings, t_start))

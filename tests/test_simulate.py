@@ -66,3 +66,42 @@ def test_cli_reports_bad_input_in_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "stretch" in err
     assert not (tmp_path / "o" / "summary.json").exists()
+
+
+def test_harmonic_extension_reproduces_a_uniform_scaling():
+    from shellfem.boundary import harmonic_extension
+    sh = Sheet.rectangle(20, 10, 10, 5)
+    P = sh.points
+    rim = np.flatnonzero((P[:, 0] < 1e-9) | (P[:, 0] > 20 - 1e-9) | (P[:, 1] < 1e-9) | (P[:, 1] > 10 - 1e-9))
+    u = harmonic_extension(sh.n_vertices, sh.triangles, rim, -0.25 * P[rim])
+    assert np.abs(u + 0.25 * P).max() < 1e-12
+
+
+def test_boundary_held_at_the_relaxed_fabric_is_the_exact_relaxed_sheet():
+    # bare fabric whose whole rim is held "xyz" where the fabric relaxes to: the equilibrium is the
+    # flat sheet scaled by 1/s with zero energy. Before the held motion was carried into the sheet
+    # the first iterate had inverted triangles (energy not finite).
+    from geometry.elements import Support
+    from shellfem.simulate import simulate_sheet
+    sh = Sheet.rectangle(20, 10, 10, 5)
+    P = sh.points
+    sim = simulate_sheet(sh, Fabric(stretch=(1.35, 1.2)), Plastic(),
+                         [Support(points=np.zeros((0, 2)), fix="xyz", boundary=True)], max_iterations=50)
+    assert len(sim.fixed) == 3 * 30
+    assert sim.result.converged, sim.result.reason
+    x = sim.model.split(sim.result.q)[0]
+    assert np.abs(x[:, :2] - P / [1.35, 1.2]).max() < 1e-6
+    assert np.abs(x[:, 2]).max() < 1e-6
+    assert abs(sim.result.energy) < 1e-10
+
+
+def test_support_boundary_key(tmp_path):
+    from geometry.patterns import load_pattern
+    raw = {"fabric": {"rectangle": [20.0, 10.0]}, "support": [{"boundary": True, "fix": "z"}], "mesh": {"size_mm": 2.0}}
+    pat = load_pattern(raw)
+    assert pat.supports[0].boundary and pat.supports[0].fix == "z"
+    for bad, word in (({"boundary": "yes"}, "boundary must be true or false"),
+                      ({"boundary": True, "points": [[0.0, 0.0]]}, "drop points"),
+                      ({"fix": "z"}, "missing points")):
+        with pytest.raises(SelfshapeError, match=word):
+            load_pattern({**raw, "support": [bad]})
