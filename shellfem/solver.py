@@ -107,7 +107,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
     exact Hessian (up to ``stability_shift``) factorised, the Newton step's largest
     position change is below ``step_tolerance`` times the sheet's size and the energy the
     Newton step still promises (half the Newton decrement, -g.d/2) is below
-    ``energy_tolerance * max(|E|, |E_start|)``. The last two matter: released sheets start with huge
+    ``energy_tolerance * max(|E|, 1e-6 |E_start|)``. The last two matter: released sheets start with huge
     misfit forces, so a gradient test relative to the start alone passes in the soft
     valleys of these problems (choice of rolling direction) far from the minimum.
 
@@ -196,7 +196,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
         if exact and fresh:
             d_free = -factor(g)
             step, promise = _step_size(d_free)
-            if not projected and gnorm <= tol and step <= step_tol and promise <= energy_tolerance * max(abs(E), E_ref):
+            if not projected and gnorm <= tol and step <= step_tol and promise <= energy_tolerance * max(abs(E), 1e-6 * E_ref):
                 reason = "gradient norm and Newton step below tolerance at a stable state"
                 history.append(dict(iteration=it, energy=E, gradient_norm=gnorm, lam=0.0, step=step))
                 return SolveResult(q, True, it, E, gnorm, reason, True, history, _finish(timings, t_start))
@@ -225,7 +225,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
                 lam = 0.0
                 fresh = True
                 continue
-            if not projected and gnorm <= tol and promise <= 1e3 * energy_tolerance * max(abs(E), E_ref):
+            if not projected and gnorm <= tol and promise <= 1e3 * energy_tolerance * max(abs(E), 1e-6 * E_ref):
                 # at round-off: no decrease is measurable any more along the Newton step
                 reason = "gradient norm below tolerance at a stable state (energy at round-off)"
                 return SolveResult(q, True, it, E, gnorm, reason, True, history, _finish(timings, t_start))
@@ -254,7 +254,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
             # ~ -1e-11, e.g. the twist of a narrow strip): check the step as for Newton
             d_free = -factor(g)
             step, promise = _step_size(d_free)
-            if step <= step_tol and promise <= energy_tolerance * max(abs(E), E_ref):
+            if step <= step_tol and promise <= energy_tolerance * max(abs(E), 1e-6 * E_ref):
                 reason = "gradient norm and step below tolerance at a stable state"
                 history.append(dict(iteration=it, energy=E, gradient_norm=gnorm, lam=lam_try, step=step))
                 return SolveResult(q, True, it, E, gnorm, reason, True, history, _finish(timings, t_start))
