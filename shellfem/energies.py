@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shellfem.kinematics import C_OUTER
+from shellfem.kinematics import C_OUTER, sandwich
 
 _BASIS = np.array([[[1.0, 0.0], [0.0, 0.0]], [[0.0, 1.0], [1.0, 0.0]], [[0.0, 0.0], [0.0, 1.0]]])
 
@@ -238,7 +238,7 @@ def face_energy(a, h, psi, quad: QuadraticForm, membrane=None, hessian=True):
     Wy = (Wz[:, None, :] @ J)[:, 0]
     if not hessian:
         return W, Wy, None
-    Wyy = np.swapaxes(J, 1, 2) @ Wzz @ J
+    Wyy = sandwich(J, Wzz)
     gi = Wz[:, 3:] @ C_OUTER.T          # g_i = sum_k W_b,k (c_i c_i^T)_k
     idx = np.arange(3)
     cross = -2 * sec2 * gi

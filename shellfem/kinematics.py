@@ -140,6 +140,12 @@ def build_topology(triangles: np.ndarray) -> Topology:
     return Topology(t, edges, face_edges, edge_faces, face_sign, flaps, hinge, np.flatnonzero(interior), interior)
 
 
+def sandwich(J: np.ndarray, H: np.ndarray) -> np.ndarray:
+    """J^T H J per element for J (m, r, d), H (m, r, r). matmul on a swapped (strided) view
+    takes numpy's slow path; a contiguous transpose is ~4x faster for these small blocks."""
+    return np.matmul(np.ascontiguousarray(np.swapaxes(J, 1, 2)), np.matmul(H, J))
+
+
 # --- first fundamental form ---------------------------------------------------
 def first_fundamental_form(xf: np.ndarray):
     """a = (a11, a12, a22) and its Jacobian (m, 3, 9) for face points xf (m, 3, 3)."""
@@ -163,8 +169,7 @@ def _norm_derivs(v, Jv, Hv_const=None, hessian=True):
     if not hessian:
         return n, g, None
     P = (np.eye(3)[None] - u[:, :, None] * u[:, None, :]) / n[:, None, None]
-    JvT = np.swapaxes(Jv, 1, 2)
-    H = JvT @ P @ Jv
+    H = sandwich(np.ascontiguousarray(Jv), P)
     if Hv_const is not None:
         H += (u @ Hv_const.reshape(3, -1)).reshape(H.shape)
     return n, g, H
@@ -243,5 +248,5 @@ def hinge_angles(xh: np.ndarray, with_hessian: bool = True):
           + pYY[:, None, None] * gY[:, :, None] * gY[:, None, :]
           + pXX[:, None, None] * gX[:, :, None] * gX[:, None, :]
           + pXY[:, None, None] * (gY[:, :, None] * gX[:, None, :] + gX[:, :, None] * gY[:, None, :]))
-    H = np.swapaxes(Ju, 1, 2) @ Hu @ Ju + (gu @ U_HESS_HINGE.reshape(9, 144)).reshape(k, 12, 12)
+    H = sandwich(Ju, Hu) + (gu @ U_HESS_HINGE.reshape(9, 144)).reshape(k, 12, 12)
     return phi, grad, H

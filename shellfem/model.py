@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from shellfem import energies as en
-from shellfem.kinematics import A_HESS, build_topology, face_heights, first_fundamental_form, hinge_angles
+from shellfem.kinematics import A_HESS, build_topology, face_heights, first_fundamental_form, hinge_angles, sandwich
 from shellfem.materials import Fabric, Plastic
 from shellfem.sheet import Sheet
 
@@ -212,8 +212,8 @@ class ShellModel:
             grad[:3 * self.n_vertices] -= self.external_force.ravel()
         if order == 1:
             return E, grad, None
-        Hf = np.swapaxes(J, 1, 2) @ Wyy @ J
-        Hf[:, :9, :9] += (Wy[:, 0:3] @ A_HESS.reshape(3, 81)).reshape(m, 9, 9) + (Wy[:, 3:6, None, None] * Hh).sum(1)
+        Hf = sandwich(J, Wyy)
+        Hf[:, :9, :9] += (Wy[:, 0:3] @ A_HESS.reshape(3, 81)).reshape(m, 9, 9) + np.einsum("mk,mkij->mij", Wy[:, 3:6], Hh)
         # hinge curvature term: w_e = 1/2 sum over the edge's faces of dW/dpsi
         wpsi = np.where(self.face_hinge >= 0, 0.5 * Wy[:, 6:9], 0.0)
         wh = np.bincount(np.maximum(self.face_hinge, 0).ravel(), weights=wpsi.ravel(), minlength=len(Hphi))
