@@ -71,14 +71,15 @@ def _fmt(v, nd=3):
 
 
 def table_markdown(rows) -> str:
-    head = ("| target | faces | time (s) | lambda | dev. % bbox (mean / max) | k1 dev. (deg) | "
-            "max bound dev. (s1 / s2) | out of bounds % (s1 / s2) | residual energy | ribbons (front / back) | "
-            "thickness (mm) |\n|---|---|---|---|---|---|---|---|---|---|---|\n")
+    head = ("| target | faces | time (s) | lambda | dev. % bbox (mean / max) | target to deployed % (mean / max) | "
+            "k1 dev. (deg) | max bound dev. (s1 / s2) | out of bounds % (s1 / s2) | residual energy | "
+            "ribbons (front / back) | thickness (mm) |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n")
     lines = []
     for r in rows:
         hist = {**r["thickness_histogram"]["front"], **r["thickness_histogram"]["back"]}
         th = sorted(float(k) for k in hist) if hist else []
         thick = f"{th[0]:g}-{th[-1]:g}" if th else "-"
+        back = _fmt(r.get("deviation_target_to_deployed_pct_bbox"))
         if r.get("deviation_pct_bbox"):
             dev = _fmt(r["deviation_pct_bbox"])
         elif "verify_converged" in r:
@@ -86,7 +87,7 @@ def table_markdown(rows) -> str:
         else:
             dev = "not run"
         sides = r["ribbons_per_side"]
-        lines.append(f"| {r['name']} | {r['n_faces']} | {r['time_s']:.1f} | {r.get('lambda', 0):g} | {dev} | "
+        lines.append(f"| {r['name']} | {r['n_faces']} | {r['time_s']:.1f} | {r.get('lambda', 0):g} | {dev} | {back} | "
                      f"{r['k1_deviation_deg']:.3f} | {_fmt(r['sigma_bound_violation'], 2)} | "
                      f"{_fmt(r['sigma_out_of_bounds_pct'], 3)} | {r['residual_energy']:.2e} | "
                      f"{sides['front']} / {sides['back']} | {thick} |")
@@ -104,7 +105,12 @@ def main(argv=None):
     ap.add_argument("--across", type=float, default=None, help="[mesh] across written to pattern.toml (verify)")
     ap.add_argument("--verify-iterations", type=int, default=None, help="Newton cap of the verification")
     ap.add_argument("--law", default=None, help="curvature-law CSV (default: the shipped law)")
+    ap.add_argument("--table", action="store_true", help="only rebuild DOCS/table.md from OUT/*/report.json")
     a = ap.parse_args(argv)
+    if a.table:
+        write_table(a.out, a.docs)
+        print(json.dumps({"table": os.path.join(a.docs, "table.md")}))
+        return
     np.seterr(all="ignore")
     from geometry.target import load_target
     from inverse.pipeline import design_file
