@@ -108,6 +108,7 @@ def main(argv=None):
     ap.add_argument("--table", action="store_true", help="only rebuild DOCS/table.md from OUT/*/report.json")
     a = ap.parse_args(argv)
     if a.table:
+        os.makedirs(a.docs, exist_ok=True)
         write_table(a.out, a.docs)
         print(json.dumps({"table": os.path.join(a.docs, "table.md")}))
         return

@@ -1,0 +1,30 @@
+"""validation/design_targets.py: the README table is rebuilt from report.json files alone."""
+import json
+import os
+
+from validation.design_targets import main
+
+
+def _report(dev=None, back=None, converged=None):
+    r = {"n_faces": 100, "time_s": 1.25, "lambda": 0, "k1_deviation_deg": 1.5, "sigma_bound_violation": [0.1, 0.2],
+         "sigma_out_of_bounds_pct": [1.0, 2.0], "residual_energy": 1e-3, "ribbons_per_side": {"front": 3, "back": 1},
+         "thickness_histogram": {"front": {"0.4": 3}, "back": {"0.2": 1}}}
+    if converged is not None:
+        r.update(verify_converged=converged, verify_reason="maximum number of iterations reached",
+                 deviation_pct_bbox=dev, deviation_target_to_deployed_pct_bbox=back)
+    return r
+
+
+def test_table_only_rebuilds_from_reports(tmp_path, capsys):
+    out, docs = tmp_path / "out", tmp_path / "docs"
+    for name, rep in (("a", _report([2.5, 10.9], [8.2, 27.3], True)), ("b", _report(None, None, False)),
+                      ("c", _report())):
+        os.makedirs(out / name)
+        (out / name / "report.json").write_text(json.dumps(rep))
+    main(["--table", "--out", str(out), "--docs", str(docs)])
+    assert json.loads(capsys.readouterr().out)["table"].endswith("table.md")
+    rows = (docs / "table.md").read_text().splitlines()
+    assert "target to deployed % (mean / max)" in rows[0]
+    assert rows[2].startswith("| a | 100 | 1.2 | 0 | 2.5 / 10.9 | 8.2 / 27.3 |")
+    assert "| b |" in rows[3] and "not converged (maximum number of iterations reached) | - |" in rows[3]
+    assert "| c |" in rows[4] and "| not run | - |" in rows[4] and rows[4].endswith("| 3 / 1 | 0.2-0.4 |")
