@@ -118,6 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     from selfshape.errors import SelfshapeError
     args = build_parser().parse_args(argv)
+    from shellfem.memory import keep_freed_memory
+    keep_freed_memory()
     try:
         rc = args.fn(args)
     except SelfshapeError as e:

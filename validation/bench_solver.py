@@ -78,6 +78,8 @@ def run(width: float = 85.0, height: float = 60.0, across: float = 1.0, max_iter
 
 
 def main(argv=None):
+    from shellfem.memory import keep_freed_memory
+    keep_freed_memory()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--width", type=float, default=85.0)
     ap.add_argument("--height", type=float, default=60.0)

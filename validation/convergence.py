@@ -216,6 +216,8 @@ def plot(out: dict, path: str) -> str:
 
 
 def main(argv=None) -> dict:
+    from shellfem.memory import keep_freed_memory
+    keep_freed_memory()
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="3 coarser meshes per study")
     ap.add_argument("--out", default="out/validation")

@@ -95,6 +95,8 @@ def table_markdown(rows) -> str:
 
 
 def main(argv=None):
+    from shellfem.memory import keep_freed_memory
+    keep_freed_memory()
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("names", nargs="*", help="target names (default: all)")
     ap.add_argument("--no-verify", action="store_true")

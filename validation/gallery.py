@@ -226,6 +226,8 @@ def markdown_table(out_root="out/gallery", docs="docs/gallery") -> str:
 
 
 def main(argv=None):
+    from shellfem.memory import keep_freed_memory
+    keep_freed_memory()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", nargs="*", choices=list(CASES))
     ap.add_argument("--max-iterations", type=int, default=400)

@@ -90,6 +90,8 @@ def markdown_table(rows: list) -> str:
 
 
 def main(argv=None):
+    from shellfem.memory import keep_freed_memory
+    keep_freed_memory()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--thickness", type=float, nargs="+", default=[0.2, 0.4, 0.8, 1.2])
     ap.add_argument("--pitch", type=float, nargs="+", default=[3.0, 6.0])

@@ -163,6 +163,8 @@ def read_modulus_ratio(path: str):
 
 # ----------------------------------------------------------------------------- main
 def main(argv=None):
+    from shellfem.memory import keep_freed_memory
+    keep_freed_memory()
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", choices=["strip", "sim"], default="strip")
     ap.add_argument("--stretch", type=float, default=1.6)
