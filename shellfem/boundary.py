@@ -112,36 +112,35 @@ def smooth_perturbation(points2d: np.ndarray, seed: int, amplitude: float, n_mod
     return amplitude * z / max(float(np.abs(z).max()), 1e-300)
 
 
-def harmonic_extension(n_vertices: int, triangles: np.ndarray, held: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Extend values (k, d) given at the vertices ``held`` to all vertices by the graph-Laplacian
-    (uniform weights) harmonic interpolant; returns (n_vertices, d). Vertices in components with
-    no held vertex get 0. Used to carry a support's in-plane motion into the sheet so that the
-    first iterate has no inverted triangles (a fixed boundary moved to the relaxed fabric is a
-    uniform scaling, which this reproduces exactly)."""
+def graph_laplacian(n_vertices: int, edges: np.ndarray):
+    """Uniform-weight graph Laplacian (n, n) CSR of the unique mesh edges (ne, 2)."""
     import scipy.sparse as sp
+    e = np.asarray(edges)
+    A = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
+                      shape=(n_vertices, n_vertices)).tocsr()
+    return (sp.diags(np.asarray(A.sum(1)).ravel()) - A).tocsr()
+
+
+def harmonic_extension(L, held: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Extend values (k, d) given at the vertices ``held`` to all vertices by the harmonic
+    interpolant of the graph Laplacian L (:func:`graph_laplacian`); returns (n, d). Vertices in
+    components with no held vertex get 0. Used to carry a support's motion into the sheet so
+    that the first iterate has no inverted triangles (a fixed boundary moved to the relaxed
+    fabric is a uniform scaling, which this reproduces exactly)."""
     import scipy.sparse.csgraph as csg
     import scipy.sparse.linalg as spla
-    e = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
-    A = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_vertices, n_vertices)).tocsr()
-    A = ((A + A.T) > 0).astype(float)
-    L = sp.diags(np.asarray(A.sum(1)).ravel()) - A
+    n = L.shape[0]
     values = np.asarray(values, float).reshape(len(held), -1)
-    out = np.zeros((n_vertices, values.shape[1]))
+    out = np.zeros((n, values.shape[1]))
     out[held] = values
-    free = np.ones(n_vertices, bool)
+    free = np.ones(n, bool)
     free[held] = False
-    ncomp, label = csg.connected_components(A, directed=False)
-    anchored = np.zeros(ncomp, bool)
+    _, label = csg.connected_components(L, directed=False)
+    anchored = np.zeros(label.max() + 1, bool)
     anchored[label[held]] = True
     solve = free & anchored[label]
     if solve.any():
-        rhs = -(L[solve][:, ~free] @ out[~free])
-        out[solve] = spla.spsolve(L[solve][:, solve].tocsc(), rhs).reshape(-1, values.shape[1])
+        rows = L[solve]
+        rhs = -(rows[:, ~free] @ out[~free])
+        out[solve] = spla.spsolve(rows[:, solve].tocsc(), rhs).reshape(-1, values.shape[1])
     return out
-
-
-def boundary_vertices(triangles: np.ndarray) -> np.ndarray:
-    """Sorted indices of the vertices on the mesh boundary (edges used by one triangle)."""
-    e = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
-    u, count = np.unique(e, axis=0, return_counts=True)
-    return np.unique(u[count == 1])

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from selfshape.errors import SelfshapeError
-from shellfem.boundary import (boundary_vertices, gauge_dofs, gauge_reaction, harmonic_extension, nearest_vertices,
+from shellfem.boundary import (gauge_dofs, gauge_reaction, graph_laplacian, harmonic_extension, nearest_vertices,
                                smooth_perturbation)
 from shellfem.model import ShellModel
 from shellfem.sheet import Sheet
@@ -56,14 +56,14 @@ class Simulation:
         }
 
 
-def _support_constraints(sheet: Sheet, supports, fabric, tol: float):
-    """(dofs, values) held by the pattern's supports."""
+def _support_constraints(sheet: Sheet, topo, supports, fabric, tol: float):
+    """(dofs, values) held by the pattern's supports (topo: the model's edge topology)."""
     dofs, vals = [], []
     sx, sy = fabric.stretch
     for k, sup in enumerate(supports):
         label = sup.label or f"[[support]] #{k + 1}"
-        if getattr(sup, "boundary", False):
-            idx = boundary_vertices(sheet.triangles)
+        if sup.boundary:
+            idx = np.unique(topo.edges[~topo.interior])
         else:
             idx = nearest_vertices(sheet.points, sup.points, tol, label)
         if sup.fix == "z":
@@ -86,27 +86,27 @@ def _support_constraints(sheet: Sheet, supports, fabric, tol: float):
     return d, v[first]
 
 
-def _carry_support_motion(model, sheet, plain, q, fixed, free):
+def _carry_support_motion(model, plain, q, fixed, free):
     """Supports that move ("xyz" at relaxed positions, or "z" on the ground under a perturbed
     start) would leave their neighbours behind and invert or kink triangles: carry each held
     component's motion into the free vertices harmonically, when that start has finite energy."""
-    n = sheet.n_vertices
+    n = model.n_vertices
     held = np.zeros(3 * n, bool)
     held[fixed] = True
-    held = held[:3 * n].reshape(n, 3)
+    held = held.reshape(n, 3)
     movable = free[:3 * n].reshape(n, 3)
     jump = (plain - q)[:3 * n].reshape(n, 3)
     moved = plain.copy()
     pos = moved[:3 * n].reshape(n, 3)
-    changed = False
+    L = None
     for c in range(3):
         h = np.flatnonzero(held[:, c])
         if len(h) == 0 or np.abs(jump[h, c]).max() == 0:
             continue
-        u = harmonic_extension(n, sheet.triangles, h, jump[h, c])[:, 0]
+        L = graph_laplacian(n, model.topo.edges) if L is None else L
+        u = harmonic_extension(L, h, jump[h, c])[:, 0]
         pos[:, c] += np.where(movable[:, c], u, 0.0)
-        changed = True
-    if changed and np.isfinite(model.energy(moved)):
+    if L is not None and np.isfinite(model.energy(moved)):
         return moved
     return plain
 
@@ -132,7 +132,7 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
     x[:, 2] += smooth_perturbation(sheet.points, seed, 0.01 * size)
     edge = np.linalg.norm(sheet.points[sheet.triangles[:, 1]] - sheet.points[sheet.triangles[:, 0]], axis=1)
     tol = tol_support if tol_support is not None else 2.0 * float(edge.max())
-    fixed, values = _support_constraints(sheet, supports, fabric, tol)
+    fixed, values = _support_constraints(sheet, model.topo, supports, fabric, tol)
     gravity = model.external_force is not None
     from shellfem.boundary import rigid_modes
     gauge = np.zeros(0, dtype=np.int64)
@@ -157,7 +157,7 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
         model_k = model if k == steps else ShellModel.from_materials(sheet, fab_k, pla_k)
         plain = q.copy()
         plain[fixed] = start + (values - start) * t
-        plain = _carry_support_motion(model_k, sheet, plain, q, fixed, free)
+        plain = _carry_support_motion(model_k, plain, q, fixed, free)
         guess = plain
         if q_prev is not None and result is not None and result.converged:
             # secant predictor, kept only if it beats the previous equilibrium: extrapolating

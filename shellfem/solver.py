@@ -151,6 +151,10 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
         from shellfem.corotational import RotationPath
         rpath = RotationPath(model.sheet.triangles, n)
 
+    def _energy_scale(E):
+        """|E|, floored at 1e-6 of the start's energy so that an equilibrium with E = 0 can converge."""
+        return max(abs(E), 1e-6 * E_ref)
+
     def _step_size(d_free):
         """Largest position change of a step and the energy it promises, -g.d/2."""
         step = float(np.abs(d_free[pos_free]).max()) if pos_free.any() else 0.0
@@ -169,7 +173,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
             gnorm = float(np.linalg.norm(g))
             if g_ref is None:
                 g_ref = gnorm
-            if E_ref is None:       # an equilibrium with E = 0 (a fully relaxed sheet) needs a scale
+            if E_ref is None:
                 E_ref = abs(E)
             tol = max(atol, rtol * g_ref)
             D = np.abs(H.diagonal())
@@ -196,7 +200,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
         if exact and fresh:
             d_free = -factor(g)
             step, promise = _step_size(d_free)
-            if not projected and gnorm <= tol and step <= step_tol and promise <= energy_tolerance * max(abs(E), 1e-6 * E_ref):
+            if not projected and gnorm <= tol and step <= step_tol and promise <= energy_tolerance * _energy_scale(E):
                 reason = "gradient norm and Newton step below tolerance at a stable state"
                 history.append(dict(iteration=it, energy=E, gradient_norm=gnorm, lam=0.0, step=step))
                 return SolveResult(q, True, it, E, gnorm, reason, True, history, _finish(timings, t_start))
@@ -225,7 +229,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
                 lam = 0.0
                 fresh = True
                 continue
-            if not projected and gnorm <= tol and promise <= 1e3 * energy_tolerance * max(abs(E), 1e-6 * E_ref):
+            if not projected and gnorm <= tol and promise <= 1e3 * energy_tolerance * _energy_scale(E):
                 # at round-off: no decrease is measurable any more along the Newton step
                 reason = "gradient norm below tolerance at a stable state (energy at round-off)"
                 return SolveResult(q, True, it, E, gnorm, reason, True, history, _finish(timings, t_start))
@@ -254,7 +258,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
             # ~ -1e-11, e.g. the twist of a narrow strip): check the step as for Newton
             d_free = -factor(g)
             step, promise = _step_size(d_free)
-            if step <= step_tol and promise <= energy_tolerance * max(abs(E), 1e-6 * E_ref):
+            if step <= step_tol and promise <= energy_tolerance * _energy_scale(E):
                 reason = "gradient norm and step below tolerance at a stable state"
                 history.append(dict(iteration=it, energy=E, gradient_norm=gnorm, lam=lam_try, step=step))
                 return SolveResult(q, True, it, E, gnorm, reason, True, history, _finish(timings, t_start))
