@@ -5,7 +5,7 @@ import pytest
 from shellfem.energies import QuadraticForm
 from shellfem.model import ShellModel
 from shellfem.sheet import Sheet
-from shellfem.solver import newton
+from shellfem.solver import lm_metric, newton
 
 E, H, B = 1.2e6, 0.1, 1.0
 
@@ -96,3 +96,17 @@ def test_iteration_cap_is_reported_as_not_converged():
     r = newton(M, M.initial_state(), free_x, max_iterations=2)
     assert not r.converged
     assert "maximum" in r.reason
+
+
+def test_lm_metric_floors_each_dof_kind_at_its_own_median():
+    diag = np.array([1.0, 2.0, 3.0, 1000.0, -0.5, 0.01, 0.02, 0.03])
+    pos = np.array([True] * 5 + [False] * 3)
+    plain = lm_metric(diag, pos, floor=0.0)
+    shift = 1e-8 * np.abs(diag).mean()
+    assert np.allclose(plain, np.abs(diag) + shift, rtol=0, atol=1e-15)
+    D = lm_metric(diag, pos, floor=10.0)
+    med_pos = np.median(np.abs(diag[:5]) + shift)           # 2.0 + shift
+    med_ang = np.median(np.abs(diag[5:]) + shift)           # 0.02 + shift
+    assert np.allclose(D[:5], [10 * med_pos] * 3 + [1000.0 + shift, 10 * med_pos])
+    assert np.allclose(D[5:], 10 * med_ang)
+    assert (D > 0).all() and (D >= plain).all()
