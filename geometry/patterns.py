@@ -55,7 +55,8 @@ class Pattern:
     boundary conditions. mesh_size: target edge length in bare fabric, mm. mesh_across:
     triangle rows across the narrowest printed feature ([mesh] across, default 2). seed: the
     solver's symmetry-breaking seed. max_iterations: the Newton cap ([solver] max_iterations,
-    default 300). source: file path or "<dict>". raw: the parsed TOML
+    default 300). metric_floor: the solver's trust-region metric floor ([solver] metric_floor,
+    default 0; see shellfem.solver.lm_metric). source: file path or "<dict>". raw: the parsed TOML
     (unknown [solver] and [meta] keys are kept here for the solver).
     """
     fabric: Fabric
@@ -67,6 +68,7 @@ class Pattern:
     seed: int = 0
     mesh_across: float = 2.0
     max_iterations: int = 300
+    metric_floor: float = 0.0
     source: str = "<dict>"
     raw: dict = field(default_factory=dict)
 
@@ -340,6 +342,9 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".") -> Patter
     cap = solver.get("max_iterations", 300)
     if isinstance(cap, bool) or not isinstance(cap, int) or cap < 1:
         raise SelfshapeError(f"{src}: [solver]: max_iterations must be a positive integer, got {cap!r:.40}")
+    floor = solver.get("metric_floor", 0.0)
+    if isinstance(floor, bool) or not isinstance(floor, (int, float)) or not (0.0 <= floor < float("inf")):
+        raise SelfshapeError(f"{src}: [solver]: metric_floor must be a number >= 0, got {floor!r:.40}")
     _table(raw.get("meta", {}), f"{src}: [meta]", None)
     fabric, outline = _fabric(raw, src, mesh_size)
     plastic = _plastic(raw, src)
@@ -347,7 +352,8 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".") -> Patter
                 + _print(raw, src, outline, base_dir))
     supports = _supports(raw, src, outline)
     return Pattern(fabric=fabric, plastic=plastic, outline=outline, elements=elements, supports=supports,
-                   mesh_size=mesh_size, seed=int(seed), mesh_across=across, max_iterations=cap, source=src,
+                   mesh_size=mesh_size, seed=int(seed), mesh_across=across, max_iterations=cap,
+                   metric_floor=float(floor), source=src,
                    raw=raw)
 
 

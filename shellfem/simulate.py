@@ -113,7 +113,7 @@ def _carry_support_motion(model, plain, q, fixed, free):
 
 def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0, max_iterations: int = 300,
                    release_steps: int = 1, tol_support: float | None = None, verbose: bool = False,
-                   rtol: float = 1e-8) -> Simulation:
+                   rtol: float = 1e-8, metric_floor: float = 0.0) -> Simulation:
     """Released equilibrium of a meshed sheet (printed-state mm) with the given materials.
 
     The start is the flat printed state with a smooth out-of-plane perturbation of 1 % of
@@ -122,7 +122,8 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
     at relaxed positions) are ramped over ``release_steps`` steps, each started from a secant
     prediction of the previous two equilibria (large rotations converge in far fewer Newton
     iterations along such a path). ``max_iterations`` bounds each step; newton_iterations in
-    the result is the total. Only the final step's tolerance decides ``converged``."""
+    the result is the total. Only the final step's tolerance decides ``converged``.
+    ``metric_floor``: the solver's trust-region metric floor (shellfem.solver.lm_metric)."""
     from dataclasses import replace
     t0 = time.perf_counter()
     model = ShellModel.from_materials(sheet, fabric, plastic)
@@ -168,7 +169,7 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
                 guess = secant
         last = k == steps
         result = newton(model_k, guess, free, max_iterations=max_iterations, verbose=verbose,
-                        rtol=rtol if last else 1e-5)
+                        rtol=rtol if last else 1e-5, metric_floor=metric_floor)
         total_it += result.iterations
         if not result.converged and not last:
             if verbose:
@@ -195,7 +196,8 @@ def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=F
     sheet = mesh_pattern(pattern, size_mm=size_mm)
     mi = max_iterations or pattern.max_iterations
     return simulate_sheet(sheet, pattern.fabric, pattern.plastic, pattern.supports,
-                          seed=pattern.seed if seed is None else seed, max_iterations=mi, verbose=verbose)
+                          seed=pattern.seed if seed is None else seed, max_iterations=mi, verbose=verbose,
+                          metric_floor=pattern.metric_floor)
 
 
 def write_vtu(sim: Simulation, path: str):

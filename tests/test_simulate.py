@@ -106,3 +106,21 @@ def test_support_boundary_key(tmp_path):
                       ({"fix": "z"}, "missing points")):
         with pytest.raises(SelfshapeError, match=word):
             load_pattern({**raw, "support": [bad]})
+
+
+def test_metric_floor_reaches_the_same_equilibrium():
+    """[solver] metric_floor changes the trust-region path only, not the equilibrium (narrow strip)."""
+    import tomllib
+
+    from geometry.patterns import load_pattern
+    from shellfem.simulate import simulate
+    with open(EXAMPLE, "rb") as f:
+        raw = tomllib.load(f)
+    plain = simulate(load_pattern(raw))
+    raw.setdefault("solver", {})["metric_floor"] = 10.0
+    pat = load_pattern(raw)
+    assert pat.metric_floor == 10.0
+    floored = simulate(pat)
+    assert plain.result.converged and floored.result.converged
+    assert floored.result.energy == pytest.approx(plain.result.energy, rel=1e-9)
+    assert np.abs(floored.positions - plain.positions).max() < 1e-5 * np.ptp(plain.positions[:, 0])
