@@ -17,3 +17,19 @@ def test_centre_quadric_on_a_sphere_and_a_cylinder():
     m = centre_quadric(sh, np.column_stack([P, zc]))
     assert abs(m["gauss_centre_fit"]) < 1e-3 / R ** 2
     assert abs(m["mean_curv_centre_fit"] * 2 * R - 1) < 0.01
+
+
+def test_committed_gallery_patterns_are_what_the_script_simulates():
+    """examples/gallery/*.toml are written by validation.gallery; a stale copy (tube.toml carried
+    72.3 MPa until session 6 while the script simulated 3360 MPa) would mislead readers."""
+    import os
+    import tomllib
+
+    import tomli_w
+
+    from validation.gallery import CASES
+    root = os.path.join(os.path.dirname(__file__), "..", "examples", "gallery")
+    for name, make in CASES.items():
+        with open(os.path.join(root, f"{name}.toml"), "rb") as f:
+            committed = tomllib.load(f)
+        assert committed == tomllib.loads(tomli_w.dumps(make())), name
