@@ -392,11 +392,11 @@ def design(V, F, *, stretch: float = 1.6, diagonal_mm: float | None = 110.0, pri
 # ----------------------------------------------------------------------------- outputs
 def pattern_dict(d: Design, *, fabric=None, plastic=None, mesh_size_mm: float = 2.0,
                  mesh_across: float | None = None, seed: int = 0, target_name: str = "",
-                 max_iterations: int | None = None) -> dict:
+                 max_iterations: int | None = None, metric_floor: float | None = None) -> dict:
     """The pattern TOML (INTERFACE.md) of a design as a dict: [fabric] outline = flat boundary,
     [[ribbon]] per ribbon, [plastic] (default: the modulus the thickness law states), [mesh],
     [solver] (seed, and max_iterations when given: the Newton cap `selfshape simulate` uses for
-    this pattern), [meta] provenance."""
+    this pattern; metric_floor when given: shellfem.solver.lm_metric), [meta] provenance."""
     from shellfem.materials import Fabric, Plastic
 
     fab = fabric or Fabric()
@@ -414,7 +414,8 @@ def pattern_dict(d: Design, *, fabric=None, plastic=None, mesh_size_mm: float = 
         "ribbon": [{"path": r4(r.path), "width_mm": float(r.width_mm), "thickness_mm": float(r.thickness_mm),
                     "side": r.side} for r in d.ribbons],
         "mesh": {"size_mm": float(mesh_size_mm), **({} if mesh_across is None else {"across": float(mesh_across)})},
-        "solver": {"seed": int(seed), **({} if max_iterations is None else {"max_iterations": int(max_iterations)})},
+        "solver": {"seed": int(seed), **({} if max_iterations is None else {"max_iterations": int(max_iterations)}),
+                   **({} if metric_floor is None else {"metric_floor": float(metric_floor)})},
     }
 
 
@@ -654,13 +655,14 @@ def plot_verify(d: Design, X, T, pct, path: str):
 def design_file(target_path, out_dir, verify: bool = False, diagonal_mm: float = 110.0, stretch: float = 1.6,
                 *, printer=None, lam: float = 0.0, thickness_law=None, edge_mm: float = 1.0,
                 mesh_size_mm: float = 2.0, mesh_across: float | None = None, seed: int = 0,
-                verify_iterations: int | None = None) -> dict:
+                verify_iterations: int | None = None, metric_floor: float | None = None) -> dict:
     """`selfshape design TARGET -o DIR`: writes DIR/pattern.toml, flat.vtu, front.gcode (and
     back.gcode when a ribbon is on the back), pattern.png and report.json (last); with
     ``verify`` also deployed.vtu and verify.png and the deviation in report.json. time_s is the
     design time (read to written outputs, Table 5.1's "Time"), total_time_s includes the
     verification. verify_iterations: Newton cap of the verification, written to pattern.toml's
-    [solver] max_iterations (default: the simulator's 300). Outputs of an earlier run in the
+    [solver] max_iterations (default: the simulator's 300); metric_floor: [solver] metric_floor of
+    the verification (default: the simulator's 0). Outputs of an earlier run in the
     directory are removed first; on failure every file this run wrote is removed. Returns the
     report dict."""
     import tomli_w
@@ -672,6 +674,9 @@ def design_file(target_path, out_dir, verify: bool = False, diagonal_mm: float =
     if verify_iterations is not None and (isinstance(verify_iterations, bool) or not isinstance(verify_iterations, int)
                                           or verify_iterations < 1):
         raise SelfshapeError(f"--verify-iterations must be a positive integer, got {verify_iterations!r:.40}")
+    if metric_floor is not None and (isinstance(metric_floor, bool) or not isinstance(metric_floor, (int, float))
+                                     or not 0.0 <= metric_floor < float("inf")):
+        raise SelfshapeError(f"--metric-floor must be a number >= 0, got {metric_floor!r:.40}")
     name = os.path.basename(str(target_path))
     V, F = read_mesh(target_path)
     out_dir = os.fspath(out_dir)
@@ -691,7 +696,8 @@ def design_file(target_path, out_dir, verify: bool = False, diagonal_mm: float =
         written.append(p)
         with open(p, "wb") as f:
             tomli_w.dump(pattern_dict(d, mesh_size_mm=mesh_size_mm, mesh_across=mesh_across, seed=seed,
-                                      target_name=name, max_iterations=verify_iterations), f)
+                                      target_name=name, max_iterations=verify_iterations,
+                                      metric_floor=metric_floor), f)
         p = os.path.join(out_dir, "flat.vtu")
         written.append(p)
         write_flat_vtu(d, p)

@@ -363,3 +363,10 @@ def test_registration_is_never_worse_than_its_kabsch_start():
     start = np.sqrt(igl.point_mesh_squared_distance(X @ R0.T + t0, V, np.asarray(F, np.int64))[0].mean())
     _, dist, _ = register(X, V, F, Y0)
     assert np.sqrt(np.mean(dist ** 2)) <= start + 1e-12
+
+
+@pytest.mark.parametrize("bad", [-1.0, "ten", True, float("nan")])
+def test_design_rejects_a_bad_metric_floor(tmp_path, bad):
+    from inverse.pipeline import design_file
+    with pytest.raises(SelfshapeError, match="--metric-floor must be a number >= 0"):
+        design_file("no-such-target.obj", tmp_path / "out", metric_floor=bad)

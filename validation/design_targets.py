@@ -107,6 +107,8 @@ def main(argv=None):
     ap.add_argument("--across", type=float, default=None, help="[mesh] across written to pattern.toml (verify)")
     ap.add_argument("--verify-iterations", type=int, default=None, help="Newton cap of the verification")
     ap.add_argument("--law", default=None, help="curvature-law CSV (default: the shipped law)")
+    ap.add_argument("--metric-floor", type=float, default=None,
+                    help="[solver] metric_floor of the verification (shellfem.solver.lm_metric)")
     ap.add_argument("--table", action="store_true", help="only rebuild DOCS/table.md from OUT/*/report.json")
     a = ap.parse_args(argv)
     if a.table:
@@ -129,7 +131,8 @@ def main(argv=None):
         t0 = time.perf_counter()
         try:
             rep = design_file(path, out, verify=not a.no_verify, edge_mm=a.edge, mesh_size_mm=a.mesh_size,
-                              mesh_across=a.across, verify_iterations=a.verify_iterations, thickness_law=a.law)
+                              mesh_across=a.across, verify_iterations=a.verify_iterations, thickness_law=a.law,
+                              metric_floor=a.metric_floor)
         except Exception as e:  # report and go on with the other targets
             print(json.dumps({"name": name, "error": f"{type(e).__name__}: {e}"}), flush=True)
             continue
