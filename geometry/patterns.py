@@ -87,6 +87,18 @@ def _num(table: dict, key: str, where: str, default=None, lo=None, lo_open=False
     return check_number(f"{where}: {key}", v, lo=lo, hi=hi, lo_open=lo_open)
 
 
+def solver_options(solver: dict, where: str) -> tuple[int, int, float]:
+    """(seed, max_iterations, metric_floor) of a [solver] table, defaults 0, 300, 0.0; a one-line
+    SelfshapeError naming ``where`` for a bad value. Unknown keys are left to the caller."""
+    seed = solver.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise SelfshapeError(f"{where}: seed must be an integer, got {seed!r:.40}")
+    cap = solver.get("max_iterations", 300)
+    if isinstance(cap, bool) or not isinstance(cap, int) or cap < 1:
+        raise SelfshapeError(f"{where}: max_iterations must be a positive integer, got {cap!r:.40}")
+    return seed, cap, _num(solver, "metric_floor", where, 0.0, lo=0.0)
+
+
 def _choice(table: dict, key: str, where: str, options: tuple, default: str):
     v = table.get(key, default)
     if v not in options:
@@ -335,16 +347,7 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".") -> Patter
     mesh = _table(raw.get("mesh", {}), f"{src}: [mesh]", KEYS["mesh"])
     mesh_size = _num(mesh, "size_mm", f"{src}: [mesh]", 1.0, lo=0.0, lo_open=True)
     across = _num(mesh, "across", f"{src}: [mesh]", 2.0, lo=0.5, hi=10.0)
-    solver = _table(raw.get("solver", {}), f"{src}: [solver]", None)
-    seed = solver.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise SelfshapeError(f"{src}: [solver]: seed must be an integer, got {seed!r:.40}")
-    cap = solver.get("max_iterations", 300)
-    if isinstance(cap, bool) or not isinstance(cap, int) or cap < 1:
-        raise SelfshapeError(f"{src}: [solver]: max_iterations must be a positive integer, got {cap!r:.40}")
-    floor = solver.get("metric_floor", 0.0)
-    if isinstance(floor, bool) or not isinstance(floor, (int, float)) or not (0.0 <= floor < float("inf")):
-        raise SelfshapeError(f"{src}: [solver]: metric_floor must be a number >= 0, got {floor!r:.40}")
+    seed, cap, floor = solver_options(_table(raw.get("solver", {}), f"{src}: [solver]", None), f"{src}: [solver]")
     _table(raw.get("meta", {}), f"{src}: [meta]", None)
     fabric, outline = _fabric(raw, src, mesh_size)
     plastic = _plastic(raw, src)
@@ -352,8 +355,8 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".") -> Patter
                 + _print(raw, src, outline, base_dir))
     supports = _supports(raw, src, outline)
     return Pattern(fabric=fabric, plastic=plastic, outline=outline, elements=elements, supports=supports,
-                   mesh_size=mesh_size, seed=int(seed), mesh_across=across, max_iterations=cap,
-                   metric_floor=float(floor), source=src,
+                   mesh_size=mesh_size, seed=seed, mesh_across=across, max_iterations=cap,
+                   metric_floor=floor, source=src,
                    raw=raw)
 
 

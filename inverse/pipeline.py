@@ -671,12 +671,10 @@ def design_file(target_path, out_dir, verify: bool = False, diagonal_mm: float =
     from inverse.gcode import ribbons_to_gcode_files
 
     t_start = time.perf_counter()
-    if verify_iterations is not None and (isinstance(verify_iterations, bool) or not isinstance(verify_iterations, int)
-                                          or verify_iterations < 1):
-        raise SelfshapeError(f"--verify-iterations must be a positive integer, got {verify_iterations!r:.40}")
-    if metric_floor is not None and (isinstance(metric_floor, bool) or not isinstance(metric_floor, (int, float))
-                                     or not 0.0 <= metric_floor < float("inf")):
-        raise SelfshapeError(f"--metric-floor must be a number >= 0, got {metric_floor!r:.40}")
+    from geometry.patterns import solver_options
+    # the values go to pattern.toml's [solver]: checked as load_pattern will check them
+    solver_options({k: v for k, v in (("max_iterations", verify_iterations), ("metric_floor", metric_floor))
+                    if v is not None}, "verification [solver] (--verify-iterations, --metric-floor)")
     name = os.path.basename(str(target_path))
     V, F = read_mesh(target_path)
     out_dir = os.fspath(out_dir)

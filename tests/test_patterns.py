@@ -155,9 +155,10 @@ BAD = [
     (lambda r: r.update(solver={"seed": 1.5}), "[solver]: seed must be an integer"),
     (lambda r: r.update(solver={"max_iterations": 0}), "[solver]: max_iterations must be a positive integer"),
     (lambda r: r.update(solver={"max_iterations": "many"}), "[solver]: max_iterations must be a positive integer"),
-    (lambda r: r.update(solver={"metric_floor": -1.0}), "[solver]: metric_floor must be a number >= 0"),
-    (lambda r: r.update(solver={"metric_floor": "high"}), "[solver]: metric_floor must be a number >= 0"),
-    (lambda r: r.update(solver={"metric_floor": float("nan")}), "[solver]: metric_floor must be a number >= 0"),
+    (lambda r: r.update(solver={"metric_floor": -1.0}), "[solver]: metric_floor must be >= 0, got -1"),
+    (lambda r: r.update(solver={"metric_floor": "high"}), "[solver]: metric_floor must be a number"),
+    (lambda r: r.update(solver={"metric_floor": True}), "[solver]: metric_floor must be a number"),
+    (lambda r: r.update(solver={"metric_floor": float("nan")}), "[solver]: metric_floor must be finite"),
     (lambda r: r.update(print={"gcode": 3}), "[print]: gcode must be a file name"),
 ]
 

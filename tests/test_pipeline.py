@@ -365,8 +365,13 @@ def test_registration_is_never_worse_than_its_kabsch_start():
     assert np.sqrt(np.mean(dist ** 2)) <= start + 1e-12
 
 
-@pytest.mark.parametrize("bad", [-1.0, "ten", True, float("nan")])
-def test_design_rejects_a_bad_metric_floor(tmp_path, bad):
+@pytest.mark.parametrize("kwargs, message", [
+    ({"metric_floor": -1.0}, "metric_floor must be >= 0"), ({"metric_floor": "ten"}, "metric_floor must be a number"),
+    ({"metric_floor": True}, "metric_floor must be a number"), ({"metric_floor": float("nan")}, "metric_floor must be finite"),
+    ({"verify_iterations": 0}, "max_iterations must be a positive integer"),
+    ({"verify_iterations": 2.5}, "max_iterations must be a positive integer")])
+def test_design_rejects_bad_verification_solver_options(tmp_path, kwargs, message):
     from inverse.pipeline import design_file
-    with pytest.raises(SelfshapeError, match="--metric-floor must be a number >= 0"):
-        design_file("no-such-target.obj", tmp_path / "out", metric_floor=bad)
+    with pytest.raises(SelfshapeError, match=r"^verification \[solver\] \(--verify-iterations, --metric-floor\): "
+                       + message):
+        design_file("no-such-target.obj", tmp_path / "out", **kwargs)
