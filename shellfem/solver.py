@@ -60,7 +60,7 @@ def lm_metric(diag: np.ndarray, is_position: np.ndarray, floor: float = 0.0) -> 
     30 x 20 mm 68 / 62 -> 51 / 58 iterations (seeds 0 / 1), 40 x 30 mm 216 / 251 / 248 -> 175 /
     194 / 208 (seeds 0 / 1 / 2), 85 x 60 mm benchmark 342 -> 249 (768 -> 526 s); floors
     0.1 / 1 / 10 / 30 / 100 / 1000 on 40 x 30: 222 / 187 / 175 / 179 / 199 / 249. Gallery, floor
-    0 -> 10: ribbons 119 -> 92, ortho_0 151 -> 72, tube 357 -> 319, half annulus 253 -> 236,
+    0 -> 10: ribbons 119 -> 92, ortho_0 151 -> 72, tube (72.3 MPa) 357 -> 319, half annulus 253 -> 236,
     examples/ribbons.toml 300 (not converged) -> 208, but ortho_90 91 -> not converged in
     1000 (it creeps at E 52.5 with the shift pinned at ~4e-4 by a negative eigenvalue, against
     the minimum 50.59). Hence opt-in."""
