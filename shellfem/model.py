@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from shellfem import energies as en
-from shellfem.kinematics import A_HESS, build_topology, face_heights, first_fundamental_form, hinge_angles, sandwich
+from shellfem.kinematics import A_HESS, C_OUTER, build_topology, face_heights, first_fundamental_form, hinge_angles, sandwich
 from shellfem.materials import Fabric, Plastic
 from shellfem.sheet import Sheet
 
@@ -226,6 +226,10 @@ class ShellModel:
     def hessian_blocks(self, q):
         return self._evaluate(q, order=2)
 
+    def edge_angle_problem(self, q) -> "EdgeAngleProblem":
+        """The energy as a function of the edge angles alone, positions frozen at those of q."""
+        return EdgeAngleProblem(self, q)
+
     def initial_state(self) -> np.ndarray:
         """Flat printed state: x = (X, Y, 0), theta = 0."""
         x = np.concatenate([self.sheet.points, np.zeros((self.n_vertices, 1))], 1)
@@ -258,6 +262,58 @@ class ShellModel:
         disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
         k = np.stack([tr / 2 + disc, tr / 2 - disc], 1)
         return k, tr / 2, det
+
+
+class EdgeAngleProblem:
+    """E(theta) at frozen positions x: the bending part of the energy that depends on the
+    edge angles (N mm; the membrane, gravity and other theta-free terms are dropped, so
+    values are differences, not totals), with its gradient (n_edges,) and sparse Hessian.
+
+    With x frozen, each face's energy depends only on its own three tan(psi_i), and each
+    angle on its two faces: the Hessian has the sparsity of the face-edge adjacency and
+    factorises in a fraction of the full Hessian's time (used by
+    shellfem.solver.relax_edge_angles)."""
+
+    def __init__(self, model: ShellModel, q):
+        x, theta = model.split(q)
+        self.model = model
+        self.theta0 = theta.copy()
+        xf = x[model.sheet.triangles]
+        self.a, _ = first_fundamental_form(xf)
+        self.h = face_heights(xf, with_hessian=False)[0]
+        topo = model.topo
+        half_phi = np.zeros(topo.face_edges.shape)
+        if len(topo.hinge):
+            phi = hinge_angles(x[topo.hinge], with_hessian=False)[0]
+            inner = model.face_hinge >= 0
+            half_phi[inner] = 0.5 * phi[model.face_hinge[inner]]
+        self.half_phi = half_phi
+
+    def evaluate(self, theta, order: int = 2):
+        """(E, gradient, Hessian blocks (m, 3, 3) over each face's edges); E = inf where an
+        angle leaves the admissible set |psi| < 0.49 pi."""
+        topo, quad = self.model.topo, self.model.quad
+        psi = topo.face_sign * theta[topo.face_edges] + self.half_phi
+        tp = np.tan(psi)
+        sec2 = 1 + tp * tp
+        h = self.h
+        b = -2 * np.einsum("mi,ik->mk", tp * h, C_OUTER)
+        W, Wz, Wzz = quad.evaluate(np.concatenate([self.a, b], 1))
+        E = float(np.where(np.abs(psi).max(1) >= 0.49 * np.pi, np.inf, W).sum())
+        if order == 0:
+            return E, None, None
+        gi = Wz[:, 3:] @ C_OUTER.T                       # dW/d(tan psi_i) = -2 h_i g_i
+        Wpsi = -2 * sec2 * h * gi
+        grad = np.bincount(topo.face_edges.ravel(), weights=(topo.face_sign * Wpsi).ravel(),
+                           minlength=self.model.n_edges)
+        if order == 1:
+            return E, grad, None
+        Jb = -2 * (sec2 * h)[:, :, None] * C_OUTER[None]                 # (m, 3 psi, 3 b)
+        Hpsi = np.einsum("mik,mkl,mjl->mij", Jb, Wzz[:, 3:, 3:], Jb)
+        idx = np.arange(3)
+        Hpsi[:, idx, idx] += -4 * sec2 * tp * h * gi
+        Hpsi *= topo.face_sign[:, :, None] * topo.face_sign[:, None, :]
+        return E, grad, Hpsi
 
 
 def nodal_loads(sheet: Sheet, load_per_area: float) -> np.ndarray:

@@ -13,6 +13,11 @@ contrast of 10^3-10^4 (a fixed-cap identity shift, as in the seed's solver, stal
 Energies that leave the admissible set (inverted triangles, log barrier) are +inf and
 the step is rejected.
 
+After every accepted step (and at the start) the edge angles are re-minimised with the
+positions frozen (:class:`EdgeAngleRelaxation`, a nonlinear elimination of the angles that
+costs ~1/20 of an outer iteration): star sheets 30 x 20 mm 68 / 62 -> 51 / 50 iterations,
+40 x 30 mm 216 / 251 / 248 -> 182 / 144 / 181 (seeds 0 / 1 / 2).
+
 Newton steps follow a rotation-corrected curve instead of a straight line when the sheet
 rotates (shellfem.corotational); optionally an indefinite Hessian is first retried with its
 hinge (dihedral-angle) blocks projected to positive semi-definite before LM takes over.
@@ -120,7 +125,8 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
            max_iterations: int = 300, backend: str = "auto", verbose: bool = False,
            gradient_reference: float | None = None, stability_shift: float = 1e-6,
            step_tolerance: float = 1e-7, energy_tolerance: float = 1e-11, rotation_path: bool = True,
-           project_hinges: bool = False, metric_floor: float = 0.0) -> SolveResult:
+           project_hinges: bool = False, metric_floor: float = 0.0,
+           relax_angles: bool = True) -> SolveResult:
     """Minimise model energy over the DOFs where ``free`` is True, starting from q0.
 
     model: a ShellModel (energy, gradient, hessian_blocks, face_dofs, hinge_dofs, n_dofs).
@@ -145,6 +151,10 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
     carrying a large moment). Measured: strip 19 -> 15 iterations and 40 x 30 star sheet
     215 -> 206, but 30 x 20 star sheet 68 -> 91 and a ribbon patch 117 -> 186, so not default.
     Such steps never decide convergence (the exact H must factorise for that).
+
+    relax_angles (default on): re-minimise the free edge angles at frozen positions at the
+    start and after every accepted step (:class:`EdgeAngleRelaxation`); it never raises the
+    energy and never decides convergence.
 
     metric_floor: the trust-region metric D of H + lam D is |H_ii| floored at this multiple of
     the median |H_ii| of its DOF kind (positions, edge angles); see :func:`lm_metric`. 0 (the
@@ -181,6 +191,17 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
         from shellfem.corotational import RotationPath
         rpath = RotationPath(model.sheet.triangles, n)
 
+    relax = EdgeAngleRelaxation(model, free, backend) if relax_angles and hasattr(model, "edge_angle_problem") else None
+
+    def _relaxed(q, E):
+        if relax is None:
+            return q
+        t0 = time.perf_counter()
+        out = relax(q, max(abs(E), 1e-300))
+        timings["angle_relaxation"] = timings.get("angle_relaxation", 0.0) + time.perf_counter() - t0
+        timings["angle_iterations"] = relax.iterations
+        return out
+
     def _energy_scale(E):
         """|E|, floored at 1e-6 of the start's energy so that an equilibrium with E = 0 can converge."""
         return max(abs(E), 1e-6 * E_ref)
@@ -190,6 +211,16 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
         step = float(np.abs(d_free[pos_free]).max()) if pos_free.any() else 0.0
         return step, -0.5 * float(g @ d_free)
 
+    E0 = model.energy(q)
+    if not np.isfinite(E0) and relax is not None:
+        # a start whose angles are inadmissible (|psi| >= 0.49 pi) but whose positions are
+        # fine, e.g. a transferred or smoothed shape: the relaxation re-solves the angles from 0
+        flat = q.copy()
+        flat[3 * n:][relax.free] = 0.0
+        if np.isfinite(model.energy(flat)):
+            q, E0 = flat, model.energy(flat)
+    if np.isfinite(E0):
+        q = _relaxed(q, E0)
     for it in range(max_iterations + 1):
         if fresh:
             t0 = time.perf_counter()
@@ -250,7 +281,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
                 a *= 0.5
             timings["line_search"] += time.perf_counter() - t0
             if np.isfinite(E_new) and E_new <= E + 1e-4 * a * slope and a * step > 1e-14 * size:
-                q = q_try
+                q = _relaxed(q_try, E_new)
                 timings["newton_steps"] += 1
                 history.append(dict(iteration=it, energy=E, gradient_norm=gnorm, lam=0.0, step=a))
                 if verbose:
@@ -329,7 +360,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
                 reason = f"no decrease possible (trust region collapsed) with gradient norm {gnorm:.3e}"
                 break
             continue
-        q = q_new
+        q = _relaxed(q_new, E_new)
         fresh = True
         timings["regularised_steps"] += 1
         history.append(dict(iteration=it, energy=E, gradient_norm=gnorm, lam=lam, rho=rho))
@@ -340,6 +371,70 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
         elif rho < 0.25:
             lam = max(4.0 * lam, 1e-8)
     return SolveResult(q, False, it, float(E), gnorm, reason, stable, history, _finish(timings, t_start))
+
+
+class EdgeAngleRelaxation:
+    """Minimise the energy over the free edge angles at frozen positions (a few damped Newton
+    steps on shellfem.model.EdgeAngleProblem; sparsity and symbolic factorisation kept).
+
+    A nonlinear elimination of the angles: after every accepted step of the full Newton
+    iteration the angles are re-solved, so the outer iteration works on (nearly) the reduced
+    energy min_theta E(x, theta). The angles enter the energy through tan(psi), which curves
+    the landscape strongly at the kinks between stiff plastic and soft fabric (|theta| ~ 1.2 rad
+    at a star sheet's equilibrium); a full-Newton step that moves x cannot follow that curvature
+    and is cut short. Costs ~1/20 of a full assembly + factorisation per inner step."""
+
+    def __init__(self, model, free, backend: str = "auto", max_iterations: int = 4):
+        n = model.n_vertices
+        self.model, self.n = model, n
+        self.free = free[3 * n:].copy()
+        self.scatter = BlockScatter([model.topo.face_edges], model.n_edges, self.free)
+        self.solver = SparseSPD(backend)
+        self.max_iterations = max_iterations
+        self.iterations = 0
+
+    def __call__(self, q, energy_scale: float):
+        """q with its free angles relaxed (never with a higher energy)."""
+        if not self.free.any():
+            return q
+        problem = self.model.edge_angle_problem(q)
+        theta = q[3 * self.n:].copy()
+        E, g_all, blocks = problem.evaluate(theta)
+        if not np.isfinite(E):
+            return q
+        for _ in range(self.max_iterations):
+            g = g_all[self.free]
+            H = self.scatter.matrix([blocks])
+            shift = 0.0
+            diag = np.abs(H.diagonal()) + 1e-12
+            for _ in range(30):
+                try:
+                    factor = self.solver.factor(H + sp.diags(shift * diag) if shift else H)
+                    break
+                except NotPositiveDefinite:
+                    shift = max(8 * shift, 1e-6)
+            else:
+                break
+            d = -factor(g)
+            slope = float(g @ d)
+            if -0.5 * slope <= 1e-12 * energy_scale:
+                break
+            a = 1.0
+            self.iterations += 1
+            for _ in range(20):
+                trial = theta.copy()
+                trial[self.free] += a * d
+                E_try = problem.evaluate(trial, order=0)[0]
+                if np.isfinite(E_try) and E_try <= E + 1e-4 * a * slope:
+                    break
+                a *= 0.5
+            else:
+                break
+            theta = trial
+            E, g_all, blocks = problem.evaluate(theta)
+        out = q.copy()
+        out[3 * self.n:] = theta
+        return out
 
 
 def _negative_curvature_step(model, q, free, H, D, g, factor, E, v_prev, length_scale, n_inverse=12):

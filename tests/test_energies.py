@@ -46,6 +46,43 @@ def test_total_energy_gradient_and_hessian(model_name):
     assert np.abs(H - H.T).max() < 1e-10 * np.abs(H).max()
 
 
+def test_edge_angle_problem_matches_the_full_model_and_finite_differences():
+    """E(theta) at frozen positions: energy differences, gradient and Hessian equal the full
+    model's theta part; gradient and Hessian also against finite differences."""
+    rng = np.random.default_rng(3)
+    M = ShellModel.from_materials(_sheet(), Fabric(stretch=(1.3, 1.2)), Plastic(rest_curvature=0.01))
+    q = M.initial_state()
+    x, th = M.split(q)
+    x[:, :2] *= 0.85
+    x += rng.normal(scale=0.05, size=x.shape)
+    th += rng.normal(scale=0.2, size=th.shape)
+    n, ne = M.n_vertices, M.n_edges
+    P = M.edge_angle_problem(q)
+    e, g, blocks = P.evaluate(th)
+    H = BlockScatter([M.topo.face_edges], ne, np.ones(ne, bool)).matrix([blocks]).toarray()
+    _, g_full, (Hf, Hh) = M.hessian_blocks(q)
+    free = np.zeros(M.n_dofs, bool)
+    free[3 * n:] = True
+    H_full = BlockScatter([M.face_dofs, M.hinge_dofs], M.n_dofs, free).matrix([Hf, Hh]).toarray()
+    assert np.abs(g - g_full[3 * n:]).max() < 1e-12 * np.abs(g).max()
+    assert np.abs(H - H_full).max() < 1e-12 * np.abs(H).max()
+    dth = rng.normal(scale=0.05, size=ne)
+    q2 = q.copy()
+    q2[3 * n:] += dth
+    assert P.evaluate(th + dth, 0)[0] - e == pytest.approx(M.energy(q2) - M.energy(q), rel=1e-9)
+    eps = 1e-6
+    gn, Hn = np.zeros(ne), np.zeros((ne, ne))
+    for d in range(ne):
+        tp, tm = th.copy(), th.copy()
+        tp[d] += eps
+        tm[d] -= eps
+        gn[d] = (P.evaluate(tp, 0)[0] - P.evaluate(tm, 0)[0]) / (2 * eps)
+        Hn[:, d] = (P.evaluate(tp, 1)[1] - P.evaluate(tm, 1)[1]) / (2 * eps)
+    assert np.abs(g - gn).max() < 1e-6 * np.abs(g).max()
+    assert np.abs(H - Hn).max() < 1e-6 * np.abs(H).max()
+    assert P.evaluate(th + 2.0, 0)[0] == np.inf          # |psi| beyond 0.49 pi: inadmissible
+
+
 def test_membrane_models_derivatives():
     rng = np.random.default_rng(7)
     m = 15
