@@ -23,6 +23,7 @@ from shapely.geometry import LineString, Point, Polygon
 from geometry import outlines
 from geometry.elements import PrintedElement, Support
 from geometry.expressions import compile_field
+from shellfem.solver import DEFAULT_METRIC_FLOOR
 from geometry.stars import star_elements
 from selfshape.errors import SelfshapeError, check_number
 from selfshape.tomlfile import read_toml
@@ -56,7 +57,7 @@ class Pattern:
     triangle rows across the narrowest printed feature ([mesh] across, default 2). seed: the
     solver's symmetry-breaking seed. max_iterations: the Newton cap ([solver] max_iterations,
     default 300). metric_floor: the solver's trust-region metric floor ([solver] metric_floor,
-    default 0; see shellfem.solver.lm_metric). source: file path or "<dict>". raw: the parsed TOML
+    default 10; see shellfem.solver.lm_metric). source: file path or "<dict>". raw: the parsed TOML
     (unknown [solver] and [meta] keys are kept here for the solver).
     """
     fabric: Fabric
@@ -68,7 +69,7 @@ class Pattern:
     seed: int = 0
     mesh_across: float = 2.0
     max_iterations: int = 300
-    metric_floor: float = 0.0
+    metric_floor: float = DEFAULT_METRIC_FLOOR
     source: str = "<dict>"
     raw: dict = field(default_factory=dict)
 
@@ -88,7 +89,7 @@ def _num(table: dict, key: str, where: str, default=None, lo=None, lo_open=False
 
 
 def solver_options(solver: dict, where: str) -> tuple[int, int, float]:
-    """(seed, max_iterations, metric_floor) of a [solver] table, defaults 0, 300, 0.0; a one-line
+    """(seed, max_iterations, metric_floor) of a [solver] table, defaults 0, 300, 10.0; a one-line
     SelfshapeError naming ``where`` for a bad value. Unknown keys are left to the caller."""
     seed = solver.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int):
@@ -96,7 +97,7 @@ def solver_options(solver: dict, where: str) -> tuple[int, int, float]:
     cap = solver.get("max_iterations", 300)
     if isinstance(cap, bool) or not isinstance(cap, int) or cap < 1:
         raise SelfshapeError(f"{where}: max_iterations must be a positive integer, got {cap!r:.40}")
-    return seed, cap, _num(solver, "metric_floor", where, 0.0, lo=0.0)
+    return seed, cap, _num(solver, "metric_floor", where, DEFAULT_METRIC_FLOOR, lo=0.0)
 
 
 def _choice(table: dict, key: str, where: str, options: tuple, default: str):

@@ -21,7 +21,7 @@ from shellfem.boundary import (gauge_dofs, gauge_reaction, graph_laplacian, harm
                                smooth_perturbation)
 from shellfem.model import ShellModel
 from shellfem.sheet import Sheet
-from shellfem.solver import SolveResult, newton
+from shellfem.solver import DEFAULT_METRIC_FLOOR, SolveResult, newton
 
 
 @dataclass
@@ -113,7 +113,7 @@ def _carry_support_motion(model, plain, q, fixed, free):
 
 def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0, max_iterations: int = 300,
                    release_steps: int = 1, tol_support: float | None = None, verbose: bool = False,
-                   rtol: float = 1e-8, metric_floor: float = 0.0) -> Simulation:
+                   rtol: float = 1e-8, metric_floor: float = DEFAULT_METRIC_FLOOR) -> Simulation:
     """Released equilibrium of a meshed sheet (printed-state mm) with the given materials.
 
     The start is the flat printed state with a smooth out-of-plane perturbation of 1 % of

@@ -2,8 +2,8 @@
 
 Each iteration assembles the exact Hessian H over the free DOFs and solves
 (H + lambda D) d = -g with a sparse Cholesky factorisation (CHOLMOD when scikit-sparse is
-installed, symbolic analysis once per mesh; SciPy's SuperLU otherwise), D = diag(|H|): a
-Levenberg-Marquardt trust region. lambda grows when the factorisation reports H + lambda D
+installed, symbolic analysis once per mesh; SciPy's SuperLU otherwise), D = |diag H| floored
+per DOF kind (:func:`lm_metric`): a Levenberg-Marquardt trust region. lambda grows when the factorisation reports H + lambda D
 indefinite (the flat released state is a saddle; buckling passes through indefinite
 states) or when the step's actual energy decrease is poor compared with the quadratic
 model's prediction, and shrinks to 0 when the model is good, so the end game is plain
@@ -48,6 +48,11 @@ except Exception:  # pragma: no cover - exercised on machines without scikit-spa
         pass
 
 
+#: Default trust-region metric floor (see :func:`lm_metric`); [solver] metric_floor = 0 gives
+#: plain Marquardt scaling.
+DEFAULT_METRIC_FLOOR = 10.0
+
+
 def _psd_blocks(B):
     """Blocks (k, d, d) with their negative eigenvalues set to 0."""
     w, V = np.linalg.eigh(B)
@@ -61,14 +66,13 @@ def lm_metric(diag: np.ndarray, is_position: np.ndarray, floor: float = 0.0) -> 
     Plain Marquardt scaling (floor 0) barely damps the softest DOFs, the bare fabric at free
     edges, where the slow phases of a star-sheet solve move (measured: 55-100 % of the squared
     displacement within 3 mm of the edge); the floor bounds their step like a trust region in
-    mm while the stiff plastic DOFs keep their own scale. Measured, star sheets, single-threaded:
-    30 x 20 mm 68 / 62 -> 51 / 58 iterations (seeds 0 / 1), 40 x 30 mm 216 / 251 / 248 -> 175 /
-    194 / 208 (seeds 0 / 1 / 2), 85 x 60 mm benchmark 342 -> 249 (768 -> 526 s); floors
-    0.1 / 1 / 10 / 30 / 100 / 1000 on 40 x 30: 222 / 187 / 175 / 179 / 199 / 249. Gallery, floor
-    0 -> 10: ribbons 119 -> 92, ortho_0 151 -> 72, tube (72.3 MPa) 357 -> 319, half annulus 253 -> 236,
-    examples/ribbons.toml 300 (not converged) -> 208, but ortho_90 91 -> not converged in
-    1000 (it creeps at E 52.5 with the shift pinned at ~4e-4 by a negative eigenvalue, against
-    the minimum 50.59). Hence opt-in."""
+    mm while the stiff plastic DOFs keep their own scale. Floors 0.1 / 1 / 10 / 30 / 100 / 1000
+    on a 40 x 30 mm star sheet: 222 / 187 / 175 / 179 / 199 / 249 iterations (session 6).
+    With the edge-angle relaxation (the default since session 7), floor 0 -> 10, single-threaded:
+    star sheets 30 x 20 mm 51 / 50 -> 46 / 43 (seeds 0 / 1), 40 x 30 mm 182 / 144 -> 117 / 120,
+    85 x 60 benchmark 310 -> 236; gallery ribbons 87 -> 53, ortho_0 33 -> 35, ortho_90 37 -> 31,
+    half annulus 170 -> 160; examples/ribbons.toml 150 (floor 10). Without the relaxation the
+    floor made ortho_90 creep (not converged in 1000), which kept it opt-in until then."""
     D = np.abs(np.asarray(diag, float))
     D = D + 1e-8 * max(float(D.mean()), 1e-300) if len(D) else D
     if floor > 0:
@@ -125,7 +129,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
            max_iterations: int = 300, backend: str = "auto", verbose: bool = False,
            gradient_reference: float | None = None, stability_shift: float = 1e-6,
            step_tolerance: float = 1e-7, energy_tolerance: float = 1e-11, rotation_path: bool = True,
-           project_hinges: bool = False, metric_floor: float = 0.0,
+           project_hinges: bool = False, metric_floor: float = DEFAULT_METRIC_FLOOR,
            relax_angles: bool = True) -> SolveResult:
     """Minimise model energy over the DOFs where ``free`` is True, starting from q0.
 
@@ -157,10 +161,8 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
     energy and never decides convergence.
 
     metric_floor: the trust-region metric D of H + lam D is |H_ii| floored at this multiple of
-    the median |H_ii| of its DOF kind (positions, edge angles); see :func:`lm_metric`. 0 (the
-    default) gives plain Marquardt scaling, D = |diag H|; 10 saves 10-50 % of the iterations on
-    star and ribbon sheets but one measured case (orthotropic fabric, course at 90 deg) then
-    creeps and does not converge, so it is opt-in ([solver] metric_floor)."""
+    the median |H_ii| of its DOF kind (positions, edge angles); see :func:`lm_metric`. Default
+    10 (DEFAULT_METRIC_FLOOR); 0 gives plain Marquardt scaling, D = |diag H|."""
     t_start = time.perf_counter()
     q = q0.copy()
     scatter = BlockScatter([model.face_dofs, model.hinge_dofs], model.n_dofs, free)

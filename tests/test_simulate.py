@@ -109,18 +109,21 @@ def test_support_boundary_key(tmp_path):
 
 
 def test_metric_floor_reaches_the_same_equilibrium():
-    """[solver] metric_floor changes the trust-region path only, not the equilibrium (narrow strip)."""
+    """[solver] metric_floor changes the trust-region path only, not the equilibrium (narrow
+    strip): the default (10) and plain Marquardt scaling (0) agree."""
     import tomllib
 
     from geometry.patterns import load_pattern
     from shellfem.simulate import simulate
+    from shellfem.solver import DEFAULT_METRIC_FLOOR
     with open(EXAMPLE, "rb") as f:
         raw = tomllib.load(f)
-    plain = simulate(load_pattern(raw))
-    raw.setdefault("solver", {})["metric_floor"] = 10.0
+    floored = simulate(load_pattern(raw))
+    assert load_pattern(raw).metric_floor == DEFAULT_METRIC_FLOOR == 10.0
+    raw.setdefault("solver", {})["metric_floor"] = 0.0
     pat = load_pattern(raw)
-    assert pat.metric_floor == 10.0
-    floored = simulate(pat)
+    assert pat.metric_floor == 0.0
+    plain = simulate(pat)
     assert plain.result.converged and floored.result.converged
     assert floored.result.energy == pytest.approx(plain.result.energy, rel=1e-9)
     assert np.abs(floored.positions - plain.positions).max() < 1e-5 * np.ptp(plain.positions[:, 0])
