@@ -662,7 +662,7 @@ def design_file(target_path, out_dir, verify: bool = False, diagonal_mm: float =
     design time (read to written outputs, Table 5.1's "Time"), total_time_s includes the
     verification. verify_iterations: Newton cap of the verification, written to pattern.toml's
     [solver] max_iterations (default: the simulator's 300); metric_floor: [solver] metric_floor of
-    the verification (default: the simulator's 0). Outputs of an earlier run in the
+    the verification (default: the simulator's 10). Outputs of an earlier run in the
     directory are removed first; on failure every file this run wrote is removed. Returns the
     report dict."""
     import tomli_w
