@@ -23,11 +23,11 @@ from shapely.geometry import LineString, Point, Polygon
 from geometry import outlines
 from geometry.elements import PrintedElement, Support
 from geometry.expressions import compile_field
-from shellfem.solver import DEFAULT_METRIC_FLOOR
 from geometry.stars import star_elements
 from selfshape.errors import SelfshapeError, check_number
 from selfshape.tomlfile import read_toml
 from shellfem.materials import Fabric, Plastic
+from shellfem.solver import DEFAULT_METRIC_FLOOR
 
 GCODE_MARGIN_MM = 10.0
 

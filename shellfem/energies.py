@@ -204,6 +204,11 @@ def orthotropic(a, T, params, nu, h, area):
 
 
 # --- the face energy as a function of y = (a, h, psi) --------------------------------
+#: Mid-edge tilt angles must stay below this (tan(psi) blows up at pi / 2); beyond it the
+#: energy is +inf.
+PSI_MAX = 0.49 * np.pi
+
+
 def second_fundamental_form(h, psi):
     """b (m,3) = -2 sum_i tan(psi_i) h_i c_i c_i^T."""
     return -2 * np.einsum("mi,ik->mk", np.tan(psi) * h, C_OUTER)
@@ -229,7 +234,7 @@ def face_energy(a, h, psi, quad: QuadraticForm, membrane=None, hessian=True):
         if hessian:
             Wzz = Wzz.copy()
             Wzz[:, :3, :3] += Hm
-    bad = np.abs(psi).max(1) >= 0.49 * np.pi
+    bad = np.abs(psi).max(1) >= PSI_MAX
     W = np.where(bad, np.inf, W)
     J = np.zeros((m, 6, 9))
     J[:, 0, 0] = J[:, 1, 1] = J[:, 2, 2] = 1.0

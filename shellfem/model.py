@@ -16,7 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from shellfem import energies as en
-from shellfem.kinematics import A_HESS, C_OUTER, build_topology, face_heights, first_fundamental_form, hinge_angles, sandwich
+from shellfem.kinematics import (A_HESS, C_OUTER, build_topology, face_heights, first_fundamental_form, hinge_angles,
+                                 sandwich)
 from shellfem.materials import Fabric, Plastic
 from shellfem.sheet import Sheet
 
@@ -272,26 +273,19 @@ class EdgeAngleProblem:
     With x frozen, each face's energy depends only on its own three tan(psi_i), and each
     angle on its two faces: the Hessian has the sparsity of the face-edge adjacency and
     factorises in a fraction of the full Hessian's time (used by
-    shellfem.solver.relax_edge_angles)."""
+    shellfem.solver.EdgeAngleRelaxation)."""
 
     def __init__(self, model: ShellModel, q):
-        x, theta = model.split(q)
+        x, _ = model.split(q)
         self.model = model
-        self.theta0 = theta.copy()
         xf = x[model.sheet.triangles]
         self.a, _ = first_fundamental_form(xf)
         self.h = face_heights(xf, with_hessian=False)[0]
-        topo = model.topo
-        half_phi = np.zeros(topo.face_edges.shape)
-        if len(topo.hinge):
-            phi = hinge_angles(x[topo.hinge], with_hessian=False)[0]
-            inner = model.face_hinge >= 0
-            half_phi[inner] = 0.5 * phi[model.face_hinge[inner]]
-        self.half_phi = half_phi
+        self.half_phi = model._psi(x, np.zeros(model.n_edges), False)[0]     # psi at theta = 0
 
     def evaluate(self, theta, order: int = 2):
         """(E, gradient, Hessian blocks (m, 3, 3) over each face's edges); E = inf where an
-        angle leaves the admissible set |psi| < 0.49 pi."""
+        angle leaves the admissible set |psi| < PSI_MAX (0.49 pi)."""
         topo, quad = self.model.topo, self.model.quad
         psi = topo.face_sign * theta[topo.face_edges] + self.half_phi
         tp = np.tan(psi)
@@ -299,7 +293,7 @@ class EdgeAngleProblem:
         h = self.h
         b = -2 * np.einsum("mi,ik->mk", tp * h, C_OUTER)
         W, Wz, Wzz = quad.evaluate(np.concatenate([self.a, b], 1))
-        E = float(np.where(np.abs(psi).max(1) >= 0.49 * np.pi, np.inf, W).sum())
+        E = float(np.where(np.abs(psi).max(1) >= en.PSI_MAX, np.inf, W).sum())
         if order == 0:
             return E, None, None
         gi = Wz[:, 3:] @ C_OUTER.T                       # dW/d(tan psi_i) = -2 h_i g_i

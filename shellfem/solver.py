@@ -219,8 +219,9 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
         # fine, e.g. a transferred or smoothed shape: the relaxation re-solves the angles from 0
         flat = q.copy()
         flat[3 * n:][relax.free] = 0.0
-        if np.isfinite(model.energy(flat)):
-            q, E0 = flat, model.energy(flat)
+        E_flat = model.energy(flat)
+        if np.isfinite(E_flat):
+            q, E0 = flat, E_flat
     if np.isfinite(E0):
         q = _relaxed(q, E0)
     for it in range(max_iterations + 1):

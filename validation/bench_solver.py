@@ -18,9 +18,12 @@ import time
 
 import numpy as np
 
+from shellfem.solver import DEFAULT_METRIC_FLOOR
+
 
 def pattern(width: float = 85.0, height: float = 60.0, across: float = 1.0,
-            fabric_bending_stiffness: float | None = None, seed: int = 0, metric_floor: float = 10.0) -> dict:
+            fabric_bending_stiffness: float | None = None, seed: int = 0,
+            metric_floor: float = DEFAULT_METRIC_FLOOR) -> dict:
     fabric = {"rectangle": [width, height], "stretch": 1.35, "thickness_mm": 0.8}
     if fabric_bending_stiffness is not None:       # N mm; default: the fabric's measured k_B
         fabric["bending_stiffness_nmm"] = float(fabric_bending_stiffness)
@@ -33,7 +36,8 @@ def pattern(width: float = 85.0, height: float = 60.0, across: float = 1.0,
 
 
 def run(width: float = 85.0, height: float = 60.0, across: float = 1.0, max_iterations: int = 300,
-        fabric_bending_stiffness: float | None = None, seed: int = 0, metric_floor: float = 10.0) -> dict:
+        fabric_bending_stiffness: float | None = None, seed: int = 0,
+        metric_floor: float = DEFAULT_METRIC_FLOOR) -> dict:
     import os
     import tempfile
 
@@ -60,14 +64,16 @@ def run(width: float = 85.0, height: float = 60.0, across: float = 1.0, max_iter
     kabs = np.sort(np.abs(k), axis=1)
     return {
         "case": f"stars {width:g}x{height:g} mm, across={across:g}",
-        "fabric_bending_stiffness_nmm": float(pat.fabric.bending_stiffness), "seed": int(pat.seed), "metric_floor": pat.metric_floor,
+        "fabric_bending_stiffness_nmm": float(pat.fabric.bending_stiffness), "seed": int(pat.seed),
+        "metric_floor": pat.metric_floor,
         "n_vertices": int(sheet.n_vertices), "n_triangles": int(sheet.n_triangles), "n_dofs": int(sim.model.n_dofs),
         "converged": bool(r.converged), "reason": r.reason, "newton_iterations": int(r.iterations),
         "mesh_s": round(t_mesh, 2), "solve_wall_s": round(sim.wall_time_s, 2),
         "assembly_s": round(tm["assembly"], 2), "factorisation_s": round(tm["factorisation"], 2),
         "line_search_s": round(tm["line_search"], 2), "factorisations": int(tm["factorisations"]),
         "negative_curvature_search_s": round(tm.get("negative_curvature_search", 0.0), 2),
-        "angle_relaxation_s": round(tm.get("angle_relaxation", 0.0), 2), "angle_iterations": int(tm.get("angle_iterations", 0)),
+        "angle_relaxation_s": round(tm.get("angle_relaxation", 0.0), 2),
+        "angle_iterations": int(tm.get("angle_iterations", 0)),
         "newton_steps": int(tm.get("newton_steps", 0)), "projected_steps": int(tm.get("projected_steps", 0)),
         "regularised_steps": int(tm.get("regularised_steps", 0)),
         "per_iteration_s": {"assembly": round(tm["assembly"] / its, 3),
@@ -91,7 +97,7 @@ def main(argv=None):
                     help="fabric k_B, N mm (default: the measured 0.0192; raising it tests how much of the "
                          "iteration count the soft bare fabric costs)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the symmetry-breaking perturbation")
-    ap.add_argument("--metric-floor", type=float, default=10.0,
+    ap.add_argument("--metric-floor", type=float, default=DEFAULT_METRIC_FLOOR,
                     help="trust-region metric floor ([solver] metric_floor, default 10; 0: plain Marquardt scaling)")
     a = ap.parse_args(argv)
     print(json.dumps(run(a.width, a.height, a.across, a.max_iterations, a.fabric_bending_stiffness, a.seed,
