@@ -23,4 +23,5 @@ $PY -m pip install -q --upgrade pip >/dev/null 2>&1 || true
 $PY -m pip install -q "scikit-sparse==0.4.16" 2>&1 | grep -v -i warning || true
 $PY -m pip install -q -e ".[test]" 2>&1 | grep -v -i warning || true
 $PY -c "import shellfem, geometry, gmsh, skfem, pyvista; print('selfshape installed')"
-$PY -c "import sksparse.cholmod" 2>/dev/null && echo "CHOLMOD available" || echo "CHOLMOD not available: falling back to SciPy SuperLU (slower)"
+$PY -c "import sksparse.cholmod" 2>/dev/null && echo "CHOLMOD available" || echo "CHOLMOD not available"
+$PY -c "from shellfem.solver import default_backend; print('sparse Cholesky used by the solver:', default_backend())"

@@ -1,8 +1,8 @@
 """Newton's method for the shell's total energy, robust to indefinite Hessians.
 
 Each iteration assembles the exact Hessian H over the free DOFs and solves
-(H + lambda D) d = -g with a sparse Cholesky factorisation (CHOLMOD when scikit-sparse is
-installed, symbolic analysis once per mesh; SciPy's SuperLU otherwise), D = |diag H| floored
+(H + lambda D) d = -g with a sparse Cholesky factorisation (:func:`default_backend`: MKL
+PARDISO, else CHOLMOD, else SciPy's SuperLU; symbolic analysis once per mesh), D = |diag H| floored
 per DOF kind (:func:`lm_metric`): a Levenberg-Marquardt trust region. lambda grows when the
 factorisation reports H + lambda D indefinite (the flat released state is a saddle; buckling
 passes through indefinite states) or when the step's actual energy decrease is poor compared
@@ -36,9 +36,11 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from shellfem import pardiso
 from shellfem.assembly import BlockScatter
 
 try:  # CHOLMOD: ~2x faster than SuperLU here and it reports non-definiteness (toolchain.md)
+    # (PARDISO, shellfem.pardiso, is 5x faster again and is preferred when MKL is installed)
     from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
     HAVE_CHOLMOD = True
 except Exception:  # pragma: no cover - exercised on machines without scikit-sparse
@@ -86,18 +88,58 @@ class NotPositiveDefinite(Exception):
     pass
 
 
+def default_backend() -> str:
+    """The fastest sparse Cholesky here: MKL PARDISO (shellfem.pardiso; 5x CHOLMOD on the
+    benchmark's Hessian), else CHOLMOD (scikit-sparse), else SciPy's SuperLU."""
+    if pardiso.available():
+        return "pardiso"
+    return "cholmod" if HAVE_CHOLMOD else "superlu"
+
+
+def _same_pattern(a, b) -> bool:
+    return (a is not None and a[0] == b[0] and len(a[2]) == len(b[2]) and np.array_equal(a[1], b[1])
+            and np.array_equal(a[2], b[2]))
+
+
 class SparseSPD:
-    """Factorise SPD matrices with a fixed sparsity pattern; raise NotPositiveDefinite."""
+    """Factorise SPD matrices; raise NotPositiveDefinite. The symbolic analysis (ordering) is
+    kept while the sparsity pattern stays the same (as in a Newton loop).
+
+    backend: "auto" (:func:`default_backend`), "pardiso", "cholmod" or "superlu"."""
 
     def __init__(self, backend: str = "auto"):
-        self.backend = "cholmod" if (backend == "auto" and HAVE_CHOLMOD) or backend == "cholmod" else "superlu"
+        self.backend = default_backend() if backend == "auto" else backend
+        if self.backend not in ("pardiso", "cholmod", "superlu"):
+            raise ValueError(f"unknown sparse solver backend {backend!r}")
+        if self.backend == "pardiso" and not pardiso.available():
+            raise ValueError("sparse solver backend 'pardiso' needs MKL (pip install mkl)")
+        if self.backend == "cholmod" and not HAVE_CHOLMOD:
+            raise ValueError("sparse solver backend 'cholmod' needs scikit-sparse")
         self._symbolic = None
+        self._pattern = None
 
-    def factor(self, A: sp.csr_matrix):
+    def factor(self, A: sp.csr_matrix, shift=None):
+        """A solve function for A + diag(shift) (shift: (n,) array, scalar or None)."""
+        if self.backend == "pardiso":
+            A = sp.csr_matrix(A)
+            if not A.has_canonical_format:
+                A = A.copy()
+                A.sum_duplicates()
+            if self._symbolic is None or not self._symbolic.matches(A):
+                self._symbolic = pardiso.PardisoCholesky(A)
+            try:
+                self._symbolic.factor(A.data, shift)
+            except pardiso.ZeroPivot as e:
+                raise NotPositiveDefinite(str(e)) from None
+            return self._symbolic.solve
+        if shift is not None:
+            A = A + sp.diags(np.broadcast_to(shift, A.shape[0]))
         A = A.tocsc()
         if self.backend == "cholmod":
-            if self._symbolic is None:
+            pattern = (A.shape, A.indptr, A.indices)
+            if self._symbolic is None or not _same_pattern(self._pattern, pattern):
                 self._symbolic = analyze(A, mode="supernodal", ordering_method="metis")
+                self._pattern = (A.shape, A.indptr.copy(), A.indices.copy())
             try:
                 f = self._symbolic.cholesky(A)
             except CholmodNotPositiveDefiniteError as e:
@@ -276,6 +318,21 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
             slope = float(g @ d_free)
             a, E_new = 1.0, np.inf
             along = _path(rpath, q, d, n, free) if rpath is not None else (lambda a: q + a * d)
+            if promise <= 1e-13 * max(abs(E), E_ref):
+                # the decrease is below the energy's round-off, so Armijo cannot see it (it
+                # would cut a good step at random): accept the full step if the gradient falls
+                q_try = along(1.0)
+                E_try, g_try = model.energy(q_try), model.gradient(q_try)[free]
+                if np.isfinite(E_try) and float(np.linalg.norm(g_try)) < gnorm:
+                    timings["line_search"] += time.perf_counter() - t0
+                    q = _relaxed(q_try, E_try)
+                    timings["newton_steps"] += 1
+                    history.append(dict(iteration=it, energy=E, gradient_norm=gnorm, lam=0.0, step=1.0))
+                    if verbose:
+                        print(f"  newton {it:3d}  E {E:.10e}  |g| {gnorm:.3e}  Newton step x 1 (round-off)", flush=True)
+                    lam = 0.0
+                    fresh = True
+                    continue
             for _ in range(40):
                 q_try = along(a)
                 E_new = model.energy(q_try)
@@ -305,7 +362,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
         for _ in range(60):
             timings["factorisations"] += 1
             try:
-                factor = solver.factor(H + sp.diags(lam_try * D))
+                factor = solver.factor(H, shift=lam_try * D)
                 break
             except NotPositiveDefinite:
                 lam_try = max(8.0 * lam_try, 1e-10)
@@ -412,7 +469,7 @@ class EdgeAngleRelaxation:
             diag = np.abs(H.diagonal()) + 1e-12
             for _ in range(30):
                 try:
-                    factor = self.solver.factor(H + sp.diags(shift * diag) if shift else H)
+                    factor = self.solver.factor(H, shift=shift * diag if shift else None)
                     break
                 except NotPositiveDefinite:
                     shift = max(8 * shift, 1e-6)
