@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from shellfem import energies as en
-from shellfem.kinematics import (A_HESS, C_OUTER, build_topology, face_heights, first_fundamental_form, hinge_angles,
-                                 sandwich)
+from shellfem.kinematics import (A_HESS, C_OUTER, build_topology, face_heights, face_heights_hessian,
+                                 first_fundamental_form, hinge_angles, sandwich)
 from shellfem.materials import Fabric, Plastic
 from shellfem.sheet import Sheet
 
@@ -180,7 +180,7 @@ class ShellModel:
         m = len(t)
         xf = x[t]
         a, Ja = first_fundamental_form(xf)
-        h, gh, Hh = face_heights(xf, with_hessian=order >= 2)
+        h, gh, _ = face_heights(xf, with_hessian=False)
         psi, phi, gphi, Hphi = self._psi(x, theta, order >= 2)
         mm = self.membrane_mask
         membrane = None
@@ -214,7 +214,7 @@ class ShellModel:
         if order == 1:
             return E, grad, None
         Hf = sandwich(J, Wyy)
-        Hf[:, :9, :9] += (Wy[:, 0:3] @ A_HESS.reshape(3, 81)).reshape(m, 9, 9) + np.einsum("mk,mkij->mij", Wy[:, 3:6], Hh)
+        Hf[:, :9, :9] += (Wy[:, 0:3] @ A_HESS.reshape(3, 81)).reshape(m, 9, 9) + face_heights_hessian(xf, Wy[:, 3:6])
         # hinge curvature term: w_e = 1/2 sum over the edge's faces of dW/dpsi
         wpsi = np.where(self.face_hinge >= 0, 0.5 * Wy[:, 6:9], 0.0)
         wh = np.bincount(np.maximum(self.face_hinge, 0).ravel(), weights=wpsi.ravel(), minlength=len(Hphi))
