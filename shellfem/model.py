@@ -227,6 +227,17 @@ class ShellModel:
     def hessian_blocks(self, q):
         return self._evaluate(q, order=2)
 
+    def printed_dofs(self) -> np.ndarray:
+        """Mask over the DOFs of the printed (stiff) regions: positions of the vertices of
+        printed triangles and the angles of their edges (all False on a bare sheet)."""
+        t = self.sheet.triangles
+        printed = (self.sheet.thickness_front > 0) | (self.sheet.thickness_back > 0)
+        mask = np.zeros(self.n_dofs, bool)
+        v = np.unique(t[printed])
+        mask[(3 * v[:, None] + np.arange(3)).ravel()] = True
+        mask[3 * self.n_vertices + np.unique(self.topo.face_edges[printed])] = True
+        return mask
+
     def edge_angle_problem(self, q) -> "EdgeAngleProblem":
         """The energy as a function of the edge angles alone, positions frozen at those of q."""
         return EdgeAngleProblem(self, q)

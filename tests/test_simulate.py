@@ -161,3 +161,66 @@ def test_edge_angle_relaxation_recovers_the_equilibrium_angles():
     assert M.energy(bad) == np.inf
     again = newton(M, bad, free, max_iterations=20)
     assert again.converged and again.energy == pytest.approx(r.energy, rel=1e-9)
+
+
+def _small_star_sheet(width=20.0, height=15.0):
+    import os
+    import tempfile
+
+    import tomli_w
+
+    from geometry.meshing import mesh_pattern
+    from geometry.patterns import load_pattern
+    from validation.bench_solver import pattern
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "stars.toml")
+        with open(path, "wb") as f:
+            tomli_w.dump(pattern(width, height), f)
+        pat = load_pattern(path)
+    return pat, mesh_pattern(pat)
+
+
+def test_printed_region_relaxation_recovers_the_equilibrium():
+    """Perturbing only the printed regions' DOFs of a star sheet's equilibrium, the printed
+    relaxation (Newton on those DOFs, the rest frozen) returns to the equilibrium, never raises
+    the energy and leaves the other DOFs alone; newton with and without it reaches the same
+    equilibrium."""
+    from shellfem.simulate import simulate_sheet
+    from shellfem.solver import StiffRegionRelaxation, newton
+    pat, sheet = _small_star_sheet()
+    sim = simulate_sheet(sheet, pat.fabric, pat.plastic, seed=0, max_iterations=300)
+    r, M = sim.result, sim.model
+    assert r.converged
+    mask = M.printed_dofs()
+    n = M.n_vertices
+    printed = (sheet.thickness_front > 0) | (sheet.thickness_back > 0)
+    assert mask[:3 * n].reshape(n, 3).all(1).sum() == len(np.unique(sheet.triangles[printed]))
+    assert mask[3 * n:].sum() == len(np.unique(M.topo.face_edges[printed]))
+    assert 0.2 < mask.mean() < 0.9
+    free = np.ones(M.n_dofs, bool)
+    free[sim.fixed] = False
+    free[sim.gauge] = False
+    P = mask & free
+    start = r.q.copy()
+    start[P] += 0.02 * np.random.default_rng(0).standard_normal(int(P.sum()))
+    E0 = M.energy(start)
+    assert E0 > r.energy + 1e-2 * abs(r.energy)
+    relax = StiffRegionRelaxation(M, free, mask, max_iterations=40)
+    q, E = relax(start, E0)
+    assert E == pytest.approx(M.energy(q)) and E <= E0
+    assert np.array_equal(q[~P], start[~P])
+    assert E == pytest.approx(r.energy, rel=1e-9)
+    assert np.abs(q - r.q).max() < 1e-5
+    plain = newton(M, r.q, free, relax_printed=False, max_iterations=50)
+    assert plain.converged and plain.energy == pytest.approx(r.energy, rel=1e-9)
+
+
+def test_printed_region_relaxation_is_off_when_the_print_covers_the_sheet():
+    """A strip printed all over: the printed DOFs are (nearly) all DOFs, the relaxation would be
+    a second full Newton step, so newton does not use it."""
+    from geometry.patterns import load_pattern
+    from shellfem.simulate import simulate
+    sim = simulate(load_pattern(EXAMPLE))
+    assert sim.result.converged
+    assert sim.model.printed_dofs().mean() > 0.9
+    assert "printed_relaxations" not in sim.result.timings

@@ -74,6 +74,8 @@ def run(width: float = 85.0, height: float = 60.0, across: float = 1.0, max_iter
         "negative_curvature_search_s": round(tm.get("negative_curvature_search", 0.0), 2),
         "angle_relaxation_s": round(tm.get("angle_relaxation", 0.0), 2),
         "angle_iterations": int(tm.get("angle_iterations", 0)),
+        "printed_relaxation_s": round(tm.get("printed_relaxation", 0.0), 2),
+        "printed_relaxations": int(tm.get("printed_relaxations", 0)),
         "newton_steps": int(tm.get("newton_steps", 0)), "projected_steps": int(tm.get("projected_steps", 0)),
         "regularised_steps": int(tm.get("regularised_steps", 0)),
         "per_iteration_s": {"assembly": round(tm["assembly"] / its, 3),
