@@ -14,9 +14,12 @@ class BlockScatter:
     """Assemble blocks (k_i, d_i, d_i) with DOF index arrays (k_i, d_i) into CSR.
 
     free: boolean mask over all DOFs; rows/columns of fixed DOFs are dropped.
+    upper: keep only the upper triangle (row <= column) of the symmetric result: half the
+    gather and sum work; what the Cholesky backends read (see shellfem.solver.SparseSPD).
     """
 
-    def __init__(self, index_sets, n_dofs: int, free: np.ndarray):
+    def __init__(self, index_sets, n_dofs: int, free: np.ndarray, upper: bool = False):
+        self.upper = upper
         self.n_dofs = n_dofs
         reduced = -np.ones(n_dofs, dtype=np.int64)
         reduced[free] = np.arange(int(free.sum()))
@@ -28,6 +31,8 @@ class BlockScatter:
             R = np.broadcast_to(r[:, :, None], r.shape + (r.shape[1],))
             C = np.broadcast_to(r[:, None, :], R.shape)
             ok = (R >= 0) & (C >= 0)
+            if upper:
+                ok &= R <= C
             rows.append(R[ok])
             cols.append(C[ok])
             keep.append(ok.ravel())
@@ -55,6 +60,11 @@ class BlockScatter:
         vals = np.concatenate([b.reshape(-1)[k] for b, k in zip(blocks, self._keep)])
         data = np.bincount(self._slot, weights=vals, minlength=self.nnz)
         return sp.csr_matrix((data, self._indices.copy(), self._indptr.copy()), shape=(self.n_free, self.n_free))
+
+
+def symmetric_matvec(U: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
+    """A x for the symmetric A whose upper triangle (with diagonal) is U."""
+    return U @ x + U.T @ x - U.diagonal() * x
 
 
 def scatter_vector(index_sets, values, n_dofs: int) -> np.ndarray:

@@ -37,7 +37,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from shellfem import pardiso
-from shellfem.assembly import BlockScatter
+from shellfem.assembly import BlockScatter, symmetric_matvec
 
 try:  # CHOLMOD: ~2x faster than SuperLU here and it reports non-definiteness (toolchain.md)
     # (PARDISO, shellfem.pardiso, is 5x faster again and is preferred when MKL is installed)
@@ -118,9 +118,10 @@ class SparseSPD:
         self._symbolic = None
         self._pattern = None
 
-    def factor(self, A: sp.csr_matrix, shift=None):
-        """A solve function for A + diag(shift) (shift: (n,) array, scalar or None)."""
-        if self.backend == "pardiso":
+    def factor(self, A: sp.csr_matrix, shift=None, upper: bool = False):
+        """A solve function for A + diag(shift) (shift: (n,) array, scalar or None). upper:
+        A holds only the upper triangle of the symmetric matrix (BlockScatter(upper=True))."""
+        if self.backend == "pardiso":     # reads the upper triangle either way
             A = sp.csr_matrix(A)
             if not A.has_canonical_format:
                 A = A.copy()
@@ -132,6 +133,11 @@ class SparseSPD:
             except pardiso.ZeroPivot as e:
                 raise NotPositiveDefinite(str(e)) from None
             return self._symbolic.solve
+        if upper:
+            if self.backend == "cholmod":     # CHOLMOD reads the lower triangle of a CSC matrix
+                A = sp.csc_matrix((A.data, A.indices, A.indptr), shape=A.shape)
+            else:
+                A = A + sp.triu(A, k=1, format="csr").T
         if shift is not None:
             A = A + sp.diags(np.broadcast_to(shift, A.shape[0]))
         A = A.tocsc()
@@ -214,7 +220,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
     10 (DEFAULT_METRIC_FLOOR); 0 gives plain Marquardt scaling, D = |diag H|."""
     t_start = time.perf_counter()
     q = q0.copy()
-    scatter = BlockScatter([model.face_dofs, model.hinge_dofs], model.n_dofs, free)
+    scatter = BlockScatter([model.face_dofs, model.hinge_dofs], model.n_dofs, free, upper=True)
     solver = SparseSPD(backend)
     history = []
     timings = dict(assembly=0.0, factorisation=0.0, line_search=0.0, factorisations=0, rejected_steps=0,
@@ -307,7 +313,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
             timings["factorisations"] += 1
             projected = False
             try:
-                factor = solver.factor(H)
+                factor = solver.factor(H, upper=True)
                 exact = True
             except NotPositiveDefinite:
                 factor, exact = None, False
@@ -315,7 +321,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
                     Hp = scatter.matrix([Hf, _psd_blocks(Hh)])
                     timings["factorisations"] += 1
                     try:
-                        factor = solver.factor(Hp)
+                        factor = solver.factor(Hp, upper=True)
                         exact = projected = True
                         timings["projected_steps"] = timings.get("projected_steps", 0) + 1
                     except NotPositiveDefinite:
@@ -388,7 +394,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
         for _ in range(60):
             timings["factorisations"] += 1
             try:
-                factor = solver.factor(H, shift=lam_try * D)
+                factor = solver.factor(H, shift=lam_try * D, upper=True)
                 break
             except NotPositiveDefinite:
                 lam_try = max(8.0 * lam_try, 1e-10)
@@ -412,7 +418,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
             break
         lam = lam_try
         d_free = -factor(g)
-        Hd = H @ d_free
+        Hd = symmetric_matvec(H, d_free)
         pred = -(g @ d_free + 0.5 * d_free @ Hd)
         d = np.zeros_like(q)
         d[free] = d_free
@@ -483,7 +489,7 @@ class EdgeAngleRelaxation:
         n = model.n_vertices
         self.model, self.n = model, n
         self.free = free[3 * n:].copy()
-        self.scatter = BlockScatter([model.topo.face_edges], model.n_edges, self.free)
+        self.scatter = BlockScatter([model.topo.face_edges], model.n_edges, self.free, upper=True)
         self.solver = SparseSPD(backend)
         self.max_iterations = max_iterations
         self.iterations = 0
@@ -504,7 +510,7 @@ class EdgeAngleRelaxation:
             diag = np.abs(H.diagonal()) + 1e-12
             for _ in range(30):
                 try:
-                    factor = self.solver.factor(H, shift=shift * diag if shift else None)
+                    factor = self.solver.factor(H, shift=shift * diag if shift else None, upper=True)
                     break
                 except NotPositiveDefinite:
                     shift = max(8 * shift, 1e-6)
@@ -549,7 +555,7 @@ class StiffRegionRelaxation:
     def __init__(self, model, free, mask, backend: str = "auto", max_iterations: int = 2):
         self.model = model
         self.mask = mask & free
-        self.scatter = BlockScatter([model.face_dofs, model.hinge_dofs], model.n_dofs, self.mask)
+        self.scatter = BlockScatter([model.face_dofs, model.hinge_dofs], model.n_dofs, self.mask, upper=True)
         self.solver = SparseSPD(backend)
         self.max_iterations = max_iterations
         self.calls = 0
@@ -566,7 +572,7 @@ class StiffRegionRelaxation:
             shift, factor = 0.0, None
             for _ in range(30):
                 try:
-                    factor = self.solver.factor(H, shift=shift * D if shift else None)
+                    factor = self.solver.factor(H, shift=shift * D if shift else None, upper=True)
                     break
                 except NotPositiveDefinite:
                     shift = max(8.0 * shift, 1e-6)
@@ -602,7 +608,7 @@ def _negative_curvature_step(model, q, free, H, D, g, factor, E, v_prev, length_
         if not np.isfinite(nv) or nv == 0:
             return None, np.inf
         v /= nv
-    mu = v @ (H @ v)
+    mu = v @ symmetric_matvec(H, v)
     if mu >= 0:
         return None, np.inf
     n = model.n_vertices

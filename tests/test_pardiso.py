@@ -78,12 +78,34 @@ def test_backends_agree_and_detect_indefiniteness(backend):
     x = solver.factor(A, shift=0.25)(b)
     ref = spla.spsolve((A + 0.25 * sp.eye(A.shape[0])).tocsc(), b)
     assert np.allclose(x, ref, rtol=1e-10, atol=1e-12)
+    # the upper triangle alone (what BlockScatter(upper=True) assembles) gives the same answer
+    U = sp.triu(A, format="csr")
+    assert np.allclose(SparseSPD(backend).factor(U, shift=0.25, upper=True)(b), ref, rtol=1e-10, atol=1e-12)
+    with pytest.raises(NotPositiveDefinite):
+        SparseSPD(backend).factor(U, shift=-4.0, upper=True)
     with pytest.raises(NotPositiveDefinite):
         solver.factor(A, shift=-4.0)         # the grid Laplacian's spectrum reaches ~8
     # the pattern changes: a new symbolic analysis, same answers
     A2 = _laplacian(10)
     b2 = b[:A2.shape[0]]
     assert np.allclose(solver.factor(A2)(b2), spla.spsolve(A2.tocsc(), b2), rtol=1e-10, atol=1e-12)
+
+
+def test_upper_scatter_and_symmetric_matvec():
+    """BlockScatter(upper=True) holds the upper triangle of the full assembly, and
+    symmetric_matvec multiplies by the whole symmetric matrix."""
+    from shellfem.assembly import BlockScatter, symmetric_matvec
+    rng = np.random.default_rng(3)
+    idx = rng.integers(0, 40, size=(25, 6))
+    B = rng.standard_normal((25, 6, 6))
+    B = B + np.swapaxes(B, 1, 2)
+    free = np.ones(40, bool)
+    free[[3, 17]] = False
+    full = BlockScatter([idx], 40, free).matrix([B])
+    U = BlockScatter([idx], 40, free, upper=True).matrix([B])
+    assert np.allclose(U.toarray(), np.triu(full.toarray()))
+    x = rng.standard_normal(full.shape[0])
+    assert np.allclose(symmetric_matvec(U, x), full @ x)
 
 
 def test_default_backend_and_bad_backend_names():
