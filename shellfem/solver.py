@@ -213,7 +213,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
     model (rho < 0.75) - are first relaxed over the printed regions' DOFs
     (:class:`StiffRegionRelaxation`; off when the printed DOFs are most of the sheet's, e.g. a
     strip printed all over). 85 x 60 benchmark seeds 0 / 1 / 2 / 3: 248 / 137 / 229 / 215 ->
-    80 / 126 / 84 / 69 iterations (seed 0: 239 -> 139 s).
+    80 / 126 / 84 / 69 iterations (seed 0: 239 -> 139 s; 118 s with the upper-triangle assembly).
 
     metric_floor: the trust-region metric D of H + lam D is |H_ii| floored at this multiple of
     the median |H_ii| of its DOF kind (positions, edge angles); see :func:`lm_metric`. Default
