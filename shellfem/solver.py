@@ -17,6 +17,9 @@ After every accepted step (and at the start) the edge angles are re-minimised wi
 positions frozen (:class:`EdgeAngleRelaxation`, a nonlinear elimination of the angles that
 costs ~1/20 of an outer iteration): star sheets 30 x 20 mm 68 / 62 -> 51 / 50 iterations,
 40 x 30 mm 216 / 251 / 248 -> 182 / 144 / 181 (seeds 0 / 1 / 2), both with metric floor 0.
+Trial points that strain the stiff printed regions (a cut Newton step doubled, LM steps with a
+poor model ratio) are first relaxed over the printed regions' DOFs (:class:`StiffRegionRelaxation`):
+85 x 60 benchmark 248 -> 80 iterations.
 
 Newton steps follow a rotation-corrected curve instead of a straight line when the sheet
 rotates (shellfem.corotational); optionally an indefinite Hessian is first retried with its
