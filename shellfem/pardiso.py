@@ -53,11 +53,10 @@ def _load():
             fn = lib.pardiso
         except (OSError, AttributeError):
             continue
+        i32p, vp = ctypes.POINTER(ctypes.c_int32), ctypes.c_void_p
         fn.restype = None
-        fn.argtypes = [ctypes.c_void_p] + [ctypes.POINTER(ctypes.c_int32)] * 5 + [ctypes.c_void_p] * 2 + [
-            ctypes.c_void_p] * 2 + [ctypes.POINTER(ctypes.c_int32), ctypes.c_void_p,
-                                    ctypes.POINTER(ctypes.c_int32), ctypes.c_void_p, ctypes.c_void_p,
-                                    ctypes.POINTER(ctypes.c_int32)]
+        # pardiso(pt, maxfct, mnum, mtype, phase, n, a, ia, ja, perm, nrhs, iparm, msglvl, b, x, error)
+        fn.argtypes = [vp, i32p, i32p, i32p, i32p, i32p, vp, vp, vp, vp, i32p, vp, i32p, vp, vp, i32p]
         _LIB = lib
         return lib
     _LOAD_ERROR = "libmkl_rt not found (pip install mkl)"
@@ -115,7 +114,7 @@ class PardisoCholesky:
         ip[0] = 1       # parameters given here
         ip[1] = 2       # nested dissection (METIS)
         ip[7] = 0       # no iterative refinement (no pivot perturbation in Cholesky mode)
-        ip[9] = 13
+        ip[9] = 13      # perturbation threshold 1e-13 (used by the indefinite modes only)
         ip[17] = -1     # report the factor's nonzeros
         ip[34] = 1      # zero-based indices
         self._factored = False
@@ -133,16 +132,13 @@ class PardisoCholesky:
     def _call(self, phase, a, b, x, nrhs=1):
         err = ctypes.c_int32(0)
         i32 = ctypes.c_int32
-        self._lib().pardiso(self._pt.ctypes.data, ctypes.byref(i32(1)), ctypes.byref(i32(1)), ctypes.byref(i32(2)),
-                            ctypes.byref(i32(phase)), ctypes.byref(i32(self.n)), a.ctypes.data,
-                            self._ia.ctypes.data, self._ja.ctypes.data, None, ctypes.byref(i32(nrhs)),
-                            self._iparm.ctypes.data_as(ctypes.POINTER(ctypes.c_int32)), ctypes.byref(i32(0)),
-                            b.ctypes.data, x.ctypes.data, ctypes.byref(err))
+        # maxfct = mnum = 1 (one factor held), mtype 2 (real SPD), msglvl 0
+        _LIB.pardiso(self._pt.ctypes.data, ctypes.byref(i32(1)), ctypes.byref(i32(1)), ctypes.byref(i32(2)),
+                     ctypes.byref(i32(phase)), ctypes.byref(i32(self.n)), a.ctypes.data,
+                     self._ia.ctypes.data, self._ja.ctypes.data, None, ctypes.byref(i32(nrhs)),
+                     self._iparm.ctypes.data, ctypes.byref(i32(0)), b.ctypes.data, x.ctypes.data,
+                     ctypes.byref(err))
         return err.value
-
-    @staticmethod
-    def _lib():
-        return _LIB
 
     def factor(self, data: np.ndarray, shift: np.ndarray | float | None = None):
         a = np.ascontiguousarray(data[self._upper], dtype=np.float64)
