@@ -99,7 +99,6 @@ class PardisoCholesky:
             raise ValueError("PARDISO: the matrix must be in canonical CSR form (sorted, no duplicates)")
         n = A.shape[0]
         self.n = n
-        self.indptr, self.indices = A.indptr.copy(), A.indices.copy()
         rows = np.repeat(np.arange(n), np.diff(A.indptr))
         self._upper = A.indices >= rows
         ur = rows[self._upper]
@@ -123,11 +122,6 @@ class PardisoCholesky:
         self._call(11, self._a, np.zeros(1), np.zeros(1), nrhs=1)     # symbolic analysis
         self._alive = True
         self.factor_nonzeros = int(ip[17])
-
-    def matches(self, A: sp.csr_matrix) -> bool:
-        """True if A has this pattern (same CSR structure)."""
-        return (A.shape == (self.n, self.n) and len(A.indices) == len(self.indices)
-                and np.array_equal(A.indptr, self.indptr) and np.array_equal(A.indices, self.indices))
 
     def _call(self, phase, a, b, x, nrhs=1):
         err = ctypes.c_int32(0)

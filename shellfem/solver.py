@@ -99,11 +99,6 @@ def default_backend() -> str:
     return "cholmod" if HAVE_CHOLMOD else "superlu"
 
 
-def _same_pattern(a, b) -> bool:
-    return (a is not None and a[0] == b[0] and len(a[2]) == len(b[2]) and np.array_equal(a[1], b[1])
-            and np.array_equal(a[2], b[2]))
-
-
 class SparseSPD:
     """Factorise SPD matrices; raise NotPositiveDefinite. The symbolic analysis (ordering) is
     kept while the sparsity pattern stays the same (as in a Newton loop).
@@ -121,6 +116,15 @@ class SparseSPD:
         self._symbolic = None
         self._pattern = None
 
+    def _same_pattern(self, A) -> bool:
+        """True if A (CSR or CSC) has the pattern of the last analysis; else remember A's."""
+        p = self._pattern
+        if (p is not None and p[0] == A.shape and len(p[2]) == len(A.indices) and np.array_equal(p[1], A.indptr)
+                and np.array_equal(p[2], A.indices)):
+            return True
+        self._pattern = (A.shape, A.indptr.copy(), A.indices.copy())
+        return False
+
     def factor(self, A: sp.csr_matrix, shift=None, upper: bool = False):
         """A solve function for A + diag(shift) (shift: (n,) array, scalar or None). upper:
         A holds only the upper triangle of the symmetric matrix (BlockScatter(upper=True))."""
@@ -129,7 +133,7 @@ class SparseSPD:
             if not A.has_canonical_format:
                 A = A.copy()
                 A.sum_duplicates()
-            if self._symbolic is None or not self._symbolic.matches(A):
+            if not self._same_pattern(A):
                 self._symbolic = pardiso.PardisoCholesky(A)
             try:
                 self._symbolic.factor(A.data, shift)
@@ -145,10 +149,8 @@ class SparseSPD:
             A = A + sp.diags(np.broadcast_to(shift, A.shape[0]))
         A = A.tocsc()
         if self.backend == "cholmod":
-            pattern = (A.shape, A.indptr, A.indices)
-            if self._symbolic is None or not _same_pattern(self._pattern, pattern):
+            if not self._same_pattern(A):
                 self._symbolic = analyze(A, mode="supernodal", ordering_method="metis")
-                self._pattern = (A.shape, A.indptr.copy(), A.indices.copy())
             try:
                 f = self._symbolic.cholesky(A)
             except CholmodNotPositiveDefiniteError as e:
@@ -258,9 +260,9 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
         if 0 < mask.sum() <= 0.9 * free.sum():
             stiff = StiffRegionRelaxation(model, free, mask, backend)
 
-    def _stiff_relaxed(q, E):
+    def _stiff_relaxed(q):
         t0 = time.perf_counter()
-        out = stiff(q, E)
+        out = stiff(q)
         timings["printed_relaxation"] = timings.get("printed_relaxation", 0.0) + time.perf_counter() - t0
         timings["printed_relaxations"] = stiff.calls
         return out
@@ -316,7 +318,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
             timings["factorisations"] += 1
             projected = False
             try:
-                factor = solver.factor(H, upper=True)
+                factor = solver.factor(H, upper=scatter.upper)
                 exact = True
             except NotPositiveDefinite:
                 factor, exact = None, False
@@ -324,7 +326,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
                     Hp = scatter.matrix([Hf, _psd_blocks(Hh)])
                     timings["factorisations"] += 1
                     try:
-                        factor = solver.factor(Hp, upper=True)
+                        factor = solver.factor(Hp, upper=scatter.upper)
                         exact = projected = True
                         timings["projected_steps"] = timings.get("projected_steps", 0) + 1
                     except NotPositiveDefinite:
@@ -371,8 +373,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
             accepted = np.isfinite(E_new) and E_new <= E + 1e-4 * a * slope and a * step > 1e-14 * size
             if accepted and stiff is not None and a < 1:
                 # the line search had to cut: try twice the step with the printed regions relaxed
-                q2 = along(2 * a)
-                q2, E2 = _stiff_relaxed(q2, model.energy(q2))
+                q2, E2 = _stiff_relaxed(along(2 * a))
                 if np.isfinite(E2) and E2 < E_new:
                     q_try, E_new, a = q2, E2, 2 * a
             if accepted:
@@ -397,7 +398,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
         for _ in range(60):
             timings["factorisations"] += 1
             try:
-                factor = solver.factor(H, shift=lam_try * D, upper=True)
+                factor = solver.factor(H, shift=lam_try * D, upper=scatter.upper)
                 break
             except NotPositiveDefinite:
                 lam_try = max(8.0 * lam_try, 1e-10)
@@ -450,7 +451,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
             # the step strained the stiff printed regions more than the model foresaw: relax
             # them at the trial point before judging it (rho capped at 1: the model stays the
             # model of the unrelaxed step)
-            q2, E2 = _stiff_relaxed(q_new, E_new)
+            q2, E2 = _stiff_relaxed(q_new)
             if E2 < E_new:
                 q_new, E_new = q2, E2
                 actual = E - E_new
@@ -509,15 +510,8 @@ class EdgeAngleRelaxation:
         for _ in range(self.max_iterations):
             g = g_all[self.free]
             H = self.scatter.matrix([blocks])
-            shift = 0.0
-            diag = np.abs(H.diagonal()) + 1e-12
-            for _ in range(30):
-                try:
-                    factor = self.solver.factor(H, shift=shift * diag if shift else None, upper=True)
-                    break
-                except NotPositiveDefinite:
-                    shift = max(8 * shift, 1e-6)
-            else:
+            factor = _factor_shifted(self.solver, H, self.scatter.upper)
+            if factor is None:
                 break
             d = -factor(g)
             slope = float(g @ d)
@@ -563,22 +557,18 @@ class StiffRegionRelaxation:
         self.max_iterations = max_iterations
         self.calls = 0
 
-    def __call__(self, q, E):
-        """(q, E) after up to max_iterations damped Newton steps on the masked DOFs."""
+    def __call__(self, q):
+        """(q, E) after up to max_iterations damped Newton steps on the masked DOFs (E is
+        the energy at the returned q; the start's energy comes with its Hessian)."""
         model, P = self.model, self.mask
         self.calls += 1
+        E = None
         for _ in range(self.max_iterations):
-            _, g_all, blocks = model.hessian_blocks(q)
+            E_q, g_all, blocks = model.hessian_blocks(q)
+            E = E_q if E is None else E
             g = g_all[P]
-            H = self.scatter.matrix(list(blocks))
-            D = np.abs(H.diagonal()) + 1e-12
-            shift, factor = 0.0, None
-            for _ in range(30):
-                try:
-                    factor = self.solver.factor(H, shift=shift * D if shift else None, upper=True)
-                    break
-                except NotPositiveDefinite:
-                    shift = max(8.0 * shift, 1e-6)
+            H = self.scatter.matrix(blocks)
+            factor = _factor_shifted(self.solver, H, self.scatter.upper)
             if factor is None:
                 break
             d = -factor(g)
@@ -597,6 +587,19 @@ class StiffRegionRelaxation:
                 break
             q, E = trial, E_try
         return q, E
+
+
+def _factor_shifted(solver, H, upper: bool, tries: int = 30):
+    """Factor of H + shift |diag H| with the smallest shift of 0, 1e-6, 8e-6, ... that is
+    positive definite (None if none of ``tries`` is): the inner solves of the relaxations."""
+    D = np.abs(H.diagonal()) + 1e-12
+    shift = 0.0
+    for _ in range(tries):
+        try:
+            return solver.factor(H, shift=shift * D if shift else None, upper=upper)
+        except NotPositiveDefinite:
+            shift = max(8.0 * shift, 1e-6)
+    return None
 
 
 def _negative_curvature_step(model, q, free, H, D, g, factor, E, v_prev, length_scale, n_inverse=12):
