@@ -1,13 +1,16 @@
 """Scatter of dense element blocks into a sparse matrix over the free DOFs.
 
-The sparsity pattern and the map from every element entry to its CSR slot are built
-once per mesh; each Newton iteration is then a single ``np.bincount``
-(toolchain.md: ~0.08 s for 8.6M entries versus ~0.44 s for COO -> CSR).
+The sparsity pattern and, for every CSR slot, the list of element entries that sum into it
+are built once per mesh; each Newton iteration is then one compiled gather over the slots
+(parallel, each slot summed in a fixed order, so bitwise repeatable): 0.02 s for the 7.3M
+entries of the 85 x 60 benchmark's upper triangle, against 0.07 s for a gather of the kept
+entries and ``np.bincount`` (and ~0.44 s for COO -> CSR, toolchain.md).
 """
 from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+from numba import njit, prange
 
 
 class BlockScatter:
@@ -25,7 +28,8 @@ class BlockScatter:
         reduced[free] = np.arange(int(free.sum()))
         self.reduced = reduced
         self.n_free = int(free.sum())
-        rows, cols, keep = [], [], []
+        rows, cols, raw = [], [], []
+        offset = 0
         for idx in index_sets:
             r = reduced[idx]                                   # (k, d)
             R = np.broadcast_to(r[:, :, None], r.shape + (r.shape[1],))
@@ -35,10 +39,12 @@ class BlockScatter:
                 ok &= R <= C
             rows.append(R[ok])
             cols.append(C[ok])
-            keep.append(ok.ravel())
-        self._keep = keep
+            raw.append(np.flatnonzero(ok.ravel()) + offset)
+            offset += ok.size
+        self._sizes = [int(np.prod(idx.shape) * idx.shape[1]) for idx in index_sets]
         rows = np.concatenate(rows)
         cols = np.concatenate(cols)
+        raw = np.concatenate(raw)
         key = rows * self.n_free + cols
         # np.unique(return_inverse) uses a stable sort; an unstable argsort and a cumulative
         # count do the same job in half the time (measured 4.6 s vs 9.5 s at 18M entries)
@@ -47,19 +53,43 @@ class BlockScatter:
         first = np.empty(len(ks), bool)
         first[:1] = True
         np.not_equal(ks[1:], ks[:-1], out=first[1:])
-        inv = np.empty(len(ks), np.int64)
-        inv[order] = np.cumsum(first) - 1
         uniq = ks[first]
-        self._slot = inv
         self.nnz = len(uniq)
+        # slot s sums the raw block entries _src[_ptr[s]:_ptr[s + 1]]
+        self._src = raw[order].astype(np.int32 if offset < 2 ** 31 else np.int64)
+        self._ptr = np.append(np.flatnonzero(first), len(ks)).astype(np.int64)
         self._indices = (uniq % self.n_free).astype(np.int64)
         r = uniq // self.n_free
         self._indptr = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=self.n_free))]).astype(np.int64)
 
     def matrix(self, blocks) -> sp.csr_matrix:
-        vals = np.concatenate([b.reshape(-1)[k] for b, k in zip(blocks, self._keep)])
-        data = np.bincount(self._slot, weights=vals, minlength=self.nnz)
+        """CSR matrix (n_free, n_free) of the blocks, one (k_i, d_i, d_i) array per index set."""
+        flat = [np.ascontiguousarray(b, dtype=float).reshape(-1) for b in blocks]
+        if [len(f) for f in flat] != self._sizes:
+            raise ValueError(f"block sizes {[len(f) for f in flat]} do not match the index sets {self._sizes}")
+        if len(flat) == 1:
+            first, second = flat[0], flat[0][:0]
+        elif len(flat) == 2:
+            first, second = flat
+        else:
+            first, second = np.concatenate(flat), flat[0][:0]
+        data = _gather_sum(first, second, self._src, self._ptr)
         return sp.csr_matrix((data, self._indices.copy(), self._indptr.copy()), shape=(self.n_free, self.n_free))
+
+
+@njit(cache=True, parallel=True)
+def _gather_sum(first, second, src, ptr):
+    """out[s] = sum of the entries src[ptr[s]:ptr[s+1]] of the concatenation (first, second)."""
+    n = len(ptr) - 1
+    n0 = len(first)
+    out = np.empty(n)
+    for s in prange(n):
+        v = 0.0
+        for j in range(ptr[s], ptr[s + 1]):
+            k = src[j]
+            v += first[k] if k < n0 else second[k - n0]
+        out[s] = v
+    return out
 
 
 def symmetric_matvec(U: sp.csr_matrix, x: np.ndarray) -> np.ndarray:

@@ -139,10 +139,9 @@ def neo_hookean(a, abar, E, nu, h, area=None):
     W = +inf where the triangle is inverted or degenerate (det a <= 0)."""
     A = rest_area(abar) if area is None else area
     lam, mu = E * nu / (1 - nu ** 2), E / (2 * (1 + nu))
-    ainv = np.linalg.inv(sym_to_mat(abar))
-    t = np.stack([ainv[:, 0, 0], 2 * ainv[:, 0, 1], ainv[:, 1, 1]], 1)
     D = a[:, 0] * a[:, 2] - a[:, 1] ** 2
     Dbar = abar[:, 0] * abar[:, 2] - abar[:, 1] ** 2
+    t = np.stack([abar[:, 2], -2 * abar[:, 1], abar[:, 0]], 1) / Dbar[:, None]    # tr(abar^-1 a) = t . a
     bad = D <= 0
     Ds = np.where(bad, 1.0, D)
     lnD = np.log(Ds) - np.log(Dbar)
@@ -214,34 +213,37 @@ def second_fundamental_form(h, psi):
     return -2 * np.einsum("mi,ik->mk", np.tan(psi) * h, C_OUTER)
 
 
-def face_energy(a, h, psi, quad: QuadraticForm, membrane=None, hessian=True):
+def face_energy(a, h, psi, quad: QuadraticForm, membrane=None, order: int = 2):
     """Energy per face and its derivatives w.r.t. y = (a11, a12, a22, h0, h1, h2, psi0..2).
 
     membrane: optional callable a -> (W, g, H) added to the a-part (fabric models).
-    Returns W (m,), W_y (m, 9), W_yy (m, 9, 9) (None when hessian is False).
+    Returns W (m,), W_y (m, 9) (order >= 1) and W_yy (m, 9, 9) (order 2), None where not asked.
     """
     m = len(a)
     tp = np.tan(psi)
-    sec2 = 1 + tp * tp
     b = -2 * np.einsum("mi,ik->mk", tp * h, C_OUTER)
     z = np.concatenate([a, b], 1)
     W, Wz, Wzz = quad.evaluate(z)
     if membrane is not None:
         Wm, gm, Hm = membrane(a)
         W = W + Wm
-        Wz = Wz.copy()
-        Wz[:, :3] += gm
-        if hessian:
+        if order >= 1:
+            Wz = Wz.copy()
+            Wz[:, :3] += gm
+        if order >= 2:
             Wzz = Wzz.copy()
             Wzz[:, :3, :3] += Hm
     bad = np.abs(psi).max(1) >= PSI_MAX
     W = np.where(bad, np.inf, W)
+    if order == 0:
+        return W, None, None
+    sec2 = 1 + tp * tp
     J = np.zeros((m, 6, 9))
     J[:, 0, 0] = J[:, 1, 1] = J[:, 2, 2] = 1.0
     J[:, 3:, 3:6] = -2 * tp[:, None, :] * C_OUTER.T[None]
     J[:, 3:, 6:9] = -2 * (sec2 * h)[:, None, :] * C_OUTER.T[None]
     Wy = (Wz[:, None, :] @ J)[:, 0]
-    if not hessian:
+    if order == 1:
         return W, Wy, None
     Wyy = sandwich(J, Wzz)
     gi = Wz[:, 3:] @ C_OUTER.T          # g_i = sum_k W_b,k (c_i c_i^T)_k

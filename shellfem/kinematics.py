@@ -35,6 +35,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit, prange
 
 # c_i c_i^T as (11, 12, 22) components
 C_OUTER = np.array([[1.0, 1.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
@@ -42,14 +43,6 @@ C_OUTER = np.array([[1.0, 1.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 _EPS3 = np.zeros((3, 3, 3))
 _EPS3[0, 1, 2] = _EPS3[1, 2, 0] = _EPS3[2, 0, 1] = 1.0
 _EPS3[0, 2, 1] = _EPS3[2, 1, 0] = _EPS3[1, 0, 2] = -1.0
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """[v]x with [v]x w = v x w, batched over leading axes."""
-    z = np.zeros(v.shape[:-1])
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
-                     np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
 
 
 def _selector(n_pts: int, plus: int, minus: int) -> np.ndarray:
@@ -76,7 +69,6 @@ _SE = [_selector(3, 2, 1), _selector(3, 0, 2), _selector(3, 1, 0)]
 
 # hinge: points (e0, e1, oA, oB); e = e1 - e0, N_A = (e1 - e0) x (oA - e0),
 # N_B = (e0 - e1) x (oB - e1)
-_HE = _selector(4, 1, 0)
 _HA1, _HA2 = _selector(4, 1, 0), _selector(4, 2, 0)
 _HB1, _HB2 = _selector(4, 0, 1), _selector(4, 3, 1)
 #: constant Hessian (9, 12, 12) of u = (e, N_A, N_B) w.r.t. the 12 hinge coordinates
@@ -146,146 +138,337 @@ def sandwich(J: np.ndarray, H: np.ndarray) -> np.ndarray:
     return np.matmul(np.ascontiguousarray(np.swapaxes(J, 1, 2)), np.matmul(H, J))
 
 
-# --- first fundamental form ---------------------------------------------------
-def first_fundamental_form(xf: np.ndarray):
-    """a = (a11, a12, a22) and its Jacobian (m, 3, 9) for face points xf (m, 3, 3)."""
-    E1, E2 = xf[:, 1] - xf[:, 0], xf[:, 2] - xf[:, 0]
-    a = np.stack([np.einsum("ij,ij->i", E1, E1), np.einsum("ij,ij->i", E1, E2), np.einsum("ij,ij->i", E2, E2)], 1)
-    m = len(xf)
-    J = np.zeros((m, 3, 3, 3))
-    J[:, 0, 1], J[:, 0, 0] = 2 * E1, -2 * E1
-    J[:, 1, 1], J[:, 1, 2], J[:, 1, 0] = E2, E1, -(E1 + E2)
-    J[:, 2, 2], J[:, 2, 0] = 2 * E2, -2 * E2
-    return a, J.reshape(m, 3, 9)
-
-
-# --- heights h_i = |N| / |e_i| -----------------------------------------------------
-def _norm_derivs(v, Jv, Hv_const=None, hessian=True):
-    """|v| with gradient and (if ``hessian``) Hessian, given v's Jacobian Jv (m,3,d) and
-    its constant (3,d,d) Hessian Hv_const (None for linear v)."""
-    n = np.linalg.norm(v, axis=1)
-    u = v / n[:, None]
-    g = np.einsum("mk,mkd->md", u, Jv)
-    if not hessian:
-        return n, g, None
-    P = (np.eye(3)[None] - u[:, :, None] * u[:, None, :]) / n[:, None, None]
-    H = sandwich(np.ascontiguousarray(Jv), P)
-    if Hv_const is not None:
-        H += (u @ Hv_const.reshape(3, -1)).reshape(H.shape)
-    return n, g, H
-
-
-def face_heights(xf: np.ndarray, with_hessian: bool = True):
-    """h_i = 2 A / |e_i| (m, 3), gradients (m, 3, 9) and Hessians (m, 3, 9, 9)."""
-    m = len(xf)
-    X = xf.reshape(m, 9)
-    E1, E2 = xf[:, 1] - xf[:, 0], xf[:, 2] - xf[:, 0]
-    N = np.cross(E1, E2)
-    JN = (X @ N_HESS_FACE.reshape(27, 9).T).reshape(m, 3, 9)  # N_c = 1/2 x^T H_c x, so dN_c/dx = H_c x
-    nN, gN, HN = _norm_derivs(N, JN, N_HESS_FACE, hessian=with_hessian)
-    h = np.empty((m, 3))
-    g = np.empty((m, 3, 9))
-    H = np.empty((m, 3, 9, 9)) if with_hessian else None
-    for i in range(3):  # three local edges, not a loop over elements
-        S = _SE[i]
-        e = np.einsum("ad,md->ma", S, X)
-        Je = np.broadcast_to(S, (m, 3, 9))
-        l, gl, Hl = _norm_derivs(e, Je, hessian=with_hessian)
-        h[:, i] = nN / l
-        g[:, i] = gN / l[:, None] - (nN / l ** 2)[:, None] * gl
-        if with_hessian:
-            H[:, i] = (HN / l[:, None, None]
-                       - (gN[:, :, None] * gl[:, None, :] + gl[:, :, None] * gN[:, None, :]) / (l ** 2)[:, None, None]
-                       + (2 * nN / l ** 3)[:, None, None] * gl[:, :, None] * gl[:, None, :]
-                       - (nN / l ** 2)[:, None, None] * Hl)
-    return h, g, H
-
-
 #: vertex pairs (plus, minus) of the edge vectors e_i in _SE
-_EDGE_PAIRS = ((2, 1), (0, 2), (1, 0))
+_EDGE_PAIRS = np.array([[2, 1], [0, 2], [1, 0]])
 
 
-def face_heights_hessian(xf: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """sum_i w_i d2h_i/dx2 (m, 9, 9) for weights w (m, 3): the contraction the energy's
-    Hessian needs, without forming the three (9, 9) Hessians of face_heights (3x fewer
-    operations: the edge-length terms live on one vertex pair each). With
-    h_i = |N| / l_i: d2h_i = H_N / l_i - (g_N gl_i^T + gl_i g_N^T) / l_i^2
-    + 2 |N| gl_i gl_i^T / l_i^3 - |N| H_li / l_i^2."""
-    m = len(xf)
-    X = xf.reshape(m, 9)
-    N = np.cross(xf[:, 1] - xf[:, 0], xf[:, 2] - xf[:, 0])
-    JN = (X @ N_HESS_FACE.reshape(27, 9).T).reshape(m, 3, 9)
-    nN, gN, HN = _norm_derivs(N, JN, N_HESS_FACE)
-    H = HN * (w / _edge_lengths(xf)).sum(1)[:, None, None]
-    G = np.zeros((m, 9))
-    for i, (p, q) in enumerate(_EDGE_PAIRS):
-        e = xf[:, p] - xf[:, q]
-        l = np.linalg.norm(e, axis=1)
-        u = e / l[:, None]
-        a = w[:, i] / l ** 2
-        G[:, 3 * p:3 * p + 3] += a[:, None] * u        # gl_i = (+u at p, -u at q)
-        G[:, 3 * q:3 * q + 3] -= a[:, None] * u
-        uu = u[:, :, None] * u[:, None, :]
-        # 2|N| w gl gl^T / l^3 - |N| w H_l / l^2 with H_l = (I - u u^T) / l on the pair (p, q)
-        B = (nN * w[:, i] / l ** 3)[:, None, None] * (3 * uu - np.eye(3)[None])
-        for r, sr in ((p, 1.0), (q, -1.0)):
-            for c, sc in ((p, 1.0), (q, -1.0)):
-                H[:, 3 * r:3 * r + 3, 3 * c:3 * c + 3] += (sr * sc) * B
-    H -= gN[:, :, None] * G[:, None, :] + G[:, :, None] * gN[:, None, :]
-    return H
+# --- compiled per-element kernels -------------------------------------------------------
+# numba, one element per loop iteration (parallel over elements, each element's sums in a
+# fixed order: results are bitwise the same for any thread count). Measured on the
+# 85 x 60 benchmark sheet (21k faces, 31k hinges), 2 threads: the face chain rule 0.04 s
+# against 0.30 s for the vectorised numpy version (whose (m, 9, 21) temporaries dominated),
+# the hinge Hessians 0.02 s against 0.11 s.
+_CHUNK = 512   # elements per parallel task: scratch arrays are allocated once per chunk
 
 
-def _edge_lengths(xf):
-    return np.stack([np.linalg.norm(xf[:, p] - xf[:, q], axis=1) for p, q in _EDGE_PAIRS], 1)
+@njit(cache=True, inline="always")
+def _add_skew(M, r0, c0, v, s):
+    """M[r0:r0+3, c0:c0+3] += s [v]x."""
+    M[r0, c0 + 1] -= s * v[2]
+    M[r0, c0 + 2] += s * v[1]
+    M[r0 + 1, c0] += s * v[2]
+    M[r0 + 1, c0 + 2] -= s * v[0]
+    M[r0 + 2, c0] -= s * v[1]
+    M[r0 + 2, c0 + 1] += s * v[0]
+
+
+@njit(cache=True, inline="always")
+def _cross_into(out, a, b):
+    out[0] = a[1] * b[2] - a[2] * b[1]
+    out[1] = a[2] * b[0] - a[0] * b[2]
+    out[2] = a[0] * b[1] - a[1] * b[0]
+
+
+@njit(cache=True, inline="always")
+def _diff_into(out, a, b):
+    for c in range(3):
+        out[c] = a[c] - b[c]
+
+
+@njit(cache=True, inline="always")
+def _dot3(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@njit(cache=True, parallel=True)
+def _face_chain_kernel(xf, face_sign, face_hinge, hinge_cols, gphi, Wy, Wyy, nh, ah, pairs, hessian):
+    m = xf.shape[0]
+    g = np.empty((m, 21))
+    H = np.empty((m if hessian else 0, 21, 21))
+    for chunk in prange((m + _CHUNK - 1) // _CHUNK):
+        V = np.empty((4, 3))                      # E1, E2, N, uN
+        J = np.empty((9, 21))                     # dy/dq, y = (a, h, psi)
+        JN = np.empty((3, 9))
+        gN = np.empty(9)
+        ls = np.empty(3)
+        us = np.empty((3, 3))
+        K = np.empty((9, 21))
+        PJ = np.empty((3, 9))
+        S = np.empty((9, 9))
+        G = np.empty(9)
+        for f in range(chunk * _CHUNK, min(m, (chunk + 1) * _CHUNK)):
+            E1, E2, N, uN = V[0], V[1], V[2], V[3]
+            _diff_into(E1, xf[f, 1], xf[f, 0])
+            _diff_into(E2, xf[f, 2], xf[f, 0])
+            J[:] = 0.0
+            for c in range(3):
+                J[0, 3 + c] = 2 * E1[c]
+                J[0, c] = -2 * E1[c]
+                J[1, 3 + c] = E2[c]
+                J[1, 6 + c] = E1[c]
+                J[1, c] = -(E1[c] + E2[c])
+                J[2, 6 + c] = 2 * E2[c]
+                J[2, c] = -2 * E2[c]
+            _cross_into(N, E1, E2)
+            n = np.sqrt(_dot3(N, N))
+            for c in range(3):
+                uN[c] = N[c] / n
+            JN[:] = 0.0                           # d(E1 x E2) = -[E2]x dE1 + [E1]x dE2
+            _add_skew(JN, 0, 3, E2, -1.0)
+            _add_skew(JN, 0, 6, E1, 1.0)
+            _add_skew(JN, 0, 0, E2, 1.0)
+            _add_skew(JN, 0, 0, E1, -1.0)
+            for d in range(9):
+                gN[d] = uN[0] * JN[0, d] + uN[1] * JN[1, d] + uN[2] * JN[2, d]
+            for i in range(3):                    # h_i = |N| / l_i
+                p, q = pairs[i, 0], pairs[i, 1]
+                _diff_into(us[i], xf[f, p], xf[f, q])
+                l = np.sqrt(_dot3(us[i], us[i]))
+                ls[i] = l
+                for c in range(3):
+                    us[i, c] /= l
+                for d in range(9):
+                    J[3 + i, d] = gN[d] / l
+                for c in range(3):
+                    J[3 + i, 3 * p + c] -= n / (l * l) * us[i, c]
+                    J[3 + i, 3 * q + c] += n / (l * l) * us[i, c]
+            for i in range(3):                    # psi_i = sigma theta + phi / 2
+                J[6 + i, 18 + i] = face_sign[f, i]
+                k = face_hinge[f, i]
+                if k >= 0:
+                    for j in range(12):
+                        J[6 + i, hinge_cols[f, i, j]] += 0.5 * gphi[k, j]
+            w = Wy[f]
+            for j in range(21):
+                s = 0.0
+                for r in range(9):
+                    s += w[r] * J[r, j]
+                g[f, j] = s
+            if not hessian:
+                continue
+            K[:] = 0.0                            # W_yy J
+            Wf = Wyy[f]
+            for r in range(9):
+                for t in range(9):
+                    wv = Wf[r, t]
+                    if wv != 0.0:
+                        for b in range(21):
+                            K[r, b] += wv * J[t, b]
+            Hf = H[f]
+            for a in range(21):
+                for b in range(a, 21):
+                    s = 0.0
+                    for r in range(9):
+                        s += J[r, a] * K[r, b]
+                    Hf[a, b] = s
+            # second derivatives of y on the own 9 coordinates: sum_k W_a,k A_k + sum_i W_h,i d2h_i,
+            # d2h_i = H_N / l_i - (gN gl_i^T + gl_i gN^T) / l_i^2 + 2 |N| gl_i gl_i^T / l_i^3
+            # - |N| H_li / l_i^2, H_N = JN^T (I - uN uN^T) JN / |N| + sum_c uN_c N_HESS_FACE[c]
+            for d in range(9):
+                t_ = uN[0] * JN[0, d] + uN[1] * JN[1, d] + uN[2] * JN[2, d]
+                for c in range(3):
+                    PJ[c, d] = (JN[c, d] - uN[c] * t_) / n
+            s_wl = w[3] / ls[0] + w[4] / ls[1] + w[5] / ls[2]
+            for a in range(9):
+                for b in range(9):
+                    v = s_wl * (JN[0, a] * PJ[0, b] + JN[1, a] * PJ[1, b] + JN[2, a] * PJ[2, b])
+                    for c in range(3):
+                        v += w[c] * ah[c, a, b] + s_wl * uN[c] * nh[c, a, b]
+                    S[a, b] = v
+            G[:] = 0.0
+            for i in range(3):
+                p, q = pairs[i, 0], pairs[i, 1]
+                l = ls[i]
+                cw = w[3 + i] / (l * l)
+                cb = n * w[3 + i] / (l * l * l)
+                for c in range(3):
+                    G[3 * p + c] += cw * us[i, c]
+                    G[3 * q + c] -= cw * us[i, c]
+                for a in range(3):       # 2|N| w gl gl^T / l^3 - |N| w H_l / l^2 on the pair (p, q)
+                    for b in range(3):
+                        B = cb * (3 * us[i, a] * us[i, b] - (1.0 if a == b else 0.0))
+                        S[3 * p + a, 3 * p + b] += B
+                        S[3 * q + a, 3 * q + b] += B
+                        S[3 * p + a, 3 * q + b] -= B
+                        S[3 * q + a, 3 * p + b] -= B
+            for a in range(9):
+                for b in range(a, 9):
+                    Hf[a, b] += S[a, b] - gN[a] * G[b] - G[a] * gN[b]
+            for a in range(21):
+                for b in range(a):
+                    Hf[a, b] = Hf[b, a]
+    return g, H
+
+
+def face_chain(xf, face_sign, face_hinge, hinge_cols, gphi, Wy, Wyy=None):
+    """Chain rule from a face energy's derivatives in y = (a, h, psi) to the face's 21 DOFs
+    (own 3 vertices, 3 flap vertices, 3 edge angles):
+
+        W_q = J^T W_y,   W_qq = J^T W_yy J + sum_k W_y,k d2y_k/dq2   (a and h parts)
+
+    xf (m, 3, 3) face points (mm); face_sign (m, 3) the edge angles' signs; face_hinge (m, 3)
+    hinge of each local edge (-1 on the boundary); hinge_cols (m, 3, 12) the hinge's 12
+    coordinates among the face's first 18 DOFs; gphi (k, 12) dihedral-angle gradients; W_y
+    (m, 9), W_yy (m, 9, 9). The dihedral angles' own second derivatives are hinge terms
+    (assembled per hinge by the caller). Returns W_q (m, 21) and W_qq (m, 21, 21) (None
+    without W_yy)."""
+    hessian = Wyy is not None
+    g, H = _face_chain_kernel(np.ascontiguousarray(xf, dtype=float), np.asarray(face_sign, float), face_hinge,
+                              hinge_cols, gphi, Wy, Wyy if hessian else np.zeros((0, 9, 9)), _N_HESS_C, _A_HESS_C,
+                              _EDGE_PAIRS, hessian)
+    return g, (H if hessian else None)
+
+
+@njit(cache=True, parallel=True)
+def _face_metrics_kernel(xf, pairs):
+    m = xf.shape[0]
+    a = np.empty((m, 3))
+    h = np.empty((m, 3))
+    for f in prange(m):
+        e1x, e1y, e1z = xf[f, 1, 0] - xf[f, 0, 0], xf[f, 1, 1] - xf[f, 0, 1], xf[f, 1, 2] - xf[f, 0, 2]
+        e2x, e2y, e2z = xf[f, 2, 0] - xf[f, 0, 0], xf[f, 2, 1] - xf[f, 0, 1], xf[f, 2, 2] - xf[f, 0, 2]
+        a[f, 0] = e1x * e1x + e1y * e1y + e1z * e1z
+        a[f, 1] = e1x * e2x + e1y * e2y + e1z * e2z
+        a[f, 2] = e2x * e2x + e2y * e2y + e2z * e2z
+        nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+        n = np.sqrt(nx * nx + ny * ny + nz * nz)
+        for i in range(3):
+            p, q = pairs[i, 0], pairs[i, 1]
+            dx, dy, dz = xf[f, p, 0] - xf[f, q, 0], xf[f, p, 1] - xf[f, q, 1], xf[f, p, 2] - xf[f, q, 2]
+            h[f, i] = n / np.sqrt(dx * dx + dy * dy + dz * dz)
+    return a, h
+
+
+def face_metrics(xf: np.ndarray):
+    """First fundamental form a = (E1.E1, E1.E2, E2.E2) (m, 3) (mm^2) and heights
+    h_i = 2 A / |e_i| (m, 3) (mm) of faces with points xf (m, 3, 3). Their derivatives live
+    in face_chain."""
+    return _face_metrics_kernel(np.ascontiguousarray(xf, dtype=float), _EDGE_PAIRS)
+
+
+@njit(cache=True, parallel=True)
+def _hinge_kernel(xh, weights, uh, order):
+    k = xh.shape[0]
+    phi = np.empty(k)
+    grad = np.empty((k if order >= 1 else 0, 12))
+    H = np.empty((k if order >= 2 else 0, 12, 12))
+    for chunk in prange((k + _CHUNK - 1) // _CHUNK):
+        V = np.empty((8, 3))                      # e, E2, F1, F2, NA, NB, NA x NB, e / |e|
+        Ju = np.empty((9, 12))
+        gY = np.empty(9)
+        gX = np.empty(9)
+        gu = np.empty(9)
+        Hu = np.empty((9, 9))
+        K = np.empty((9, 12))
+        for t in range(chunk * _CHUNK, min(k, (chunk + 1) * _CHUNK)):
+            e, E2, F1, F2, NA, NB, NAxNB, eh = V[0], V[1], V[2], V[3], V[4], V[5], V[6], V[7]
+            _diff_into(e, xh[t, 1], xh[t, 0])
+            _diff_into(E2, xh[t, 2], xh[t, 0])
+            _diff_into(F1, xh[t, 0], xh[t, 1])
+            _diff_into(F2, xh[t, 3], xh[t, 1])
+            _cross_into(NA, e, E2)
+            _cross_into(NB, F1, F2)
+            _cross_into(NAxNB, NA, NB)
+            l = np.sqrt(_dot3(e, e))
+            Y = _dot3(e, NAxNB)
+            dot = _dot3(NA, NB)
+            Xv = l * dot
+            phi[t] = np.arctan2(Y, Xv)
+            if order == 0:
+                continue
+            for c in range(3):
+                eh[c] = e[c] / l
+            Ju[:] = 0.0                           # d(e, NA, NB) / d(12 coordinates)
+            for c in range(3):
+                Ju[c, c] = -1.0
+                Ju[c, 3 + c] = 1.0
+            _add_skew(Ju, 3, 3, E2, -1.0)         # NA = e x E2
+            _add_skew(Ju, 3, 6, e, 1.0)
+            _add_skew(Ju, 3, 0, E2, 1.0)
+            _add_skew(Ju, 3, 0, e, -1.0)
+            _add_skew(Ju, 6, 0, F2, -1.0)         # NB = F1 x F2
+            _add_skew(Ju, 6, 9, F1, 1.0)
+            _add_skew(Ju, 6, 3, F2, 1.0)
+            _add_skew(Ju, 6, 3, F1, -1.0)
+            _cross_into(gY[3:6], NB, e)
+            _cross_into(gY[6:9], e, NA)
+            for c in range(3):
+                gY[c] = NAxNB[c]
+                gX[c] = dot * eh[c]
+                gX[3 + c] = l * NB[c]
+                gX[6 + c] = l * NA[c]
+            r2 = Y * Y + Xv * Xv
+            pY, pX = Xv / r2, -Y / r2
+            for r in range(9):
+                gu[r] = pY * gY[r] + pX * gX[r]
+            for j in range(12):
+                s = 0.0
+                for r in range(9):
+                    s += gu[r] * Ju[r, j]
+                grad[t, j] = s
+            if order == 1:
+                continue
+            # Hu = pYY (gY gY^T - gX gX^T) + pXY (gY gX^T + gX gY^T) + pY HY + pX HX (pXX = -pYY)
+            r4 = r2 * r2
+            pYY, pXY = -2 * Xv * Y / r4, (Y * Y - Xv * Xv) / r4
+            for a in range(9):
+                for b in range(9):
+                    Hu[a, b] = pYY * (gY[a] * gY[b] - gX[a] * gX[b]) + pXY * (gY[a] * gX[b] + gX[a] * gY[b])
+            c1 = pX * dot / l
+            for a in range(3):
+                Hu[a, a] += c1
+                for b in range(3):
+                    Hu[a, b] -= c1 * eh[a] * eh[b]
+                    Hu[a, 3 + b] += pX * eh[a] * NB[b]
+                    Hu[3 + b, a] += pX * eh[a] * NB[b]
+                    Hu[a, 6 + b] += pX * eh[a] * NA[b]
+                    Hu[6 + b, a] += pX * eh[a] * NA[b]
+                Hu[6 + a, 3 + a] += pX * l
+                Hu[3 + a, 6 + a] += pX * l
+            _add_skew(Hu, 0, 3, NB, -pY)
+            _add_skew(Hu, 3, 0, NB, pY)
+            _add_skew(Hu, 0, 6, NA, pY)
+            _add_skew(Hu, 6, 0, NA, -pY)
+            _add_skew(Hu, 6, 3, e, pY)
+            _add_skew(Hu, 3, 6, e, -pY)
+            K[:] = 0.0
+            for r in range(9):
+                for s_ in range(9):
+                    hv = Hu[r, s_]
+                    for b in range(12):
+                        K[r, b] += hv * Ju[s_, b]
+            Ht = H[t]
+            for a in range(12):
+                for b in range(a, 12):
+                    s = 0.0
+                    for r in range(9):
+                        s += Ju[r, a] * K[r, b]
+                    for r in range(6):
+                        s += gu[3 + r] * uh[r, a, b]
+                    Ht[a, b] = weights[t] * s
+                    Ht[b, a] = weights[t] * s
+    return phi, grad, H
 
 
 # --- dihedral angles ------------------------------------------------------------
-def hinge_angles(xh: np.ndarray, with_hessian: bool = True):
+def hinge_angles(xh: np.ndarray, with_hessian: bool = True, weights=None):
     """Signed dihedral angles of hinges xh (k, 4, 3) = (e0, e1, oA, oB), with gradient
-    (k, 12) and Hessian (k, 12, 12). Positive when the sheet bends away from the normal
-    of face A = (e0, e1, oA) (convex side up)."""
-    k = len(xh)
-    X = xh.reshape(k, 12)
-    e = xh[:, 1] - xh[:, 0]
-    NA = np.cross(xh[:, 1] - xh[:, 0], xh[:, 2] - xh[:, 0])
-    NB = np.cross(xh[:, 0] - xh[:, 1], xh[:, 3] - xh[:, 1])
-    l = np.linalg.norm(e, axis=1)
-    ehat = e / l[:, None]
-    NAxNB = np.cross(NA, NB)
-    Y = np.einsum("ij,ij->i", e, NAxNB)
-    dot = np.einsum("ij,ij->i", NA, NB)
-    Xv = l * dot
-    phi = np.arctan2(Y, Xv)
-    # Jacobian of u = (e, NA, NB) w.r.t. the 12 coordinates: exact for the bilinear parts
-    Ju = np.empty((k, 9, 12))
-    Ju[:, 0:3] = _HE
-    Ju[:, 3:9] = (X @ U_HESS_HINGE[3:9].reshape(72, 12).T).reshape(k, 6, 12)
-    gY = np.concatenate([NAxNB, np.cross(NB, e), np.cross(e, NA)], 1)
-    gX = np.concatenate([dot[:, None] * ehat, l[:, None] * NB, l[:, None] * NA], 1)
-    r2 = Y * Y + Xv * Xv
-    pY, pX = Xv / r2, -Y / r2
-    gu = pY[:, None] * gY + pX[:, None] * gX
-    grad = (gu[:, None, :] @ Ju)[:, 0]
-    if not with_hessian:
-        return phi, grad, None
-    # Hu = pY HY + pX HX + pYY (gY gY^T - gX gX^T) + pXY (gY gX^T + gX gY^T)   (pXX = -pYY);
-    # the last two as one rank-2 product, HY / HX (block-sparse) added block by block
-    r4 = r2 * r2
-    pYY, pXY = -2 * Xv * Y / r4, (Y * Y - Xv * Xv) / r4
-    A = np.stack([gY, gX], 2)                                            # (k, 9, 2)
-    M = np.stack([np.stack([pYY, pXY], 1), np.stack([pXY, -pYY], 1)], 1)  # (k, 2, 2)
-    Hu = np.matmul(np.matmul(A, M), np.ascontiguousarray(np.swapaxes(A, 1, 2)))
-    SA, SB, Se = skew(NA), skew(NB), skew(e)
-    c = pY[:, None, None]
-    eNB = pX[:, None, None] * ehat[:, :, None] * NB[:, None, :]
-    eNA = pX[:, None, None] * ehat[:, :, None] * NA[:, None, :]
-    lI = (pX * l)[:, None, None] * np.eye(3)[None]
-    Hu[:, 0:3, 0:3] += (pX * dot / l)[:, None, None] * (np.eye(3)[None] - ehat[:, :, None] * ehat[:, None, :])
-    Hu[:, 0:3, 3:6] += eNB - c * SB
-    Hu[:, 3:6, 0:3] += np.swapaxes(eNB, 1, 2) + c * SB
-    Hu[:, 0:3, 6:9] += eNA + c * SA
-    Hu[:, 6:9, 0:3] += np.swapaxes(eNA, 1, 2) - c * SA
-    Hu[:, 6:9, 3:6] += lI + c * Se
-    Hu[:, 3:6, 6:9] += lI - c * Se
-    H = sandwich(Ju, Hu) + (gu @ U_HESS_HINGE.reshape(9, 144)).reshape(k, 12, 12)
-    return phi, grad, H
+    (k, 12) and Hessian (k, 12, 12) (None without). Positive when the sheet bends away from
+    the normal of face A = (e0, e1, oA) (convex side up). With ``weights`` (k,) the Hessians
+    come multiplied by them (w_k d2phi_k, the chain rule's term, without another pass).
+
+    phi = atan2(Y, X) with Y = e . (N_A x N_B), X = |e| N_A . N_B, through the 9 intermediate
+    values u = (e, N_A, N_B), which are bilinear in the coordinates (constant Hessian)."""
+    w = np.ones(len(xh)) if weights is None else np.ascontiguousarray(weights, dtype=float)
+    phi, g, H = _hinge_kernel(np.ascontiguousarray(xh, dtype=float), w, _U_HESS_C, 2 if with_hessian else 1)
+    return phi, g, (H if with_hessian else None)
+
+
+def hinge_angle_values(xh: np.ndarray) -> np.ndarray:
+    """Signed dihedral angles only (k,) of hinges xh (k, 4, 3), as hinge_angles."""
+    return _hinge_kernel(np.ascontiguousarray(xh, dtype=float), np.ones(0), _U_HESS_C, 0)[0]
+
+
+_N_HESS_C = np.ascontiguousarray(N_HESS_FACE)
+_A_HESS_C = np.ascontiguousarray(A_HESS)
+_U_HESS_C = np.ascontiguousarray(U_HESS_HINGE[3:9])

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from shellfem import energies as en
-from shellfem.kinematics import (A_HESS, C_OUTER, build_topology, face_heights, face_heights_hessian,
-                                 first_fundamental_form, hinge_angles, sandwich)
+from shellfem.kinematics import (C_OUTER, build_topology, face_chain, face_metrics, hinge_angle_values,
+                                 hinge_angles)
 from shellfem.materials import Fabric, Plastic
 from shellfem.sheet import Sheet
 
@@ -162,14 +162,19 @@ class ShellModel:
         n = self.n_vertices
         return q[:3 * n].reshape(n, 3), q[3 * n:]
 
-    def _psi(self, x, theta, with_hessian):
+    def _psi(self, x, theta, with_gradient):
+        """Mid-edge angles psi (m, 3) and the dihedral angles' gradients (k, 12) (None
+        without)."""
         topo = self.topo
-        phi, gphi, Hphi = hinge_angles(x[topo.hinge], with_hessian) if len(topo.hinge) else (
-            np.zeros(0), np.zeros((0, 12)), np.zeros((0, 12, 12)))
+        xh = x[topo.hinge]
+        if with_gradient:
+            phi, gphi, _ = hinge_angles(xh, with_hessian=False)
+        else:
+            phi, gphi = hinge_angle_values(xh), None
         fh = self.face_hinge
         interior = fh >= 0
         psi = topo.face_sign * theta[topo.face_edges] + np.where(interior, 0.5 * phi[np.maximum(fh, 0)], 0.0)
-        return psi, phi, gphi, Hphi
+        return psi, gphi
 
     def energy(self, q) -> float:
         return float(self._evaluate(q, order=0)[0])
@@ -179,9 +184,8 @@ class ShellModel:
         t = self.sheet.triangles
         m = len(t)
         xf = x[t]
-        a, Ja = first_fundamental_form(xf)
-        h, gh, _ = face_heights(xf, with_hessian=False)
-        psi, phi, gphi, Hphi = self._psi(x, theta, order >= 2)
+        a, h = face_metrics(xf)
+        psi, gphi = self._psi(x, theta, order >= 1)
         mm = self.membrane_mask
         membrane = None
         if self.membrane is not None:
@@ -191,34 +195,23 @@ class ShellModel:
                 H = np.zeros((m, 3, 3))
                 W[mm], g[mm], H[mm] = self.membrane(aa[mm])
                 return W, g, H
-        W, Wy, Wyy = en.face_energy(a, h, psi, self.quad, membrane, hessian=order >= 2)
+        W, Wy, Wyy = en.face_energy(a, h, psi, self.quad, membrane, order=order)
         E = W.sum()
         if self.external_force is not None:
             E -= float(np.sum(self.external_force * x))
         if order == 0:
             return E, None, None
-        # Jacobian of y w.r.t. the 21 local DOFs
-        J = np.zeros((m, 9, 21))
-        J[:, 0:3, 0:9] = Ja
-        J[:, 3:6, 0:9] = gh
-        rows = np.arange(m)[:, None]
-        for i in range(3):
-            J[:, 6 + i, 18 + i] = self.topo.face_sign[:, i]
-            fi = self.face_hinge[:, i]
-            inner = fi >= 0
-            J[rows[inner], 6 + i, self._hinge_cols[inner, i]] = 0.5 * gphi[fi[inner]]
-        g_face = (Wy[:, None, :] @ J)[:, 0]
+        g_face, Hf = face_chain(xf, self.topo.face_sign, self.face_hinge, self._hinge_cols, gphi, Wy,
+                                Wyy if order >= 2 else None)
         grad = np.bincount(self.face_dofs.ravel(), weights=g_face.ravel(), minlength=self.n_dofs)
         if self.external_force is not None:
             grad[:3 * self.n_vertices] -= self.external_force.ravel()
         if order == 1:
             return E, grad, None
-        Hf = sandwich(J, Wyy)
-        Hf[:, :9, :9] += (Wy[:, 0:3] @ A_HESS.reshape(3, 81)).reshape(m, 9, 9) + face_heights_hessian(xf, Wy[:, 3:6])
-        # hinge curvature term: w_e = 1/2 sum over the edge's faces of dW/dpsi
+        # hinge curvature term: w_e d2phi_e with w_e = 1/2 sum over the edge's faces of dW/dpsi
         wpsi = np.where(self.face_hinge >= 0, 0.5 * Wy[:, 6:9], 0.0)
-        wh = np.bincount(np.maximum(self.face_hinge, 0).ravel(), weights=wpsi.ravel(), minlength=len(Hphi))
-        Hh_blocks = wh[:, None, None] * Hphi
+        wh = np.bincount(np.maximum(self.face_hinge, 0).ravel(), weights=wpsi.ravel(), minlength=len(gphi))
+        Hh_blocks = hinge_angles(x[self.topo.hinge], weights=wh)[2]
         return E, grad, (Hf, Hh_blocks)
 
     def gradient(self, q):
@@ -251,8 +244,7 @@ class ShellModel:
     def fundamental_forms(self, q):
         x, theta = self.split(q)
         xf = x[self.sheet.triangles]
-        a, _ = first_fundamental_form(xf)
-        h, _, _ = face_heights(xf, with_hessian=False)
+        a, h = face_metrics(xf)
         psi = self._psi(x, theta, False)[0]
         return a, en.second_fundamental_form(h, psi)
 
@@ -290,8 +282,7 @@ class EdgeAngleProblem:
         x, _ = model.split(q)
         self.model = model
         xf = x[model.sheet.triangles]
-        self.a, _ = first_fundamental_form(xf)
-        self.h = face_heights(xf, with_hessian=False)[0]
+        self.a, self.h = face_metrics(xf)
         self.half_phi = model._psi(x, np.zeros(model.n_edges), False)[0]     # psi at theta = 0
 
     def evaluate(self, theta, order: int = 2):

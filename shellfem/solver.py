@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from threadpoolctl import threadpool_limits
 
 from shellfem import pardiso
 from shellfem.assembly import BlockScatter, symmetric_matvec
@@ -178,6 +179,10 @@ class SolveResult:
     timings: dict = field(default_factory=dict)
 
 
+# numpy's OpenBLAS threads busy-wait after its many small batched products and take the
+# second core from the compiled kernels and PARDISO: one OpenBLAS thread while solving
+# (85 x 60 benchmark, seed 0: 90 -> 75 s, same 80 iterations); restored on return
+@threadpool_limits.wrap(limits={"openblas": 1})
 def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol: float = 1e-10,
            max_iterations: int = 300, backend: str = "auto", verbose: bool = False,
            gradient_reference: float | None = None, stability_shift: float = 1e-6,

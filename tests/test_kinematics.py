@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from shellfem.kinematics import build_topology, face_heights, first_fundamental_form, hinge_angles
+from shellfem.kinematics import build_topology, face_chain, face_metrics, hinge_angles
 from shellfem.model import ShellModel
 from shellfem.sheet import Sheet
 
@@ -29,23 +29,52 @@ def test_dihedral_angle_derivatives_match_finite_differences():
     assert np.abs(H - Hn).max() < 1e-6 * np.abs(H).max()
 
 
-def test_height_derivatives_match_finite_differences():
+def test_face_metrics_are_the_edge_metric_and_the_heights():
     x = np.random.default_rng(4).normal(size=(20, 3, 3))
-    g, gn, H, Hn = _fd(face_heights, x)
-    assert np.abs(g - gn).max() < 1e-7 * np.abs(g).max()
-    assert np.abs(H - Hn).max() < 1e-6 * np.abs(H).max()
+    a, h = face_metrics(x)
+    E1, E2 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]
+    assert np.allclose(a, np.stack([(E1 * E1).sum(1), (E1 * E2).sum(1), (E2 * E2).sum(1)], 1), rtol=1e-14)
+    area2 = np.linalg.norm(np.cross(E1, E2), axis=1)
+    lengths = np.stack([np.linalg.norm(x[:, p] - x[:, q], axis=1) for p, q in ((2, 1), (0, 2), (1, 0))], 1)
+    assert np.allclose(h, area2[:, None] / lengths, rtol=1e-14)
 
 
-def test_first_fundamental_form_jacobian():
-    x = np.random.default_rng(5).normal(size=(10, 3, 3))
-    a, J = first_fundamental_form(x)
+def test_face_chain_matches_finite_differences():
+    """W(y) = c.y + 1/2 y^T M y per face, y = (a, h, psi = sigma theta) on faces without
+    hinges: face_chain's W_q and W_qq against finite differences of W(y(q))."""
+    rng = np.random.default_rng(5)
+    m = 6
+    sign = rng.choice([-1.0, 1.0], size=(m, 3))
+    c = rng.normal(size=(m, 9))
+    M = rng.normal(size=(m, 9, 9))
+    M = M + np.swapaxes(M, 1, 2)
+    no_hinge, cols, gphi = -np.ones((m, 3), np.int64), np.zeros((m, 3, 12), np.int64), np.zeros((0, 12))
+
+    def y_of(q):
+        a, h = face_metrics(q[:, :9].reshape(m, 3, 3))
+        return np.concatenate([a, h, sign * q[:, 18:]], 1)
+
+    def energy(q):
+        y = y_of(q)
+        return (c * y).sum(1) + 0.5 * np.einsum("mi,mij,mj->m", y, M, y)
+
+    def chain(q, hessian=True):
+        y = y_of(q)
+        Wy = c + np.einsum("mij,mj->mi", M, y)
+        return face_chain(q[:, :9].reshape(m, 3, 3), sign, no_hinge, cols, gphi, Wy, M if hessian else None)
+
+    q = rng.normal(size=(m, 21))
+    g, H = chain(q)
     eps = 1e-6
-    X = x.reshape(10, 9)
-    for d in range(9):
-        Xp = X.copy()
-        Xp[:, d] += eps
-        ap, _ = first_fundamental_form(Xp.reshape(10, 3, 3))
-        assert np.allclose((ap - a) / eps, J[:, :, d], atol=1e-5)
+    for d in list(range(9)) + [18, 19, 20]:
+        qp, qm = q.copy(), q.copy()
+        qp[:, d] += eps
+        qm[:, d] -= eps
+        assert np.allclose((energy(qp) - energy(qm)) / (2 * eps), g[:, d], rtol=1e-6, atol=1e-6 * np.abs(g).max())
+        Hd = (chain(qp, False)[0] - chain(qm, False)[0]) / (2 * eps)
+        assert np.abs(Hd - H[:, :, d]).max() < 1e-6 * np.abs(H).max()
+    assert np.abs(g[:, 9:18]).max() == 0 and np.abs(H[:, 9:18]).max() == 0     # no hinges: flaps unused
+    assert np.array_equal(H, np.swapaxes(H, 1, 2))
 
 
 def test_valley_hinge_has_negative_angle():
