@@ -25,3 +25,15 @@ $PY -m pip install -q -e ".[test]" 2>&1 | grep -v -i warning || true
 $PY -c "import shellfem, geometry, gmsh, skfem, pyvista; print('selfshape installed')"
 $PY -c "import sksparse.cholmod" 2>/dev/null && echo "CHOLMOD available" || echo "CHOLMOD not available"
 $PY -c "from shellfem.solver import default_backend; print('sparse Cholesky used by the solver:', default_backend())"
+# compile the numba kernels once (~20 s; cached beside the modules) so the first run is not slower
+$PY -c "
+import numpy as np
+from shellfem.assembly import BlockScatter
+from shellfem.model import ShellModel
+from shellfem.sheet import Sheet
+M = ShellModel.homogeneous(Sheet.rectangle(4, 2, 2, 1), 1.0, 0.3, 0.1)
+q = M.initial_state()
+M.energy(q), M.gradient(q), M.edge_angle_problem(q)
+E, g, blocks = M.hessian_blocks(q)
+BlockScatter([M.face_dofs, M.hinge_dofs], M.n_dofs, np.ones(M.n_dofs, bool), upper=True).matrix(blocks)
+print('numba kernels compiled')"
