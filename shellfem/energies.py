@@ -38,8 +38,9 @@ Fabric membrane (bare fabric), functions of a only:
 from __future__ import annotations
 
 import numpy as np
+from numba import njit, prange
 
-from shellfem.kinematics import C_OUTER, sandwich
+from shellfem.kinematics import C_OUTER
 
 _BASIS = np.array([[[1.0, 0.0], [0.0, 0.0]], [[0.0, 1.0], [1.0, 0.0]], [[0.0, 0.0], [0.0, 1.0]]])
 
@@ -101,6 +102,7 @@ class QuadraticForm:
         self.m = m
         self.Q = np.zeros((m, 6, 6))   # total Hessian (constant)
         self._terms = []               # (index array, Q_l, zbar_l)
+        self._packed = None
 
     def add(self, Q, zbar, mask=None):
         idx = np.arange(self.m) if mask is None else np.flatnonzero(mask)
@@ -108,6 +110,22 @@ class QuadraticForm:
             return
         self.Q[idx] += Q[idx]
         self._terms.append((idx, Q[idx], zbar[idx]))
+        self._packed = None
+
+    def packed(self):
+        """The terms grouped by triangle, in the order added: (ptr (m+1,), Q (K, 6, 6),
+        zbar (K, 6)); triangle f's terms are ptr[f]:ptr[f+1] (for compiled kernels)."""
+        if self._packed is None:
+            if self._terms:
+                idx = np.concatenate([t[0] for t in self._terms])
+                order = np.argsort(idx, kind="stable")
+                Q = np.ascontiguousarray(np.concatenate([t[1] for t in self._terms])[order])
+                zbar = np.ascontiguousarray(np.concatenate([t[2] for t in self._terms])[order])
+                counts = np.bincount(idx, minlength=self.m)
+            else:
+                Q, zbar, counts = np.zeros((0, 6, 6)), np.zeros((0, 6)), np.zeros(self.m, np.int64)
+            self._packed = (np.concatenate([[0], np.cumsum(counts)]).astype(np.int64), Q, zbar)
+        return self._packed
 
     def evaluate(self, z):
         W = np.zeros(self.m)
@@ -217,39 +235,97 @@ def face_energy(a, h, psi, quad: QuadraticForm, membrane=None, order: int = 2):
     """Energy per face and its derivatives w.r.t. y = (a11, a12, a22, h0, h1, h2, psi0..2).
 
     membrane: optional callable a -> (W, g, H) added to the a-part (fabric models).
-    Returns W (m,), W_y (m, 9) (order >= 1) and W_yy (m, 9, 9) (order 2), None where not asked.
+    Returns W (m,), W_y (m, 9) (order >= 1) and W_yy (m, 9, 9) (order 2), None where not asked;
+    W = +inf where an angle leaves |psi| < PSI_MAX. The layered quadratic and the chain rule
+    z = (a, b(h, psi)) -> y run in one compiled loop over the faces (the vectorised version's
+    (m, 6, 9) products cost 20 of its 26 ms at 21k faces).
     """
     m = len(a)
-    tp = np.tan(psi)
-    b = -2 * np.einsum("mi,ik->mk", tp * h, C_OUTER)
-    z = np.concatenate([a, b], 1)
-    W, Wz, Wzz = quad.evaluate(z)
     if membrane is not None:
         Wm, gm, Hm = membrane(a)
-        W = W + Wm
-        if order >= 1:
-            Wz = Wz.copy()
-            Wz[:, :3] += gm
-        if order >= 2:
-            Wzz = Wzz.copy()
-            Wzz[:, :3, :3] += Hm
-    bad = np.abs(psi).max(1) >= PSI_MAX
-    W = np.where(bad, np.inf, W)
-    if order == 0:
-        return W, None, None
-    sec2 = 1 + tp * tp
-    J = np.zeros((m, 6, 9))
-    J[:, 0, 0] = J[:, 1, 1] = J[:, 2, 2] = 1.0
-    J[:, 3:, 3:6] = -2 * tp[:, None, :] * C_OUTER.T[None]
-    J[:, 3:, 6:9] = -2 * (sec2 * h)[:, None, :] * C_OUTER.T[None]
-    Wy = (Wz[:, None, :] @ J)[:, 0]
-    if order == 1:
-        return W, Wy, None
-    Wyy = sandwich(J, Wzz)
-    gi = Wz[:, 3:] @ C_OUTER.T          # g_i = sum_k W_b,k (c_i c_i^T)_k
-    idx = np.arange(3)
-    cross = -2 * sec2 * gi
-    Wyy[:, 3 + idx, 6 + idx] += cross
-    Wyy[:, 6 + idx, 3 + idx] += cross
-    Wyy[:, 6 + idx, 6 + idx] += -4 * sec2 * tp * h * gi
-    return W, Wy, Wyy
+    else:
+        Wm, gm, Hm = np.zeros(m), np.zeros((m, 3)), np.zeros((m, 3, 3))
+    ptr, Qs, zbars = quad.packed()
+    W = np.empty(m)
+    Wy = np.empty((m if order >= 1 else 0, 9))
+    Wyy = np.empty((m if order >= 2 else 0, 9, 9))
+    _face_energy_kernel(np.ascontiguousarray(a, dtype=float), np.ascontiguousarray(h, dtype=float),
+                        np.ascontiguousarray(psi, dtype=float), ptr, Qs, zbars, quad.Q, np.asarray(Wm, float),
+                        np.ascontiguousarray(gm, dtype=float), np.ascontiguousarray(Hm, dtype=float), C_OUTER, order,
+                        W, Wy, Wyy)
+    W = np.where(np.abs(psi).max(1) >= PSI_MAX, np.inf, W)
+    return W, (Wy if order >= 1 else None), (Wyy if order >= 2 else None)
+
+
+@njit(cache=True, parallel=True)
+def _face_energy_kernel(a, h, psi, ptr, Qs, zbars, Qtot, Wm, gm, Hm, C, order, W, Wy, Wyy):
+    m = a.shape[0]
+    for f in prange(m):
+        z = np.empty(6)
+        Wz = np.zeros(6)
+        d = np.empty(6)
+        tp = np.empty(3)
+        sec2 = np.empty(3)
+        for i in range(3):
+            tp[i] = np.tan(psi[f, i])
+            sec2[i] = 1.0 + tp[i] * tp[i]
+        for k in range(3):
+            z[k] = a[f, k]
+            z[3 + k] = -2.0 * (tp[0] * h[f, 0] * C[0, k] + tp[1] * h[f, 1] * C[1, k] + tp[2] * h[f, 2] * C[2, k])
+        w = 0.0
+        for t in range(ptr[f], ptr[f + 1]):        # sum of squares, layer by layer (no cancellation)
+            for k in range(6):
+                d[k] = z[k] - zbars[t, k]
+            for k in range(6):
+                qd = 0.0
+                for l in range(6):
+                    qd += Qs[t, k, l] * d[l]
+                w += 0.5 * d[k] * qd
+                Wz[k] += qd
+        W[f] = w + Wm[f]
+        if order == 0:
+            continue
+        for k in range(3):
+            Wz[k] += gm[f, k]
+        # dz_b,k/dh_i = -2 tp_i C_ik,  dz_b,k/dpsi_i = -2 sec2_i h_i C_ik
+        gi = np.empty(3)
+        for i in range(3):
+            gi[i] = Wz[3] * C[i, 0] + Wz[4] * C[i, 1] + Wz[5] * C[i, 2]
+            Wy[f, i] = Wz[i]
+            Wy[f, 3 + i] = -2.0 * tp[i] * gi[i]
+            Wy[f, 6 + i] = -2.0 * sec2[i] * h[f, i] * gi[i]
+        if order == 1:
+            continue
+        J = np.zeros((6, 9))
+        for k in range(3):
+            J[k, k] = 1.0
+            for i in range(3):
+                J[3 + k, 3 + i] = -2.0 * tp[i] * C[i, k]
+                J[3 + k, 6 + i] = -2.0 * sec2[i] * h[f, i] * C[i, k]
+        Z = np.empty((6, 6))
+        for k in range(6):
+            for l in range(6):
+                Z[k, l] = Qtot[f, k, l]
+        for k in range(3):
+            for l in range(3):
+                Z[k, l] += Hm[f, k, l]
+        K = np.zeros((6, 9))
+        for k in range(6):
+            for l in range(6):
+                zv = Z[k, l]
+                if zv != 0.0:
+                    for c in range(9):
+                        K[k, c] += zv * J[l, c]
+        H = Wyy[f]
+        for r in range(9):
+            for c in range(r, 9):
+                v = 0.0
+                for k in range(6):
+                    v += J[k, r] * K[k, c]
+                H[r, c] = v
+        for i in range(3):
+            H[3 + i, 6 + i] += -2.0 * sec2[i] * gi[i]
+            H[6 + i, 6 + i] += -4.0 * sec2[i] * tp[i] * h[f, i] * gi[i]
+        for r in range(9):
+            for c in range(r):
+                H[r, c] = H[c, r]

@@ -132,12 +132,6 @@ def build_topology(triangles: np.ndarray) -> Topology:
     return Topology(t, edges, face_edges, edge_faces, face_sign, flaps, hinge, np.flatnonzero(interior), interior)
 
 
-def sandwich(J: np.ndarray, H: np.ndarray) -> np.ndarray:
-    """J^T H J per element for J (m, r, d), H (m, r, r). matmul on a swapped (strided) view
-    takes numpy's slow path; a contiguous transpose is ~4x faster for these small blocks."""
-    return np.matmul(np.ascontiguousarray(np.swapaxes(J, 1, 2)), np.matmul(H, J))
-
-
 #: vertex pairs (plus, minus) of the edge vectors e_i in _SE
 _EDGE_PAIRS = np.array([[2, 1], [0, 2], [1, 0]])
 
