@@ -58,9 +58,15 @@ class BlockScatter:
         # slot s sums the raw block entries _src[_ptr[s]:_ptr[s + 1]]
         self._src = raw[order].astype(np.int32 if offset < 2 ** 31 else np.int64)
         self._ptr = np.append(np.flatnonzero(first), len(ks)).astype(np.int64)
-        self._indices = (uniq % self.n_free).astype(np.int64)
+        # int32 where it fits: scipy would otherwise convert (copy) them in every matrix
+        itype = np.int32 if max(self.nnz, self.n_free) < 2 ** 31 - 1 else np.int64
+        self._indices = (uniq % self.n_free).astype(itype)
         r = uniq // self.n_free
-        self._indptr = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=self.n_free))]).astype(np.int64)
+        self._indptr = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=self.n_free))]).astype(itype)
+        # every matrix shares these (read-only: an in-place change would raise, not corrupt);
+        # solvers recognise the pattern by identity
+        self._indices.flags.writeable = False
+        self._indptr.flags.writeable = False
 
     def matrix(self, blocks) -> sp.csr_matrix:
         """CSR matrix (n_free, n_free) of the blocks, one (k_i, d_i, d_i) array per index set."""
@@ -74,7 +80,9 @@ class BlockScatter:
         else:
             first, second = np.concatenate(flat), flat[0][:0]
         data = _gather_sum(first, second, self._src, self._ptr)
-        return sp.csr_matrix((data, self._indices.copy(), self._indptr.copy()), shape=(self.n_free, self.n_free))
+        M = sp.csr_matrix((data, self._indices, self._indptr), shape=(self.n_free, self.n_free), copy=False)
+        M.has_canonical_format = True      # sorted, no duplicates by construction (saves a scan)
+        return M
 
 
 @njit(cache=True, parallel=True)

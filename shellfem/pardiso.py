@@ -101,6 +101,7 @@ class PardisoCholesky:
         self.n = n
         rows = np.repeat(np.arange(n), np.diff(A.indptr))
         self._upper = A.indices >= rows
+        self._all_upper = bool(self._upper.all())
         ur = rows[self._upper]
         self._ia = np.concatenate([[0], np.cumsum(np.bincount(ur, minlength=n))]).astype(np.int32)
         self._ja = np.ascontiguousarray(A.indices[self._upper], dtype=np.int32)
@@ -135,7 +136,8 @@ class PardisoCholesky:
         return err.value
 
     def factor(self, data: np.ndarray, shift: np.ndarray | float | None = None):
-        a = np.ascontiguousarray(data[self._upper], dtype=np.float64)
+        a = np.array(data, dtype=np.float64) if self._all_upper else np.ascontiguousarray(data[self._upper],
+                                                                                         dtype=np.float64)
         if shift is not None:
             a[self._diag] += shift
         self._a = a

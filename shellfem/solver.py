@@ -100,6 +100,12 @@ def default_backend() -> str:
     return "cholmod" if HAVE_CHOLMOD else "superlu"
 
 
+def _same_frozen(a: np.ndarray, b: np.ndarray) -> bool:
+    """a and b are read-only views of the same memory (so equal, now and later)."""
+    return (not a.flags.writeable and not b.flags.writeable and a.shape == b.shape and a.dtype == b.dtype
+            and a.ctypes.data == b.ctypes.data and a.strides == b.strides)
+
+
 class SparseSPD:
     """Factorise SPD matrices; raise NotPositiveDefinite. The symbolic analysis (ordering) is
     kept while the sparsity pattern stays the same (as in a Newton loop).
@@ -120,17 +126,20 @@ class SparseSPD:
     def _same_pattern(self, A) -> bool:
         """True if A (CSR or CSC) has the pattern of the last analysis; else remember A's."""
         p = self._pattern
+        if p is not None and p[0] == A.shape and _same_frozen(p[1], A.indptr) and _same_frozen(p[2], A.indices):
+            return True           # the same read-only index arrays (BlockScatter's matrices)
         if (p is not None and p[0] == A.shape and len(p[2]) == len(A.indices) and np.array_equal(p[1], A.indptr)
                 and np.array_equal(p[2], A.indices)):
             return True
-        self._pattern = (A.shape, A.indptr.copy(), A.indices.copy())
+        shared = not (A.indptr.flags.writeable or A.indices.flags.writeable)
+        self._pattern = (A.shape, A.indptr if shared else A.indptr.copy(), A.indices if shared else A.indices.copy())
         return False
 
     def factor(self, A: sp.csr_matrix, shift=None, upper: bool = False):
         """A solve function for A + diag(shift) (shift: (n,) array, scalar or None). upper:
         A holds only the upper triangle of the symmetric matrix (BlockScatter(upper=True))."""
         if self.backend == "pardiso":     # reads the upper triangle either way
-            A = sp.csr_matrix(A)
+            A = A if isinstance(A, sp.csr_matrix) else sp.csr_matrix(A)
             if not A.has_canonical_format:
                 A = A.copy()
                 A.sum_duplicates()
