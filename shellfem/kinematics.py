@@ -27,8 +27,9 @@ height z along the normal is a(z) = a - 2 z b + O(z^2). The seed's Eq. 4.1 stenc
 "(n_j - n_i).(v_j - v_i)" is b/2 in this convention (see shellfem.energies for how the
 seed's bilayer coefficients map onto it).
 
-Everything here is vectorised over triangles/edges and returns exact first and second
-derivatives (checked against finite differences in tests/test_kinematics.py).
+The per-element derivatives run in compiled (numba) loops over triangles/hinges and are
+exact (checked against finite differences in tests/test_kinematics.py and, for the whole
+energy, tests/test_energies.py).
 """
 from __future__ import annotations
 

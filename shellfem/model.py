@@ -7,7 +7,8 @@ shellfem.kinematics and shellfem.energies); derivatives are chained exactly:
     W_q = J^T W_y,    W_qq = J^T W_yy J + sum_k W_y,k d2y_k/dq2
 
 with J = dy/dq over the triangle's 21 local DOFs (own 3 vertices, 3 flap vertices,
-3 edge angles). The dihedral-angle curvature term is assembled per hinge (12 x 12).
+3 edge angles), in shellfem.kinematics.face_chain. The dihedral-angle curvature term is
+assembled per hinge (12 x 12).
 """
 from __future__ import annotations
 
