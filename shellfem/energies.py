@@ -40,7 +40,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from shellfem.kinematics import C_OUTER
+from shellfem.kinematics import C_OUTER, sandwich_into
 
 _BASIS = np.array([[[1.0, 0.0], [0.0, 0.0]], [[0.0, 1.0], [1.0, 0.0]], [[0.0, 0.0], [0.0, 1.0]]])
 
@@ -309,23 +309,10 @@ def _face_energy_kernel(a, h, psi, ptr, Qs, zbars, Qtot, Wm, gm, Hm, C, order, W
         for k in range(3):
             for l in range(3):
                 Z[k, l] += Hm[f, k, l]
-        K = np.zeros((6, 9))
-        for k in range(6):
-            for l in range(6):
-                zv = Z[k, l]
-                if zv != 0.0:
-                    for c in range(9):
-                        K[k, c] += zv * J[l, c]
         H = Wyy[f]
-        for r in range(9):
-            for c in range(r, 9):
-                v = 0.0
-                for k in range(6):
-                    v += J[k, r] * K[k, c]
-                H[r, c] = v
+        sandwich_into(J, Z, np.empty((6, 9)), H)
         for i in range(3):
-            H[3 + i, 6 + i] += -2.0 * sec2[i] * gi[i]
+            cross = -2.0 * sec2[i] * gi[i]
+            H[3 + i, 6 + i] += cross
+            H[6 + i, 3 + i] += cross
             H[6 + i, 6 + i] += -4.0 * sec2[i] * tp[i] * h[f, i] * gi[i]
-        for r in range(9):
-            for c in range(r):
-                H[r, c] = H[c, r]

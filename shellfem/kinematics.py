@@ -66,7 +66,6 @@ _S2 = _selector(3, 2, 0)   # E2 = x2 - x0
 A_HESS = np.stack([2 * _S1.T @ _S1, _S1.T @ _S2 + _S2.T @ _S1, 2 * _S2.T @ _S2])
 N_HESS_FACE = _cross_hessian(_S1, _S2)             # N = E1 x E2
 #: edge vectors e_i opposite vertex i: x2 - x1, x0 - x2, x1 - x0
-_SE = [_selector(3, 2, 1), _selector(3, 0, 2), _selector(3, 1, 0)]
 
 # hinge: points (e0, e1, oA, oB); e = e1 - e0, N_A = (e1 - e0) x (oA - e0),
 # N_B = (e0 - e1) x (oB - e1)
@@ -133,7 +132,7 @@ def build_topology(triangles: np.ndarray) -> Topology:
     return Topology(t, edges, face_edges, edge_faces, face_sign, flaps, hinge, np.flatnonzero(interior), interior)
 
 
-#: vertex pairs (plus, minus) of the edge vectors e_i in _SE
+#: vertex pairs (plus, minus) of the edge vectors e_i opposite vertex i: x2 - x1, x0 - x2, x1 - x0
 _EDGE_PAIRS = np.array([[2, 1], [0, 2], [1, 0]])
 
 
@@ -173,6 +172,27 @@ def _diff_into(out, a, b):
 @njit(cache=True, inline="always")
 def _dot3(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@njit(cache=True, inline="always")
+def sandwich_into(J, M, K, out):
+    """out = J^T M J (symmetric, both triangles) for one element; K (rows of M, cols of J) is
+    scratch. Zero entries of M are skipped (M is block-sparse)."""
+    K[:] = 0.0
+    for r in range(M.shape[0]):
+        for t in range(M.shape[1]):
+            mv = M[r, t]
+            if mv != 0.0:
+                for b in range(J.shape[1]):
+                    K[r, b] += mv * J[t, b]
+    n = J.shape[1]
+    for a in range(n):
+        for b in range(a, n):
+            s = 0.0
+            for r in range(J.shape[0]):
+                s += J[r, a] * K[r, b]
+            out[a, b] = s
+            out[b, a] = s
 
 
 @njit(cache=True, parallel=True)
@@ -239,21 +259,8 @@ def _face_chain_kernel(xf, face_sign, face_hinge, hinge_cols, gphi, Wy, Wyy, nh,
                 g[f, j] = s
             if not hessian:
                 continue
-            K[:] = 0.0                            # W_yy J
-            Wf = Wyy[f]
-            for r in range(9):
-                for t in range(9):
-                    wv = Wf[r, t]
-                    if wv != 0.0:
-                        for b in range(21):
-                            K[r, b] += wv * J[t, b]
             Hf = H[f]
-            for a in range(21):
-                for b in range(a, 21):
-                    s = 0.0
-                    for r in range(9):
-                        s += J[r, a] * K[r, b]
-                    Hf[a, b] = s
+            sandwich_into(J, Wyy[f], K, Hf)
             # second derivatives of y on the own 9 coordinates: sum_k W_a,k A_k + sum_i W_h,i d2h_i,
             # d2h_i = H_N / l_i - (gN gl_i^T + gl_i gN^T) / l_i^2 + 2 |N| gl_i gl_i^T / l_i^3
             # - |N| H_li / l_i^2, H_N = JN^T (I - uN uN^T) JN / |N| + sum_c uN_c N_HESS_FACE[c]
@@ -287,7 +294,6 @@ def _face_chain_kernel(xf, face_sign, face_hinge, hinge_cols, gphi, Wy, Wyy, nh,
             for a in range(9):
                 for b in range(a, 9):
                     Hf[a, b] += S[a, b] - gN[a] * G[b] - G[a] * gN[b]
-            for a in range(21):
                 for b in range(a):
                     Hf[a, b] = Hf[b, a]
 
@@ -432,18 +438,11 @@ def _hinge_kernel(xh, weights, uh, order, phi, grad, H):
             _add_skew(Hu, 6, 0, NA, -pY)
             _add_skew(Hu, 6, 3, e, pY)
             _add_skew(Hu, 3, 6, e, -pY)
-            K[:] = 0.0
-            for r in range(9):
-                for s_ in range(9):
-                    hv = Hu[r, s_]
-                    for b in range(12):
-                        K[r, b] += hv * Ju[s_, b]
             Ht = H[t]
+            sandwich_into(Ju, Hu, K, Ht)
             for a in range(12):
                 for b in range(a, 12):
-                    s = 0.0
-                    for r in range(9):
-                        s += Ju[r, a] * K[r, b]
+                    s = Ht[a, b]
                     for r in range(6):
                         s += gu[3 + r] * uh[r, a, b]
                     Ht[a, b] = weights[t] * s
@@ -456,7 +455,7 @@ def hinge_angles(xh: np.ndarray, with_hessian: bool = True, weights=None, out=No
     (k, 12) and Hessian (k, 12, 12) (None without; written into ``out`` if given). Positive
     when the sheet bends away from the normal of face A = (e0, e1, oA) (convex side up). With
     ``weights`` (k,) the Hessians come multiplied by them (w_k d2phi_k, the chain rule's term,
-    without another pass).
+    without a separate pass over the (k, 12, 12) array).
 
     phi = atan2(Y, X) with Y = e . (N_A x N_B), X = |e| N_A . N_B, through the 9 intermediate
     values u = (e, N_A, N_B), which are bilinear in the coordinates (constant Hessian)."""

@@ -528,9 +528,8 @@ class EdgeAngleRelaxation:
         for _ in range(self.max_iterations):
             g = g_all[self.free]
             H = self.scatter.matrix([blocks])
-            factor, self._shift = _factor_shifted(self.solver, H, self.scatter.upper, self._shift / 8)
+            factor, self._shift = _factor_shifted(self.solver, H, self.scatter.upper, self._shift)
             if factor is None:
-                self._shift = 0.0
                 break
             d = -factor(g)
             slope = float(g @ d)
@@ -589,9 +588,8 @@ class StiffRegionRelaxation:
             E = E_q if E is None else E
             g = g_all[P]
             H = self.scatter.matrix(blocks)
-            factor, self._shift = _factor_shifted(self.solver, H, self.scatter.upper, self._shift / 8)
+            factor, self._shift = _factor_shifted(self.solver, H, self.scatter.upper, self._shift)
             if factor is None:
-                self._shift = 0.0
                 break
             d = -factor(g)
             slope = float(g @ d)
@@ -611,20 +609,21 @@ class StiffRegionRelaxation:
         return q, E
 
 
-def _factor_shifted(solver, H, upper: bool, start: float = 0.0, tries: int = 30):
+def _factor_shifted(solver, H, upper: bool, last: float = 0.0, tries: int = 30):
     """(factor, shift): factor of H + shift |diag H| with the smallest shift of the ladder
-    0, 1e-6, 8e-6, ... from ``start`` on that is positive definite ((None, inf) if none of
-    ``tries`` is): the inner solves of the relaxations. Callers start from their last shift / 8:
-    the printed block at trial points is indefinite most of the time and climbing the ladder
-    from 0 failed 2.5 times per success (85 x 60 benchmark: 247 of 345 factorisations)."""
+    0, 1e-6, 8e-6, ... from last / 8 on that is positive definite ((None, 0.0) if none of
+    ``tries`` is, so the next call starts from 0): the inner solves of the relaxations, which
+    pass their last shift. The printed block at trial points is indefinite most of the time
+    and climbing the ladder from 0 failed 2.5 times per success (85 x 60 benchmark: 247 of 345
+    factorisations)."""
     D = np.abs(H.diagonal()) + 1e-12
-    shift = start if start >= 1e-6 else 0.0
+    shift = last / 8 if last / 8 >= 1e-6 else 0.0
     for _ in range(tries):
         try:
             return solver.factor(H, shift=shift * D if shift else None, upper=upper), shift
         except NotPositiveDefinite:
             shift = max(8.0 * shift, 1e-6)
-    return None, np.inf
+    return None, 0.0
 
 
 def _negative_curvature_step(model, q, free, H, D, g, factor, E, v_prev, length_scale, n_inverse=12):
