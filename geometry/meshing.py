@@ -361,6 +361,37 @@ def mesh_pattern(pattern, size_mm: float | None = None, across: float | None = N
     return sheet
 
 
+def coarse_meshes(pattern, n_fine: int, size_mm: float | None = None, levels: int | str = "auto",
+                  grading: float = GRADING, algorithm: int = ALGORITHM, kernel: str = KERNEL) -> list:
+    """Coarser conforming meshes of the same pattern, coarsest first, for nested iteration
+    (shellfem.multilevel). Candidate j has COARSENING**j times the fine mesh's fabric size and
+    printed element size (width / across; ``size_mm`` overrides [mesh] size_mm as in
+    mesh_pattern); n_fine: the fine mesh's vertex count. A candidate is kept if it has at most
+    MAX_LEVEL_RATIO times the vertices of the last kept (finer) level and at least
+    MIN_COARSE_VERTICES; the first below that floor ends the hierarchy. ``levels``: "auto" = as
+    many as that rule keeps, none for a fine mesh under MIN_FINE_VERTICES; an int = at most that
+    many, the floor then 100 vertices."""
+    from shellfem.multilevel import (COARSENING, MAX_CANDIDATES, MAX_LEVEL_RATIO, MIN_COARSE_VERTICES,
+                                     MIN_FINE_VERTICES)
+    if levels == "auto" and n_fine < MIN_FINE_VERTICES:
+        return []
+    size = float(pattern.mesh_size if size_mm is None else size_mm)
+    across = float(getattr(pattern, "mesh_across", ACROSS))
+    cap = MAX_CANDIDATES if levels == "auto" else int(levels)
+    out, finer = [], int(n_fine)
+    for j in range(1, MAX_CANDIDATES + 1):
+        if len(out) >= cap:
+            break
+        f = COARSENING ** j
+        sheet = mesh_pattern(pattern, size * f, across / f, grading, algorithm, kernel)
+        if sheet.n_vertices < (MIN_COARSE_VERTICES if levels == "auto" else 100):
+            break
+        if sheet.n_vertices <= MAX_LEVEL_RATIO * finer:
+            out.append(sheet)
+            finer = sheet.n_vertices
+    return out[::-1]
+
+
 def mesh_pattern_file(pattern_path, out_msh, size_mm: float | None = None) -> dict:
     """Mesh a pattern file (.toml, or .gcode: see geometry.patterns) and write a Gmsh .msh.
 

@@ -57,7 +57,8 @@ class Pattern:
     triangle rows across the narrowest printed feature ([mesh] across, default 2). seed: the
     solver's symmetry-breaking seed. max_iterations: the Newton cap ([solver] max_iterations,
     default 300). metric_floor: the solver's trust-region metric floor ([solver] metric_floor,
-    default 10; see shellfem.solver.lm_metric). source: file path or "<dict>". raw: the parsed TOML
+    default 10; see shellfem.solver.lm_metric). coarse_levels: coarser meshes solved first ([solver]
+    coarse_levels, "auto" or an integer >= 0, 0 = none; see shellfem.multilevel). source: file path or "<dict>". raw: the parsed TOML
     (unknown [solver] and [meta] keys are kept here for the solver).
     """
     fabric: Fabric
@@ -70,6 +71,7 @@ class Pattern:
     mesh_across: float = 2.0
     max_iterations: int = 300
     metric_floor: float = DEFAULT_METRIC_FLOOR
+    coarse_levels: int | str = "auto"
     source: str = "<dict>"
     raw: dict = field(default_factory=dict)
 
@@ -98,6 +100,16 @@ def solver_options(solver: dict, where: str) -> tuple[int, int, float]:
     if isinstance(cap, bool) or not isinstance(cap, int) or cap < 1:
         raise SelfshapeError(f"{where}: max_iterations must be a positive integer, got {cap!r:.40}")
     return seed, cap, _num(solver, "metric_floor", where, DEFAULT_METRIC_FLOOR, lo=0.0)
+
+
+def coarse_levels_option(solver: dict, where: str) -> int | str:
+    """[solver] coarse_levels: "auto" (default) or an integer >= 0 (one-line SelfshapeError otherwise)."""
+    v = solver.get("coarse_levels", "auto")
+    if v == "auto":
+        return v
+    if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+        raise SelfshapeError(f"{where}: coarse_levels must be \"auto\" or an integer >= 0, got {v!r:.40}")
+    return v
 
 
 def _choice(table: dict, key: str, where: str, options: tuple, default: str):
@@ -348,7 +360,9 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".") -> Patter
     mesh = _table(raw.get("mesh", {}), f"{src}: [mesh]", KEYS["mesh"])
     mesh_size = _num(mesh, "size_mm", f"{src}: [mesh]", 1.0, lo=0.0, lo_open=True)
     across = _num(mesh, "across", f"{src}: [mesh]", 2.0, lo=0.5, hi=10.0)
-    seed, cap, floor = solver_options(_table(raw.get("solver", {}), f"{src}: [solver]", None), f"{src}: [solver]")
+    solver = _table(raw.get("solver", {}), f"{src}: [solver]", None)
+    seed, cap, floor = solver_options(solver, f"{src}: [solver]")
+    levels = coarse_levels_option(solver, f"{src}: [solver]")
     _table(raw.get("meta", {}), f"{src}: [meta]", None)
     fabric, outline = _fabric(raw, src, mesh_size)
     plastic = _plastic(raw, src)
@@ -357,7 +371,7 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".") -> Patter
     supports = _supports(raw, src, outline)
     return Pattern(fabric=fabric, plastic=plastic, outline=outline, elements=elements, supports=supports,
                    mesh_size=mesh_size, seed=seed, mesh_across=across, max_iterations=cap,
-                   metric_floor=floor, source=src,
+                   metric_floor=floor, coarse_levels=levels, source=src,
                    raw=raw)
 
 

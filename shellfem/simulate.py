@@ -23,6 +23,8 @@ from shellfem.model import ShellModel
 from shellfem.sheet import Sheet
 from shellfem.solver import DEFAULT_METRIC_FLOOR, SolveResult, newton
 
+COARSE_RTOL = 1e-5      # gradient tolerance of the coarse levels of nested iteration (relative)
+
 
 @dataclass
 class Simulation:
@@ -111,21 +113,8 @@ def _carry_support_motion(model, plain, q, fixed, free):
     return plain
 
 
-def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0, max_iterations: int = 300,
-                   release_steps: int = 1, tol_support: float | None = None, verbose: bool = False,
-                   rtol: float = 1e-8, metric_floor: float = DEFAULT_METRIC_FLOOR) -> Simulation:
-    """Released equilibrium of a meshed sheet (printed-state mm) with the given materials.
-
-    The start is the flat printed state with a smooth out-of-plane perturbation of 1 % of
-    the sheet size seeded by ``seed`` (the flat state is a saddle). The release is followed
-    by continuation: the pre-stretch, the plastic set and any support motion ("xyz" supports
-    at relaxed positions) are ramped over ``release_steps`` steps, each started from a secant
-    prediction of the previous two equilibria (large rotations converge in far fewer Newton
-    iterations along such a path). ``max_iterations`` bounds each step; newton_iterations in
-    the result is the total. Only the final step's tolerance decides ``converged``.
-    ``metric_floor``: the solver's trust-region metric floor (shellfem.solver.lm_metric)."""
-    from dataclasses import replace
-    t0 = time.perf_counter()
+def _level_setup(sheet: Sheet, fabric, plastic, supports, seed: int, tol_support: float | None):
+    """(model, perturbed flat start, held DOFs, their values, gauge DOFs, free mask) of one mesh."""
     model = ShellModel.from_materials(sheet, fabric, plastic)
     q = model.initial_state()
     x, _ = model.split(q)
@@ -145,8 +134,13 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
     free = np.ones(model.n_dofs, bool)
     free[fixed] = False
     free[gauge] = False
+    return model, q, fixed, values, gauge, free
+
+
+def _release(sheet, model, q, fixed, values, free, fabric, plastic, steps, newton_options, verbose):
+    """Continuation from the flat start q over ``steps`` release steps: (result, iterations)."""
+    from dataclasses import replace
     start = q[fixed].copy()
-    steps = max(1, int(release_steps))
     sx, sy = fabric.stretch
     total_it = 0
     q_prev = None
@@ -168,8 +162,10 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
             if model_k.energy(secant) < model_k.energy(plain):
                 guess = secant
         last = k == steps
-        result = newton(model_k, guess, free, max_iterations=max_iterations, verbose=verbose,
-                        rtol=rtol if last else 1e-5, metric_floor=metric_floor)
+        opts = dict(newton_options)
+        if not last:
+            opts["rtol"] = 1e-5
+        result = newton(model_k, guess, free, **opts)
         total_it += result.iterations
         if not result.converged and not last:
             if verbose:
@@ -178,7 +174,69 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
         if verbose:
             print(f"release step {k}/{steps}: {result.iterations} iterations, |g| {result.gradient_norm:.2e}",
                   flush=True)
+    return result, total_it
+
+
+def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0, max_iterations: int = 300,
+                   release_steps: int = 1, tol_support: float | None = None, verbose: bool = False,
+                   rtol: float = 1e-8, metric_floor: float = DEFAULT_METRIC_FLOOR, coarse=()) -> Simulation:
+    """Released equilibrium of a meshed sheet (printed-state mm) with the given materials.
+
+    The start is the flat printed state with a smooth out-of-plane perturbation of 1 % of
+    the sheet size seeded by ``seed`` (the flat state is a saddle). The release is followed
+    by continuation: the pre-stretch, the plastic set and any support motion ("xyz" supports
+    at relaxed positions) are ramped over ``release_steps`` steps, each started from a secant
+    prediction of the previous two equilibria (large rotations converge in far fewer Newton
+    iterations along such a path). ``max_iterations`` bounds each step; newton_iterations in
+    the result is the total. Only the final step's tolerance decides ``converged``.
+    ``metric_floor``: the solver's trust-region metric floor (shellfem.solver.lm_metric).
+
+    ``coarse``: coarser Sheets of the same pattern, coarsest first (geometry.meshing.coarse_meshes):
+    nested iteration (shellfem.multilevel). The release runs on the coarsest; each finer mesh
+    starts from the previous equilibrium interpolated at its vertices (or from its own flat
+    start if that interpolation has no finite energy). Only the given sheet's solve decides
+    ``converged``; iterations and timings are summed over the levels and
+    ``timings["levels"]`` lists each level's vertices, iterations and seconds."""
+    t0 = time.perf_counter()
+    sheets = list(coarse) + [sheet]
+    steps = max(1, int(release_steps))
+    total_it = 0
+    level_log = []
+    sums = {}
+    prev = None
+    for j, sh in enumerate(sheets):
+        t_level = time.perf_counter()
+        last = j == len(sheets) - 1
+        model, q, fixed, values, gauge, free = _level_setup(sh, fabric, plastic, supports, seed, tol_support)
+        opts = dict(max_iterations=max_iterations, verbose=verbose, metric_floor=metric_floor,
+                    rtol=rtol if last else COARSE_RTOL)
+        guess = None
+        if prev is not None:
+            from shellfem.multilevel import prolongate
+            psheet, px = prev
+            guess = model.initial_state()
+            guess[:3 * sh.n_vertices] = prolongate(psheet.points, psheet.triangles, px, sh.points).ravel()
+            guess[fixed] = values
+            if not np.isfinite(model.energy(guess)):
+                guess = None
+        if guess is None:
+            result, its = _release(sh, model, q, fixed, values, free, fabric, plastic, steps, opts, verbose)
+        else:
+            result = newton(model, guess, free, **opts)
+            its = result.iterations
+        total_it += its
+        for key, v in result.timings.items():
+            if isinstance(v, (int, float)):
+                sums[key] = sums.get(key, 0) + v
+        level_log.append(dict(n_vertices=int(sh.n_vertices), iterations=int(its), converged=bool(result.converged),
+                              interpolated=guess is not None, seconds=round(time.perf_counter() - t_level, 3)))
+        if verbose and len(sheets) > 1:
+            print(f"level {j + 1}/{len(sheets)} ({sh.n_vertices} vertices): {its} iterations, "
+                  f"{'converged' if result.converged else result.reason}", flush=True)
+        prev = (sh, model.split(result.q)[0])
     result.iterations = total_it
+    if len(sheets) > 1:
+        result.timings = {**sums, "levels": level_log}
     if result.converged and len(gauge):
         # the gauge must be pure: a held DOF carrying load means a constrained, wrong shape
         freed = gauge_reaction(model, result.q, gauge)
@@ -190,14 +248,20 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
     return Simulation(sheet, model, result, fixed, gauge, time.perf_counter() - t0)
 
 
-def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=False) -> Simulation:
-    """Mesh a geometry.patterns.Pattern and compute its released equilibrium."""
-    from geometry.meshing import mesh_pattern
+def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=False,
+             coarse_levels=None) -> Simulation:
+    """Mesh a geometry.patterns.Pattern and compute its released equilibrium.
+
+    coarse_levels (default: the pattern's [solver] coarse_levels, "auto"): coarser meshes of the
+    pattern solved first (nested iteration, shellfem.multilevel); 0 solves the mesh alone."""
+    from geometry.meshing import coarse_meshes, mesh_pattern
     sheet = mesh_pattern(pattern, size_mm=size_mm)
+    levels = getattr(pattern, "coarse_levels", "auto") if coarse_levels is None else coarse_levels
+    coarse = coarse_meshes(pattern, sheet.n_vertices, size_mm=size_mm, levels=levels) if levels != 0 else []
     mi = max_iterations or pattern.max_iterations
     return simulate_sheet(sheet, pattern.fabric, pattern.plastic, pattern.supports,
                           seed=pattern.seed if seed is None else seed, max_iterations=mi, verbose=verbose,
-                          metric_floor=pattern.metric_floor)
+                          metric_floor=pattern.metric_floor, coarse=coarse)
 
 
 def write_vtu(sim: Simulation, path: str):
