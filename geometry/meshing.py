@@ -383,7 +383,10 @@ def coarse_meshes(pattern, n_fine: int, size_mm: float | None = None, levels: in
         if len(out) >= cap:
             break
         f = COARSENING ** j
-        sheet = mesh_pattern(pattern, size * f, across / f, grading, algorithm, kernel)
+        try:
+            sheet = mesh_pattern(pattern, size * f, across / f, grading, algorithm, kernel)
+        except Exception:       # a coarse level is an accelerator only: one Gmsh cannot make ends the list
+            break
         if sheet.n_vertices < (MIN_COARSE_VERTICES if levels == "auto" else 100):
             break
         if sheet.n_vertices <= MAX_LEVEL_RATIO * finer:

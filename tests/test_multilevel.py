@@ -117,3 +117,26 @@ def test_coarse_levels_option_is_validated():
     for bad in (-1, "many", 1.5, True):
         with pytest.raises(SelfshapeError, match="coarse_levels"):
             parse_pattern({**raw, "solver": {"coarse_levels": bad}})
+
+
+def test_nested_iteration_with_held_rim_reaches_the_exact_relaxed_sheet():
+    """Bare fabric with its whole rim held "xyz" where the fabric relaxes to: the exact
+    equilibrium is the printed sheet scaled by 1/s with zero energy, from a coarser mesh too;
+    being affine, its interpolation is exact and the fine mesh starts at its solution."""
+    from geometry.elements import Support
+    from shellfem.materials import Fabric, Plastic
+    from shellfem.sheet import Sheet
+    from shellfem.simulate import simulate_sheet
+    fine, coarse = Sheet.rectangle(20, 10, 12, 6), Sheet.rectangle(20, 10, 5, 3)
+    sim = simulate_sheet(fine, Fabric(stretch=(1.35, 1.2)), Plastic(),
+                         [Support(points=np.zeros((0, 2)), fix="xyz", boundary=True)], max_iterations=50,
+                         coarse=[coarse])
+    levels = sim.result.timings["levels"]
+    assert [lv["n_vertices"] for lv in levels] == [coarse.n_vertices, fine.n_vertices]
+    assert levels[1]["interpolated"] and sim.result.converged, sim.result.reason
+    # the exact solution is affine, so the interpolated coarse equilibrium is already the fine one
+    assert levels[1]["iterations"] <= 2
+    x = sim.model.split(sim.result.q)[0]
+    assert np.abs(x[:, :2] - fine.points / [1.35, 1.2]).max() < 1e-6
+    assert np.abs(x[:, 2]).max() < 1e-6
+    assert abs(sim.result.energy) < 1e-10

@@ -5,10 +5,14 @@ Case: a uniform 3-pointed-star tiling (spacing 10 mm, arms 7 x 0.8 mm, 0.3 mm TP
 front, E_plastic / E_fabric = 3.2e3 as the seed's chapter 3 calibrated for its star
 sheets) on an 85 x 60 mm fabric at s = 1.35, meshed with one triangle across each arm
 (``[mesh] across = 1``), free boundary: it rolls into a tube (seed Fig. 3.2).
-Prints ONE JSON line: sizes, Newton iterations, wall time, and the per-iteration split
-(assembly vs factorisation vs line search). Target: under 60 s on 2 cores.
+Solved as ``selfshape simulate`` solves it: nested iteration from coarser meshes of the same
+pattern (shellfem.multilevel; ``--coarse-levels 0`` for the single mesh). Prints ONE JSON line:
+sizes, Newton iterations (summed over the levels, and per level), wall time (``total_s``
+includes meshing every level), and the per-iteration split (assembly vs factorisation vs line
+search). Target: under 60 s on 2 cores.
 
 Run: python -m validation.bench_solver [--width 85 --height 60 --across 1] [--fabric-bending-stiffness K]
+     [--coarse-levels auto|N]
 """
 from __future__ import annotations
 
