@@ -18,12 +18,28 @@ def _cmd_mesh(a):
           f"{info['n_regions']} printed regions, min angle {info['min_angle_deg']:.1f} deg")
 
 
+def _levels(text):
+    if text == "auto":
+        return text
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"must be 'auto' or an integer >= 0, got {text!r}")
+    return n
+
+
 def _cmd_simulate(a):
     from shellfem.simulate import simulate_pattern_file
     s = simulate_pattern_file(a.pattern, a.output, size_mm=a.size, seed=a.seed, render=not a.no_png,
-                              max_iterations=a.max_iterations, verbose=a.verbose)
+                              max_iterations=a.max_iterations, verbose=a.verbose, coarse_levels=a.coarse_levels)
     state = "converged" if s["converged"] else "NOT converged"
-    print(f"{state} in {s['newton_iterations']} Newton iterations, |grad| {s['gradient_norm']:.2e}, "
+    levels = s.get("timings_s", {}).get("levels") or []
+    via = ""
+    if len(levels) > 1:      # nested iteration: say where the iterations went
+        via = " (" + " -> ".join(f"{lv['n_vertices']} vertices: {lv['iterations']}" for lv in levels) + ")"
+    print(f"{state} in {s['newton_iterations']} Newton iterations{via}, |grad| {s['gradient_norm']:.2e}, "
           f"{s['n_vertices']} vertices, {s['wall_time_s']:.1f} s -> {a.output}")
     return 0 if s["converged"] else 1
 
@@ -77,6 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--size", type=float, default=None, help="override [mesh] size_mm")
     s.add_argument("--seed", type=int, default=None, help="override [solver] seed")
     s.add_argument("--max-iterations", type=int, default=None)
+    s.add_argument("--coarse-levels", type=_levels, default=None,
+                   help="override [solver] coarse_levels: 'auto' or N >= 0 coarser meshes solved first (0: none)")
     s.add_argument("--no-png", action="store_true", help="skip deployed.png")
     s.add_argument("-v", "--verbose", action="store_true")
     s.set_defaults(fn=_cmd_simulate)

@@ -281,12 +281,13 @@ def write_vtu(sim: Simulation, path: str):
 
 
 def simulate_pattern_file(pattern_path, out_dir, *, size_mm=None, seed=None, render=True, max_iterations=None,
-                          verbose=False) -> dict:
+                          verbose=False, coarse_levels=None) -> dict:
     """`selfshape simulate`: writes DIR/deployed.vtu, DIR/summary.json, DIR/deployed.png.
     summary.json is written last; on failure nothing produced by this run is left."""
     from geometry.patterns import load_pattern
     pattern = load_pattern(pattern_path)
-    sim = simulate(pattern, size_mm=size_mm, seed=seed, max_iterations=max_iterations, verbose=verbose)
+    sim = simulate(pattern, size_mm=size_mm, seed=seed, max_iterations=max_iterations, verbose=verbose,
+                   coarse_levels=coarse_levels)
     os.makedirs(out_dir, exist_ok=True)
     written = []
     try:

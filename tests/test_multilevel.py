@@ -140,3 +140,19 @@ def test_nested_iteration_with_held_rim_reaches_the_exact_relaxed_sheet():
     assert np.abs(x[:, :2] - fine.points / [1.35, 1.2]).max() < 1e-6
     assert np.abs(x[:, 2]).max() < 1e-6
     assert abs(sim.result.energy) < 1e-10
+
+
+def test_cli_coarse_levels(tmp_path, capsys):
+    import json
+
+    from selfshape.cli import main
+    example = os.path.join(os.path.dirname(__file__), "..", "examples", "strip.toml")
+    with pytest.raises(SystemExit) as e:
+        main(["simulate", example, "-o", str(tmp_path / "bad"), "--coarse-levels", "some"])
+    assert e.value.code == 2
+    assert main(["simulate", example, "-o", str(tmp_path / "s"), "--coarse-levels", "1", "--no-png"]) == 0
+    s = json.loads((tmp_path / "s" / "summary.json").read_text())
+    levels = s["timings_s"]["levels"]
+    assert len(levels) == 2 and levels[1]["n_vertices"] == s["n_vertices"] == 535
+    assert s["newton_iterations"] == levels[0]["iterations"] + levels[1]["iterations"]
+    assert f"{levels[0]['n_vertices']} vertices: {levels[0]['iterations']} -> 535 vertices" in capsys.readouterr().out
