@@ -156,3 +156,20 @@ def test_cli_coarse_levels(tmp_path, capsys):
     assert len(levels) == 2 and levels[1]["n_vertices"] == s["n_vertices"] == 535
     assert s["newton_iterations"] == levels[0]["iterations"] + levels[1]["iterations"]
     assert f"{levels[0]['n_vertices']} vertices: {levels[0]['iterations']} -> 535 vertices" in capsys.readouterr().out
+
+
+def test_a_coarse_mesh_that_cannot_be_made_ends_the_hierarchy(monkeypatch):
+    import geometry.meshing as meshing
+    pat = _star_pattern(85.0, 60.0)
+    real = meshing.mesh_pattern
+    calls = []
+
+    def failing_second(pattern, size_mm=None, across=None, *args, **kwargs):
+        calls.append(across)
+        if len(calls) == 2:
+            raise RuntimeError("Gmsh: cannot mesh")
+        return real(pattern, size_mm, across, *args, **kwargs)
+
+    monkeypatch.setattr(meshing, "mesh_pattern", failing_second)
+    levels = meshing.coarse_meshes(pat, 10651)
+    assert len(calls) == 2 and len(levels) == 1 and levels[0].n_vertices < 0.8 * 10651
