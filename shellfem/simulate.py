@@ -21,7 +21,7 @@ from shellfem.boundary import (gauge_dofs, gauge_reaction, graph_laplacian, harm
                                smooth_perturbation)
 from shellfem.model import ShellModel
 from shellfem.sheet import Sheet
-from shellfem.solver import DEFAULT_METRIC_FLOOR, SolveResult, newton
+from shellfem.solver import DEFAULT_METRIC_FLOOR, MAX_ITERATIONS_REASON, SolveResult, newton
 
 COARSE_RTOL = 1e-5      # gradient tolerance of the coarse levels of nested iteration (relative)
 
@@ -194,7 +194,8 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
     ``coarse``: coarser Sheets of the same pattern, coarsest first (geometry.meshing.coarse_meshes):
     nested iteration (shellfem.multilevel). The release runs on the coarsest; each finer mesh
     starts from the previous equilibrium interpolated at its vertices (or from its own flat
-    start if that interpolation has no finite energy). Only the given sheet's solve decides
+    start if that interpolation has no finite energy, or if the previous level stopped for
+    another reason than its iteration cap). Only the given sheet's solve decides
     ``converged``; iterations and timings are summed over the levels and
     ``timings["levels"]`` lists each level's vertices, iterations and seconds."""
     t0 = time.perf_counter()
@@ -233,7 +234,11 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
         if verbose and len(sheets) > 1:
             print(f"level {j + 1}/{len(sheets)} ({sh.n_vertices} vertices): {its} iterations, "
                   f"{'converged' if result.converged else result.reason}", flush=True)
-        prev = (sh, model.split(result.q)[0])
+        # a coarse level that stopped for another reason than its iteration cap (e.g. the trust
+        # region collapsed against the edge-angle barrier: a coarse mesh cannot bend as tightly
+        # as the print asks) is no predictor: the next level starts over from its flat start
+        usable = result.converged or result.reason == MAX_ITERATIONS_REASON
+        prev = (sh, model.split(result.q)[0]) if usable else None
     result.iterations = total_it
     if len(sheets) > 1:
         result.timings = {**sums, "levels": level_log}

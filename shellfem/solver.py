@@ -59,6 +59,9 @@ except Exception:  # pragma: no cover - exercised on machines without scikit-spa
 DEFAULT_METRIC_FLOOR = 10.0
 
 
+MAX_ITERATIONS_REASON = "maximum number of iterations reached"
+
+
 def _psd_blocks(B):
     """Blocks (k, d, d) with their negative eigenvalues set to 0."""
     w, V = np.linalg.eigh(B)
@@ -246,7 +249,7 @@ def newton(model, q0: np.ndarray, free: np.ndarray, *, rtol: float = 1e-8, atol:
                    newton_steps=0, regularised_steps=0)
     g_ref = gradient_reference
     E_ref = None
-    reason = "maximum number of iterations reached"
+    reason = MAX_ITERATIONS_REASON
     lam, lam_min = 0.0, 1e-10
     lam_known = 0.0        # last shift that made H + lam D positive definite
     stable = False

@@ -173,3 +173,30 @@ def test_a_coarse_mesh_that_cannot_be_made_ends_the_hierarchy(monkeypatch):
     monkeypatch.setattr(meshing, "mesh_pattern", failing_second)
     levels = meshing.coarse_meshes(pat, 10651)
     assert len(calls) == 2 and len(levels) == 1 and levels[0].n_vertices < 0.8 * 10651
+
+
+def test_a_failed_coarse_level_is_not_interpolated(monkeypatch):
+    """A coarse level that stopped for another reason than its iteration cap (here: made to
+    report a collapsed trust region) is no predictor: the next mesh starts from its flat state."""
+    import shellfem.simulate as simulate_module
+    from geometry.elements import Support
+    from shellfem.materials import Fabric, Plastic
+    from shellfem.sheet import Sheet
+    real = simulate_module.newton
+    calls = []
+
+    def first_fails(*args, **kwargs):
+        r = real(*args, **kwargs)
+        calls.append(r)
+        if len(calls) == 1:
+            r.converged, r.reason = False, "no decrease possible (trust region collapsed)"
+        return r
+
+    monkeypatch.setattr(simulate_module, "newton", first_fails)
+    fine, coarse = Sheet.rectangle(20, 10, 12, 6), Sheet.rectangle(20, 10, 5, 3)
+    sim = simulate_module.simulate_sheet(fine, Fabric(stretch=(1.35, 1.2)), Plastic(),
+                                         [Support(points=np.zeros((0, 2)), fix="xyz", boundary=True)],
+                                         max_iterations=50, coarse=[coarse])
+    levels = sim.result.timings["levels"]
+    assert len(calls) == 2 and not levels[0]["converged"] and not levels[1]["interpolated"]
+    assert sim.result.converged and abs(sim.result.energy) < 1e-10
