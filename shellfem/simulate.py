@@ -20,6 +20,7 @@ from selfshape.errors import SelfshapeError
 from shellfem.boundary import (gauge_dofs, gauge_reaction, graph_laplacian, harmonic_extension, nearest_vertices,
                                smooth_perturbation)
 from shellfem.model import ShellModel
+from shellfem.multilevel import prolongate
 from shellfem.sheet import Sheet
 from shellfem.solver import DEFAULT_METRIC_FLOOR, MAX_ITERATIONS_REASON, SolveResult, newton
 
@@ -213,7 +214,6 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
                     rtol=rtol if last else COARSE_RTOL)
         guess = None
         if prev is not None:
-            from shellfem.multilevel import prolongate
             psheet, px = prev
             guess = model.initial_state()
             guess[:3 * sh.n_vertices] = prolongate(psheet.points, psheet.triangles, px, sh.points).ravel()
@@ -262,7 +262,7 @@ def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=F
     from geometry.meshing import coarse_meshes, mesh_pattern
     sheet = mesh_pattern(pattern, size_mm=size_mm)
     levels = getattr(pattern, "coarse_levels", "auto") if coarse_levels is None else coarse_levels
-    coarse = coarse_meshes(pattern, sheet.n_vertices, size_mm=size_mm, levels=levels) if levels != 0 else []
+    coarse = coarse_meshes(pattern, sheet.n_vertices, size_mm=size_mm, levels=levels)
     mi = max_iterations or pattern.max_iterations
     return simulate_sheet(sheet, pattern.fabric, pattern.plastic, pattern.supports,
                           seed=pattern.seed if seed is None else seed, max_iterations=mi, verbose=verbose,

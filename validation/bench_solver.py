@@ -60,7 +60,7 @@ def run(width: float = 85.0, height: float = 60.0, across: float = 1.0, max_iter
     sheet = mesh_pattern(pat)
     t_mesh = time.perf_counter() - t0
     t0 = time.perf_counter()
-    coarse = coarse_meshes(pat, sheet.n_vertices, levels=coarse_levels) if coarse_levels != 0 else []
+    coarse = coarse_meshes(pat, sheet.n_vertices, levels=coarse_levels)
     t_coarse = time.perf_counter() - t0
     sim = simulate_sheet(sheet, pat.fabric, pat.plastic, pat.supports, seed=pat.seed, max_iterations=max_iterations,
                          metric_floor=pat.metric_floor, coarse=coarse)
