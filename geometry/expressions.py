@@ -16,7 +16,7 @@ from functools import reduce
 
 import numpy as np
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 VARIABLES = ("x", "y", "r")
 CONSTANTS = {"pi": math.pi, "e": math.e}

@@ -36,7 +36,7 @@ import scipy.sparse as sp
 from geometry.curvature import (Curvature, face_frames, principal_curvature, rotation_between,
                                 tangent_frames, vertex_normals)
 from geometry.target import face_areas, unique_edges
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 
 # ----------------------------------------------------------------------------- sparse solves

@@ -19,7 +19,7 @@ import scipy.sparse as sp
 
 from geometry.fields import cotan_weights, factorize
 from geometry.target import boundary_loop_count, face_areas, unique_edges
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 
 # ----------------------------------------------------------------------------- bounds

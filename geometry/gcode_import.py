@@ -31,7 +31,7 @@ import numpy as np
 import shapely
 
 from geometry.elements import PrintedElement
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 SEGMENT_DTYPE = np.dtype([
     ("x0", "f8"), ("y0", "f8"), ("x1", "f8"), ("y1", "f8"), ("z", "f8"),

@@ -32,7 +32,7 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 from shellfem.sheet import Sheet
 
 ACROSS = 2.0          # triangle rows across the narrowest part of a printed feature

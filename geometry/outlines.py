@@ -14,7 +14,7 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 
 def rectangle(width: float, height: float) -> Polygon:

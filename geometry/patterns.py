@@ -24,8 +24,8 @@ from geometry import outlines
 from geometry.elements import PrintedElement, Support
 from geometry.expressions import compile_field
 from geometry.stars import star_elements
-from selfshape.errors import SelfshapeError, check_number
-from selfshape.tomlfile import read_toml
+from shellfem.errors import SelfshapeError, check_number
+from geometry.tomlfile import read_toml
 from shellfem.materials import Fabric, Plastic
 from shellfem.solver import DEFAULT_METRIC_FLOOR
 

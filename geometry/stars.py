@@ -19,7 +19,7 @@ from shapely.geometry import Polygon
 
 from geometry.elements import PrintedElement
 from geometry.expressions import evaluate_field
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 SQRT3 = math.sqrt(3.0)
 

@@ -29,7 +29,7 @@ import scipy.sparse as sp
 from scipy.linalg import eigh
 from scipy.sparse import csgraph
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 TWO_PI = 2.0 * np.pi
 

@@ -11,7 +11,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 #: A face whose area is below this fraction of the squared bounding-box diagonal is "zero area".
 ZERO_AREA_REL = 1e-12

@@ -26,7 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from inverse.printer import Printer, bead_area
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 SIDES = ("front", "back")
 

@@ -23,7 +23,7 @@ import shapely
 from geometry.elements import Ribbon
 from geometry.stripes import isoline_set, mesh_edges, stripe_field
 from inverse.spacing import ribbon_spacing
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 
 # ----------------------------------------------------------------------------- ragged polylines

@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 RIBBON_LENGTH_MM, RIBBON_WIDTH_MM = 15.0, 1.5
 #: Every file design_file may write (removed from the output directory before a new run writes).
@@ -583,7 +583,7 @@ def verify_design(d: Design, pattern_path: str, out_dir: str, written: list) -> 
     """Simulate pattern.toml, register the deployed surface to the target, closest-point
     distances in % of the target's bounding-box diagonal; writes deployed.vtu, verify.png."""
     from geometry.patterns import load_pattern
-    from shellfem.simulate import simulate
+    from forward.simulate import simulate
 
     t0 = time.perf_counter()
     try:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from selfshape.errors import SelfshapeError, check_number
+from shellfem.errors import SelfshapeError, check_number
 
 
 def _number(name, value, lo=None, lo_open=False, hi=None):
@@ -114,7 +114,7 @@ def load_printer(path: str) -> Printer:
     """
     import dataclasses
 
-    from selfshape.tomlfile import read_toml
+    from geometry.tomlfile import read_toml
     raw = read_toml(path, f"printer file {path}")
     table = raw.get("printer", raw)
     if not isinstance(table, dict):

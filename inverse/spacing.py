@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 
 def _check_pattern(s: float, ribbon_length: float, ribbon_width: float, where: str) -> float:

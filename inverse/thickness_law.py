@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from selfshape.errors import SelfshapeError, check_number
+from shellfem.errors import SelfshapeError, check_number
 
 COLUMNS = ("thickness_mm", "spacing_mm", "side", "kappa_per_mm")
 SIDES = ("front", "back")

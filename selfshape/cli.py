@@ -31,7 +31,7 @@ def _levels(text):
 
 
 def _cmd_simulate(a):
-    from shellfem.simulate import simulate_pattern_file
+    from forward.simulate import simulate_pattern_file
     s = simulate_pattern_file(a.pattern, a.output, size_mm=a.size, seed=a.seed, render=not a.no_png,
                               max_iterations=a.max_iterations, verbose=a.verbose, coarse_levels=a.coarse_levels)
     state = "converged" if s["converged"] else "NOT converged"
@@ -87,7 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--size", type=float, default=None, help="override [mesh] size_mm")
     m.set_defaults(fn=_cmd_mesh)
 
-    s = sub.add_parser("simulate", help="released equilibrium of a pattern (shellfem.simulate.simulate_pattern_file)")
+    s = sub.add_parser("simulate", help="released equilibrium of a pattern (forward.simulate.simulate_pattern_file)")
     s.add_argument("pattern")
     s.add_argument("-o", "--output", required=True, help="output directory")
     s.add_argument("--size", type=float, default=None, help="override [mesh] size_mm")
@@ -134,7 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    from selfshape.errors import SelfshapeError
+    from shellfem.errors import SelfshapeError
     args = build_parser().parse_args(argv)
     from shellfem.memory import keep_freed_memory
     keep_freed_memory()

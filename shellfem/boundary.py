@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 
 def rigid_modes(x: np.ndarray) -> np.ndarray:

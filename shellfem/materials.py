@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from selfshape.errors import SelfshapeError, check_number
+from shellfem.errors import SelfshapeError, check_number
 
 #: Seed Table 4.1 orthotropic log-barrier parameters, converted from Pa to MPa.
 TABLE_4_1_ORTHOTROPIC = {"a1": 0.024161, "a2": 0.090890, "a3": 0.063419,

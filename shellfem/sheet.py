@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from skfem import MeshTri
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 
 @dataclass

@@ -43,7 +43,7 @@ def test_free_strip_rolls_in_few_newton_iterations():
 
     from geometry.meshing import mesh_pattern
     from geometry.patterns import load_pattern
-    from shellfem.simulate import simulate_sheet
+    from forward.simulate import simulate_sheet
     here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     pat = load_pattern(os.path.join(here, "examples", "strip_narrow.toml"))
     sheet = mesh_pattern(pat)

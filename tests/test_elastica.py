@@ -3,7 +3,7 @@ and recovery of k_B from synthetic cantilever data."""
 import numpy as np
 import pytest
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 from validation import elastica as E
 
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from geometry.expressions import Expression, compile_field, evaluate_field
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 rng = np.random.default_rng(0)
 X, Y = rng.uniform(-50, 50, 200), rng.uniform(-50, 50, 200)

@@ -7,7 +7,7 @@ import os
 import numpy as np
 import pytest
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 from validation import elastica
 from validation import fabric as F
 

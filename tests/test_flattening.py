@@ -5,7 +5,7 @@ from geometry.fields import curvature_line_field
 from geometry.flattening import (_local_step, _Problem, flatten, flatten_surface, local_triangles,
                                  principal_stretches, stretch_bounds, tutte_embedding)
 from geometry.target import cylinder_patch, plane_patch, sphere_cap
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 
 def test_stretch_bounds_reproduce_the_seed():

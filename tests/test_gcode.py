@@ -12,7 +12,7 @@ from geometry.gcode_import import parse_gcode, read_gcode
 from inverse.gcode import (greedy_order, layer_counts, ribbons_to_gcode_files, to_bed, from_bed,
                            write_gcode)
 from inverse.printer import Printer, bead_area, bead_width, load_printer
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 
 def design():

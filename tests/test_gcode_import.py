@@ -16,7 +16,7 @@ from geometry.elements import Ribbon
 from geometry.gcode_import import parse_gcode, read_gcode, stack_beads
 from inverse.gcode import write_gcode
 from inverse.printer import Printer, bead_area
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 DATA = os.path.join(os.path.dirname(__file__), "data", "gcode")
 

@@ -5,7 +5,7 @@ from scipy.spatial import Delaunay
 
 from inverse.layout import _Paths, _trim_angle, ribbon_layout
 from inverse.spacing import ribbon_spacing
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 LX, LY, H = 120.0, 60.0, 0.5
 S_PRE, SIG1, SIG2, KAPPA = 1.6, 1.1, 1.4, 0.02

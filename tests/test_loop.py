@@ -8,7 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 from shellfem.strip import strip_curvature
 from validation import loop
 from validation.strips import MEASURED, REST, read_strips

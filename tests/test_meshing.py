@@ -11,7 +11,7 @@ from geometry.meshing import (feature_width, mesh_pattern, mesh_pattern_file, me
                               printed_pieces, quantise_size, read_msh, region_elements, triangle_angles)
 from geometry.patterns import load_pattern
 from geometry.stars import star_polygons
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 from shellfem.sheet import Sheet
 
 HERE = os.path.dirname(__file__)

@@ -91,7 +91,7 @@ def test_nested_iteration_reaches_the_direct_equilibrium():
     same released state up to a rigid motion (energy to 1e-9, same curvatures), the fine mesh
     in fewer iterations (14 against 23). Where a pattern has several stable states close in
     energy, the two can settle in different ones (the 40 x 30 mm sheet: 41.909 vs 41.916 N mm)."""
-    from shellfem.simulate import simulate
+    from forward.simulate import simulate
     pat = _star_pattern(30.0, 20.0, seed=1)
     direct = simulate(pat, coarse_levels=0)
     nested = simulate(pat, coarse_levels=1)
@@ -109,7 +109,7 @@ def test_nested_iteration_reaches_the_direct_equilibrium():
 
 def test_coarse_levels_option_is_validated():
     from geometry.patterns import parse_pattern
-    from selfshape.errors import SelfshapeError
+    from shellfem.errors import SelfshapeError
     raw = {"fabric": {"rectangle": [30.0, 3.0], "stretch": 1.35},
            "region": [{"polygon": [[0, 0], [30, 0], [30, 3], [0, 3]], "thickness_mm": 0.3}]}
     assert parse_pattern(dict(raw)).coarse_levels == "auto"
@@ -126,7 +126,7 @@ def test_nested_iteration_with_held_rim_reaches_the_exact_relaxed_sheet():
     from geometry.elements import Support
     from shellfem.materials import Fabric, Plastic
     from shellfem.sheet import Sheet
-    from shellfem.simulate import simulate_sheet
+    from forward.simulate import simulate_sheet
     fine, coarse = Sheet.rectangle(20, 10, 12, 6), Sheet.rectangle(20, 10, 5, 3)
     sim = simulate_sheet(fine, Fabric(stretch=(1.35, 1.2)), Plastic(),
                          [Support(points=np.zeros((0, 2)), fix="xyz", boundary=True)], max_iterations=50,
@@ -178,7 +178,7 @@ def test_a_coarse_mesh_that_cannot_be_made_ends_the_hierarchy(monkeypatch):
 def test_a_failed_coarse_level_is_not_interpolated(monkeypatch):
     """A coarse level that stopped for another reason than its iteration cap (here: made to
     report a collapsed trust region) is no predictor: the next mesh starts from its flat state."""
-    import shellfem.simulate as simulate_module
+    import forward.simulate as simulate_module
     from geometry.elements import Support
     from shellfem.materials import Fabric, Plastic
     from shellfem.sheet import Sheet

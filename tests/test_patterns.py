@@ -9,7 +9,7 @@ import pytest
 import tomli_w
 
 from geometry.patterns import load_pattern
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 HERE = os.path.dirname(__file__)
 DATA = os.path.join(HERE, "data", "patterns")

@@ -10,7 +10,7 @@ from geometry.patterns import load_pattern, ribbon_polygon
 from geometry.target import cylinder_patch, face_areas, plane_patch
 from inverse import pipeline
 from inverse.pipeline import design, design_file, kabsch, register
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 REPORT_KEYS = ("time_s", "n_faces", "k1_deviation_deg", "sigma_bound_violation", "sigma_out_of_bounds_pct",
                "residual_energy", "stages_s", "ribbons_per_side", "thickness_histogram")
@@ -213,7 +213,7 @@ def test_separate_ribbons_trims_overlaps_and_clips():
 
 
 def _fake_simulation(converged, positions_fn):
-    """A stand-in for shellfem.simulate.simulate: the 'deployed' sheet is the flat mesh of the
+    """A stand-in for forward.simulate.simulate: the 'deployed' sheet is the flat mesh of the
     design itself, placed by positions_fn(design)."""
     from types import SimpleNamespace
 
@@ -229,7 +229,7 @@ def _fake_simulation(converged, positions_fn):
 @pytest.mark.parametrize("converged", [True, False])
 def test_verify_deviation_zero_for_an_exact_deployment_and_nonconvergence_reported(tmp_path, monkeypatch,
                                                                                   converged):
-    import shellfem.simulate
+    import forward.simulate
 
     V, F = cylinder_patch(n_arc=40, n_len=32)     # fine enough for the stripes without refinement
     target = write_obj(tmp_path / "c.obj", V, F)
@@ -242,7 +242,7 @@ def test_verify_deviation_zero_for_an_exact_deployment_and_nonconvergence_report
         return _fake_simulation.design
     monkeypatch.setattr(pipeline, "design", keep)
     # the deployed sheet lands exactly on the target, in another rigid placement
-    monkeypatch.setattr(shellfem.simulate, "simulate", _fake_simulation(converged, lambda d: d.V @ R.T + 5.0))
+    monkeypatch.setattr(forward.simulate, "simulate", _fake_simulation(converged, lambda d: d.V @ R.T + 5.0))
     rep = design_file(target, tmp_path / "out", verify=True, edge_mm=None)
     assert rep["verify_converged"] is converged
     if converged:
@@ -317,11 +317,11 @@ def test_sign_change_gives_front_and_back_and_mirrored_back_gcode_reads_back(tmp
 
 
 def test_verify_reports_a_simulation_that_cannot_run(tmp_path, monkeypatch):
-    import shellfem.simulate
+    import forward.simulate
 
     def fails(pattern, **kw):
         raise SelfshapeError("mesh: gmsh failed")
-    monkeypatch.setattr(shellfem.simulate, "simulate", fails)
+    monkeypatch.setattr(forward.simulate, "simulate", fails)
     V, F = cylinder_patch(n_arc=16, n_len=12)
     rep = design_file(write_obj(tmp_path / "c.obj", V, F), tmp_path / "out", verify=True, edge_mm=2.0)
     assert rep["verify_converged"] is False and rep["deviation_pct_bbox"] is None

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from selfshape.cli import main
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 from shellfem.materials import Fabric, Plastic
 from shellfem.sheet import Sheet
 
@@ -50,7 +50,7 @@ def test_degenerate_triangle_and_negative_thickness():
 def test_support_that_misses_the_sheet(tmp_path):
     p = tmp_path / "p.toml"
     p.write_text(open(EXAMPLE).read() + '\n[[support]]\npoints = [[0.0, 0.0]]\nfix = "z"\n')
-    from shellfem.simulate import simulate_sheet
+    from forward.simulate import simulate_sheet
     from geometry.patterns import load_pattern
     from geometry.elements import Support
     pat = load_pattern(str(p))
@@ -83,7 +83,7 @@ def test_boundary_held_at_the_relaxed_fabric_is_the_exact_relaxed_sheet():
     # flat sheet scaled by 1/s with zero energy. Before the held motion was carried into the sheet
     # the first iterate had inverted triangles (energy not finite).
     from geometry.elements import Support
-    from shellfem.simulate import simulate_sheet
+    from forward.simulate import simulate_sheet
     sh = Sheet.rectangle(20, 10, 10, 5)
     P = sh.points
     sim = simulate_sheet(sh, Fabric(stretch=(1.35, 1.2)), Plastic(),
@@ -114,7 +114,7 @@ def test_metric_floor_reaches_the_same_equilibrium():
     import tomllib
 
     from geometry.patterns import load_pattern
-    from shellfem.simulate import simulate
+    from forward.simulate import simulate
     from shellfem.solver import DEFAULT_METRIC_FLOOR
     with open(EXAMPLE, "rb") as f:
         raw = tomllib.load(f)
@@ -135,7 +135,7 @@ def test_edge_angle_relaxation_recovers_the_equilibrium_angles():
     rises, and a full Newton solve from there without the relaxation returns to the same
     equilibrium (narrow strip)."""
     from geometry.patterns import load_pattern
-    from shellfem.simulate import simulate
+    from forward.simulate import simulate
     from shellfem.solver import EdgeAngleRelaxation, newton
     sim = simulate(load_pattern(EXAMPLE))
     r, M = sim.result, sim.model
@@ -185,7 +185,7 @@ def test_printed_region_relaxation_recovers_the_equilibrium():
     relaxation (Newton on those DOFs, the rest frozen) returns to the equilibrium, never raises
     the energy and leaves the other DOFs alone; newton with and without it reaches the same
     equilibrium."""
-    from shellfem.simulate import simulate_sheet
+    from forward.simulate import simulate_sheet
     from shellfem.solver import StiffRegionRelaxation, newton
     pat, sheet = _small_star_sheet()
     sim = simulate_sheet(sheet, pat.fabric, pat.plastic, seed=0, max_iterations=300)
@@ -219,7 +219,7 @@ def test_printed_region_relaxation_is_off_when_the_print_covers_the_sheet():
     """A strip printed all over: the printed DOFs are (nearly) all DOFs, the relaxation would be
     a second full Newton step, so newton does not use it."""
     from geometry.patterns import load_pattern
-    from shellfem.simulate import simulate
+    from forward.simulate import simulate
     sim = simulate(load_pattern(EXAMPLE))
     assert sim.result.converged
     assert sim.model.printed_dofs().mean() > 0.9

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from inverse.spacing import ribbon_spacing, stretch_from_spacing
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 
 def test_seed_sigma2_max_from_mu2_equal_ribbon_length():

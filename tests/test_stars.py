@@ -7,7 +7,7 @@ from shapely.geometry import Point
 
 from geometry.outlines import hexagon, rectangle
 from geometry.stars import lattice_points, star_elements, star_polygons
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 
 def centred_hexagonal(n):

@@ -3,7 +3,7 @@ import pytest
 from scipy.spatial import Delaunay
 
 from geometry.stripes import isoline_set, isolines, mesh_edges, stripe_field
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 
 def grid_mesh(lx, ly, h, jitter=0.2, seed=0):

@@ -5,7 +5,7 @@ import os
 import numpy as np
 import pytest
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 from shellfem.strip import strip_curvature, timoshenko_curvature
 from validation import strips
 from validation.strips import MEASURED, REST

@@ -1,14 +1,15 @@
-import glob
 import os
+import pathlib
 
 import numpy as np
 import pytest
 
 from geometry.target import (check_disk, cylinder_patch, levels_for_faces, load_target, plane_patch,
                              read_mesh, refine, sphere_cap)
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
-TARGETS = sorted(glob.glob("/work/shared/meshes/targets/*.obj"))
+TARGETS = sorted((pathlib.Path(__file__).resolve().parents[1] / "meshes" / "targets").glob("*.obj"))
+assert len(TARGETS) == 4, "meshes/targets must hold the four shipped targets"
 
 
 def write_obj(path, V, F, extra=""):
@@ -21,8 +22,7 @@ def write_obj(path, V, F, extra=""):
     return str(path)
 
 
-@pytest.mark.skipif(not TARGETS, reason="shared targets not present")
-@pytest.mark.parametrize("path", TARGETS)
+@pytest.mark.parametrize("path", TARGETS, ids=lambda p: p.stem)
 def test_shipped_targets_load_scaled_and_centred(path):
     V, F = load_target(path, diagonal_mm=110.0)
     lo, hi = V.min(axis=0), V.max(axis=0)

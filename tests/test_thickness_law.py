@@ -3,7 +3,7 @@ import pytest
 
 from inverse.thickness_law import (curvature, format_thickness_law, load_thickness_law, parse_thickness_law,
                                    printable_range, thickness_for_curvature)
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 T = [0.2, 0.4, 0.6, 1.0]
 MU = [4.0, 6.0, 10.0]

@@ -1,8 +1,8 @@
-"""selfshape.tomlfile.read_toml: one reader, one wording, for pattern and printer files."""
+"""geometry.tomlfile.read_toml: one reader, one wording, for pattern and printer files."""
 import pytest
 
-from selfshape.errors import SelfshapeError
-from selfshape.tomlfile import read_toml
+from shellfem.errors import SelfshapeError
+from geometry.tomlfile import read_toml
 
 
 def test_reads_a_table(tmp_path):

@@ -23,7 +23,7 @@ import numpy as np
 
 from geometry.target import levels_for_faces, load_target
 
-TARGET = "/work/shared/meshes/targets/saddle.obj"
+TARGET = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "meshes", "targets", "saddle.obj")
 
 
 def main(argv=None):

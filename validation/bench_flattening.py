@@ -17,7 +17,7 @@ import numpy as np
 from geometry.flattening import flatten_surface
 from geometry.target import levels_for_faces, load_target, refine
 
-TARGETS = "/work/shared/meshes/targets/*.obj"
+TARGETS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "meshes", "targets", "*.obj")
 
 
 def bench(path: str, faces: int = 100_000, lam: float = 0.0, slim_iterations: int = 2) -> dict:

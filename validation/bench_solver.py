@@ -49,7 +49,7 @@ def run(width: float = 85.0, height: float = 60.0, across: float = 1.0, max_iter
 
     from geometry.meshing import coarse_meshes, mesh_pattern
     from geometry.patterns import load_pattern
-    from shellfem.simulate import simulate_sheet
+    from forward.simulate import simulate_sheet
 
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "bench.toml")

@@ -1,4 +1,4 @@
-"""Design every target in /work/shared/meshes/targets (+ --verify where feasible) for the README.
+"""Design every target in meshes/targets (+ --verify where feasible) for the README.
 
 For each TARGET.obj: `inverse.pipeline.design_file` -> out/design/TARGET/ (all outputs), then
 docs/design/TARGET_{target,flat,ribbons,simulated}.png pictures and docs/design/table.md, a
@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-TARGETS = "/work/shared/meshes/targets/*.obj"
+TARGETS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "meshes", "targets", "*.obj")
 
 
 def _plot_target(V, F, path, title):

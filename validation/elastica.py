@@ -29,7 +29,7 @@ from scipy.integrate import solve_bvp, solve_ivp
 from scipy.interpolate import PchipInterpolator
 from scipy.optimize import least_squares
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 #: Gamma range covered by the tabulated master curve; below it the linear
 #: cantilever limit height/width = Gamma/8 is used (relative error < 2e-5).

@@ -33,7 +33,7 @@ import re
 import numpy as np
 from scipy.optimize import least_squares
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 from validation import elastica
 from validation.plots import Series, plot_series
 

@@ -36,7 +36,7 @@ import traceback
 
 TASKS = ("convergence", "sze", "natural_curvature", "fabric", "strips", "loop",
          "bench_meshing", "bench_flattening", "bench_layout", "bench_design")
-TARGETS = "/work/shared/meshes/targets/*.obj"
+TARGETS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "meshes", "targets", "*.obj")
 
 
 def _last_json(text: str):

@@ -166,7 +166,7 @@ def run(names=None, out_root="out/gallery", docs="docs/gallery", examples="examp
     import tomli_w
 
     from geometry.patterns import load_pattern
-    from shellfem.simulate import simulate, write_vtu
+    from forward.simulate import simulate, write_vtu
     os.makedirs(examples, exist_ok=True)
     os.makedirs(docs, exist_ok=True)
     results = {}
@@ -184,7 +184,7 @@ def run(names=None, out_root="out/gallery", docs="docs/gallery", examples="examp
         os.makedirs(d, exist_ok=True)
         write_vtu(sim, os.path.join(d, "deployed.vtu"))
         try:
-            from shellfem.render import render_deployed
+            from forward.render import render_deployed
             render_deployed(sim, os.path.join(docs, f"{name}.png"), title=name)
         except Exception as e:  # a picture must not lose the numbers
             row["render_error"] = str(e)

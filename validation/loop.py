@@ -22,7 +22,7 @@ import os
 
 import numpy as np
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 from validation import effects as fx
 from validation import stats
 from validation.strips import MEASURED, REST, model_source, n_rows, read_strips, strip_model, subset

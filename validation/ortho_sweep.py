@@ -40,7 +40,7 @@ def case(thickness_mm: float, pitch_mm: float, course_deg: float, seed: int = 0)
 def simulate_case(thickness_mm: float, pitch_mm: float, course_deg: float, max_iterations: int = 600,
                   seed: int = 0) -> dict:
     from geometry.patterns import load_pattern
-    from shellfem.simulate import simulate
+    from forward.simulate import simulate
     from validation.gallery import measure
 
     pat = load_pattern(case(thickness_mm, pitch_mm, course_deg, seed))

@@ -22,7 +22,7 @@ import os
 
 import numpy as np
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 MEASURED = "curvature_per_mm"
 REST = "rest_curvature_per_mm"

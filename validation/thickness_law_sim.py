@@ -7,7 +7,7 @@ Two sources, written as inverse/thickness_law.py CSV tables with a provenance he
   fabric at the design stretch carries staggered l_r x w_r ribbons (rows mu2 apart along x,
   dashes of length l_r with period mu1, odd rows shifted by mu1 / 2: the stagger of
   inverse/layout.py), is meshed (geometry.meshing.mesh_pattern) and released
-  (shellfem.simulate.simulate_sheet). The curvature along the ribbons is the area-weighted
+  (forward.simulate.simulate_sheet). The curvature along the ribbons is the area-weighted
   mean over the patch's central quarter of the normal curvature in the ribbon direction,
   b(u, u) / a(u, u) with u = the printed x axis (per unit deployed length). Rows whose
   simulation did not converge are dropped and counted, never written.
@@ -35,7 +35,7 @@ from dataclasses import replace
 import numpy as np
 
 from inverse.thickness_law import DEFAULT_LAW, PLASTIC_KEY, format_thickness_law, parse_thickness_law
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 from shellfem.materials import Fabric, Plastic
 
 RIBBON_LENGTH, RIBBON_WIDTH, MU1 = 15.0, 1.5, 22.5      # seed 5.4.1 and Fig. 5.6 (mu1 = 22.5 mm)
@@ -128,7 +128,7 @@ def simulate_row(thickness, spacing, side, stretch, *, mesh_size=2.0, across=2.0
     """Simulate one patch; returns kappa (magnitude), converged, reason and sizes."""
     from geometry.meshing import mesh_pattern
     from geometry.patterns import load_pattern
-    from shellfem.simulate import simulate_sheet
+    from forward.simulate import simulate_sheet
 
     raw = patch_pattern(thickness, spacing, side, stretch, n_rows=n_rows, n_motifs=n_motifs, mesh_size=mesh_size,
                         across=across, fabric=fabric, plastic=plastic, seed=seed)
@@ -268,7 +268,7 @@ def main(argv=None):
                 mirror_note.append("  the check landed in a different equilibrium of the same patch (the seeded "
                                    "perturbation is not mirrored): the patch has more than one stable shape here")
             rows += [(t, mu, "back", k) for (t, mu), k in front.items()]
-        head += ["SOURCE: forward simulation of parallel staggered ribbon sheets (shellfem.simulate.simulate_sheet):",
+        head += ["SOURCE: forward simulation of parallel staggered ribbon sheets (forward.simulate.simulate_sheet):",
                  f"  patch max({a.motifs}, ceil(2 rows mu2 / mu1)) x mu1 along (at least twice its width), {a.rows} rows across, mu1 {MU1:g} mm, "
                  f"odd rows shifted mu1/2; mesh size {a.mesh_size:g} mm, {a.across:g} rows across a ribbon;",
                  "  kappa = area-weighted mean of b(x,x)/a(x,x) over the central quarter of the patch.",

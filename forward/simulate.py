@@ -1,6 +1,6 @@
 """Form-finding: a pattern becomes a mesh, a shell model and its released equilibrium.
 
-    from shellfem.simulate import simulate
+    from forward.simulate import simulate
     result = simulate(load_pattern("examples/strip.toml"))
     result.positions            # (n, 3) deployed vertex positions, mm
 
@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 from shellfem.boundary import (gauge_dofs, gauge_reaction, graph_laplacian, harmonic_extension, nearest_vertices,
                                smooth_perturbation)
 from shellfem.model import ShellModel
@@ -303,7 +303,7 @@ def simulate_pattern_file(pattern_path, out_dir, *, size_mm=None, seed=None, ren
         summary["pattern"] = os.path.abspath(str(pattern_path))
         summary["seed"] = pattern.seed if seed is None else seed
         if render:
-            from shellfem.render import render_deployed
+            from forward.render import render_deployed
             png = os.path.join(out_dir, "deployed.png")
             render_deployed(sim, png, title=os.path.basename(str(pattern_path)))
             written.append(png)

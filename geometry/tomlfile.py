@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import tomllib
 
-from selfshape.errors import SelfshapeError
+from shellfem.errors import SelfshapeError
 
 
 def read_toml(path: str, label: str | None = None) -> dict:
