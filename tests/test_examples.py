@@ -1,0 +1,76 @@
+"""The examples run as a user runs them and print what their docstrings say.
+
+Each examples/*.py runs in a fresh interpreter from the repository root (MPLBACKEND=Agg);
+its key printed numbers are checked. Every example pattern (examples/**/*.toml) loads.
+"""
+import glob
+import os
+import subprocess
+import sys
+
+import pytest
+
+from geometry.patterns import load_pattern
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCRIPTS = sorted(os.path.basename(p) for p in glob.glob(os.path.join(ROOT, "examples", "*.py")))
+PATTERNS = sorted(os.path.relpath(p, ROOT) for p in glob.glob(os.path.join(ROOT, "examples", "**", "*.toml"),
+                                                               recursive=True))
+
+
+def run_example(name: str) -> dict:
+    """Run examples/<name> and return its output as {first word: the rest of the line}."""
+    env = dict(os.environ, MPLBACKEND="Agg")
+    env["PYTHONPATH"] = ROOT + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    proc = subprocess.run([sys.executable, os.path.join("examples", name)], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, f"{name} failed:\n{proc.stderr[-2000:]}"
+    out = {}
+    for line in proc.stdout.splitlines():
+        key, _, rest = line.partition(" ")
+        out[key] = rest
+    return out
+
+
+def test_every_example_script_is_tested():
+    assert set(SCRIPTS) == {"simulate_strip.py", "calibrate_strips.py", "design_cap.py"}
+
+
+@pytest.mark.parametrize("path", PATTERNS)
+def test_example_pattern_loads(path):
+    pattern = load_pattern(os.path.join(ROOT, path))
+    assert pattern.outline.area > 0
+    assert len(pattern.elements) > 0
+
+
+def test_simulate_strip():
+    out = run_example("simulate_strip.py")
+    assert out["converged"] == "True"
+    assert int(out["iterations"]) == 21
+    assert int(out["vertices"]) == 155
+    assert float(out["energy_nmm"]) == pytest.approx(4.2976, rel=1e-4)
+    assert float(out["curvature_k1_per_mm"]) == pytest.approx(-0.22664, abs=2e-5)
+    assert float(out["curvature_k2_per_mm"]) == pytest.approx(-0.32679, abs=2e-5)
+    assert [float(v) for v in out["bbox_mm"].split()] == pytest.approx([7.23, 3.78, 7.26], abs=0.006)
+
+
+def test_calibrate_strips():
+    out = run_example("calibrate_strips.py")
+    assert int(out["strips"]) == 80
+    value, _, se = out["modulus_ratio"].split()
+    assert float(value) == pytest.approx(1123.5, abs=0.06)
+    assert float(se) == pytest.approx(18.4, abs=0.06)
+    assert [float(v) for v in out["ci95"].split()] == [1088.0, 1161.0]
+    assert int(out["plastic_modulus_mpa"]) == 1180
+    words = out["strip"].split()
+    model = float(words[words.index("model") + 1])
+    assert model == pytest.approx(0.0468, abs=6e-5)
+
+
+def test_design_cap():
+    out = run_example("design_cap.py")
+    assert out["ribbons"].split() == ["8", "front", "8", "back", "0"]
+    assert out["thickness_mm"] == "0.4"
+    assert float(out["k1_deviation_deg"]) == pytest.approx(3.197, abs=6e-4)
+    assert int(out["pattern_elements"]) == 8
+    assert {"pattern.toml", "front.gcode", "flat.vtu", "report.json", "pattern.png"} <= set(out["files"].split())
