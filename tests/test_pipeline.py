@@ -8,8 +8,8 @@ import shapely
 from geometry.gcode_import import read_gcode
 from geometry.patterns import load_pattern, ribbon_polygon
 from geometry.target import cylinder_patch, face_areas, plane_patch
-from inverse import pipeline
-from inverse.pipeline import design, design_file, kabsch, register
+from inverse import design as pipeline
+from inverse.design import design, design_file, kabsch, register
 from shellfem.errors import SelfshapeError
 
 REPORT_KEYS = ("time_s", "n_faces", "k1_deviation_deg", "sigma_bound_violation", "sigma_out_of_bounds_pct",
@@ -198,7 +198,7 @@ def test_written_ribbons_are_separated_and_inside(written):
 
 def test_separate_ribbons_trims_overlaps_and_clips():
     from geometry.elements import Ribbon
-    from inverse.pipeline import separate_ribbons
+    from inverse.design import separate_ribbons
     outline = np.array([[0, 0], [40, 0], [40, 20], [0, 20]], float)
     rs = [Ribbon(np.array([[2.0, 10.0], [17.0, 10.0]])), Ribbon(np.array([[16.0, 10.0], [31.0, 10.0]])),
           Ribbon(np.array([[30.0, 5.0], [45.0, 5.0]])), Ribbon(np.array([[5.0, 19.5], [5.5, 19.5]]))]
@@ -269,7 +269,7 @@ def test_verify_simulates_a_small_cap(tmp_path):
 
 def test_coarsen_for_layout_restricts_the_hierarchy():
     import igl
-    from inverse.pipeline import coarsen_for_layout
+    from inverse.design import coarsen_for_layout
     V0, F0 = plane_patch(20, 10, 4, 2)
     V2, F2 = igl.upsample(V0, F0, 2)
     uv = V2[:, :2] * 1.3
@@ -287,7 +287,7 @@ def test_coarsen_for_layout_restricts_the_hierarchy():
 
 
 def test_clean_path_removes_tiny_end_segments():
-    from inverse.pipeline import clean_path
+    from inverse.design import clean_path
     p = np.array([[0.0, 0.0], [0.1, 0.0], [5.0, 0.0], [9.0, 1.0], [9.02, 1.01]])
     q = clean_path(p, 0.25)
     np.testing.assert_array_equal(q, [[0.0, 0.0], [5.0, 0.0], [9.02, 1.01]])
@@ -371,7 +371,7 @@ def test_registration_is_never_worse_than_its_kabsch_start():
     ({"verify_iterations": 0}, "max_iterations must be a positive integer"),
     ({"verify_iterations": 2.5}, "max_iterations must be a positive integer")])
 def test_design_rejects_bad_verification_solver_options(tmp_path, kwargs, message):
-    from inverse.pipeline import design_file
+    from inverse.design import design_file
     with pytest.raises(SelfshapeError, match=r"^verification \[solver\] \(--verify-iterations, --metric-floor\): "
                        + message):
         design_file("no-such-target.obj", tmp_path / "out", **kwargs)

@@ -1,7 +1,7 @@
 """Benchmark: the whole inverse-design pipeline on a ~100k-face refined target. ONE JSON line.
 
 The target (default the saddle) is Loop-refined with geometry.target.refine to the face count
-closest to --faces (levels_for_faces); `inverse.pipeline.design` then runs with that mesh as
+closest to --faces (levels_for_faces); `inverse.design.design` then runs with that mesh as
 its coarse level (no further refinement), so its multilevel flattening starts from the
 unrefined target as in `selfshape design`. Then the outputs are written as by design_file
 (pattern.toml, flat.vtu, G-code, pattern.png) to a temporary directory. Reported: wall and CPU
@@ -36,7 +36,7 @@ def main(argv=None):
     import tomli_w
 
     from geometry.flattening import flatten
-    from inverse import pipeline
+    from inverse import design as pipeline
     from inverse.gcode import ribbons_to_gcode_files
 
     w0, c0 = time.perf_counter(), time.process_time()
