@@ -8,8 +8,9 @@ import shapely
 from geometry.gcode_import import read_gcode
 from geometry.patterns import load_pattern, ribbon_polygon
 from geometry.target import cylinder_patch, face_areas, plane_patch
-from inverse import design as pipeline
-from inverse.design import design, design_file, kabsch, register
+from inverse import design as design_module
+from inverse.design import design, design_file
+from inverse.registration import kabsch, register
 from shellfem.errors import SelfshapeError
 
 REPORT_KEYS = ("time_s", "n_faces", "k1_deviation_deg", "sigma_bound_violation", "sigma_out_of_bounds_pct",
@@ -156,7 +157,7 @@ def test_failure_after_writing_removes_this_runs_files(tmp_path, monkeypatch):
 
     def boom(*a, **k):
         raise RuntimeError("disk full")
-    monkeypatch.setattr(pipeline, "plot_pattern", boom)
+    monkeypatch.setattr(design_module, "plot_pattern", boom)
     with pytest.raises(RuntimeError):
         design_file(target, out, edge_mm=2.0)
     assert sorted(os.listdir(out)) == ["notes.txt"]      # the stale report went too
@@ -198,7 +199,7 @@ def test_written_ribbons_are_separated_and_inside(written):
 
 def test_separate_ribbons_trims_overlaps_and_clips():
     from geometry.elements import Ribbon
-    from inverse.design import separate_ribbons
+    from inverse.separation import separate_ribbons
     outline = np.array([[0, 0], [40, 0], [40, 20], [0, 20]], float)
     rs = [Ribbon(np.array([[2.0, 10.0], [17.0, 10.0]])), Ribbon(np.array([[16.0, 10.0], [31.0, 10.0]])),
           Ribbon(np.array([[30.0, 5.0], [45.0, 5.0]])), Ribbon(np.array([[5.0, 19.5], [5.5, 19.5]]))]
@@ -235,12 +236,12 @@ def test_verify_deviation_zero_for_an_exact_deployment_and_nonconvergence_report
     target = write_obj(tmp_path / "c.obj", V, F)
     a = 0.7
     R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
-    real_design = pipeline.design
+    real_design = design_module.design
 
     def keep(*args, **kw):
         _fake_simulation.design = real_design(*args, **kw)
         return _fake_simulation.design
-    monkeypatch.setattr(pipeline, "design", keep)
+    monkeypatch.setattr(design_module, "design", keep)
     # the deployed sheet lands exactly on the target, in another rigid placement
     monkeypatch.setattr(forward.simulate, "simulate", _fake_simulation(converged, lambda d: d.V @ R.T + 5.0))
     rep = design_file(target, tmp_path / "out", verify=True, edge_mm=None)
@@ -287,7 +288,7 @@ def test_coarsen_for_layout_restricts_the_hierarchy():
 
 
 def test_clean_path_removes_tiny_end_segments():
-    from inverse.design import clean_path
+    from inverse.separation import clean_path
     p = np.array([[0.0, 0.0], [0.1, 0.0], [5.0, 0.0], [9.0, 1.0], [9.02, 1.01]])
     q = clean_path(p, 0.25)
     np.testing.assert_array_equal(q, [[0.0, 0.0], [5.0, 0.0], [9.02, 1.01]])
@@ -371,7 +372,6 @@ def test_registration_is_never_worse_than_its_kabsch_start():
     ({"verify_iterations": 0}, "max_iterations must be a positive integer"),
     ({"verify_iterations": 2.5}, "max_iterations must be a positive integer")])
 def test_design_rejects_bad_verification_solver_options(tmp_path, kwargs, message):
-    from inverse.design import design_file
     with pytest.raises(SelfshapeError, match=r"^verification \[solver\] \(--verify-iterations, --metric-floor\): "
                        + message):
         design_file("no-such-target.obj", tmp_path / "out", **kwargs)
