@@ -194,7 +194,9 @@ def test_written_ribbons_are_separated_and_inside(written):
     assert (a == b).all()                                  # no two ribbons closer than the 0.5 mm gap
     boundary = pat.outline.exterior
     assert min(boundary.distance(p) for p in polys) >= 0.5 - 1e-3
-    assert rep["ribbons_separated"]["dropped"] >= 0
+    # 20 centre lines of this cylinder's layout reach within w/2 + gap of the outline and are
+    # clipped; none of them comes within the gap of another ribbon, none gets too short
+    assert rep["ribbons_separated"] == {"clipped": 20, "trimmed": 0, "dropped": 0}
 
 
 def test_separate_ribbons_trims_overlaps_and_clips():
@@ -256,16 +258,36 @@ def test_verify_deviation_zero_for_an_exact_deployment_and_nonconvergence_report
     assert on_disk["verify_converged"] is converged
 
 
-@pytest.mark.slow
+def _sag(X):
+    """Height range (mm) of points X (k, 3) across their best-fit plane."""
+    h = (X - X.mean(0)) @ np.linalg.svd(X - X.mean(0), full_matrices=False)[2][2]
+    return float(h.max() - h.min())
+
+
 def test_verify_simulates_a_small_cap(tmp_path):
+    """design -> pattern -> simulate -> register on a 40 mm spherical cap (sag 3.77 mm).
+    Measured: converged in 55 Newton iterations; deployed -> target mean 4.26 %, max 12.64 %,
+    target -> deployed mean 5.20 %, max 14.05 % of the 40 mm diagonal; deployed sag 9.08 mm.
+    The bounds have ~30 % margin; the same pattern with half the ribbon thickness (0.2 mm)
+    measures 6.73 / 14.57 % and 11.93 / 29.35 % and fails them; an unprinted sheet is flat
+    (sag 0) and fails the sag bound. In the default run (~30 s): the one test of the whole
+    design -> simulate seam."""
+    import meshio
+
     from geometry.target import sphere_cap
     V, F = sphere_cap(40.0, 30.0, 8)
     rep = design_file(write_obj(tmp_path / "cap.obj", V, F), tmp_path / "out", verify=True, diagonal_mm=40.0)
-    assert "verify_converged" in rep
-    if rep["verify_converged"]:
-        assert 0 <= rep["deviation_pct_bbox"][0] <= rep["deviation_pct_bbox"][1] < 50
-    else:
-        assert rep["deviation_pct_bbox"] is None
+    assert rep["verify_converged"] is True, rep.get("verify_reason")
+    mean, worst = rep["deviation_pct_bbox"]
+    back_mean, back_worst = rep["deviation_target_to_deployed_pct_bbox"]
+    assert 0 < mean <= worst and 0 < back_mean <= back_worst
+    assert mean < 5.5 and worst < 16.0                       # deployed -> target
+    assert back_mean < 7.0 and back_worst < 20.0             # target -> deployed
+    assert rep["bbox_diagonal_mm"] == pytest.approx(40.0)
+    deployed = meshio.read(tmp_path / "out" / "deployed.vtu").points
+    target_sag = _sag(V * 40.0 / np.linalg.norm(np.ptp(V, axis=0)))      # the target as scaled
+    assert target_sag == pytest.approx(3.77, abs=0.01)
+    assert _sag(deployed) > 0.5 * target_sag                 # the print curves the sheet
 
 
 def test_coarsen_for_layout_restricts_the_hierarchy():
