@@ -397,3 +397,15 @@ def test_design_rejects_bad_verification_solver_options(tmp_path, kwargs, messag
     with pytest.raises(SelfshapeError, match=r"^verification \[solver\] \(--verify-iterations, --metric-floor\): "
                        + message):
         design_file("no-such-target.obj", tmp_path / "out", **kwargs)
+
+
+def test_design_options_record_equals_keywords(cylinder_design):
+    from inverse.design import DesignOptions
+    V, F = cylinder_patch()
+    d = design(V, F, DesignOptions(diagonal_mm=None, edge_mm=None))
+    assert len(d.ribbons) == len(cylinder_design.ribbons)
+    for a, b in zip(d.ribbons, cylinder_design.ribbons):
+        np.testing.assert_array_equal(a.path, b.path)
+        assert a.thickness_mm == b.thickness_mm and a.side == b.side
+    with pytest.raises(TypeError, match="stretch_factor"):
+        design(V, F, stretch_factor=1.5)
