@@ -5,11 +5,11 @@
     result.positions            # (n, 3) deployed vertex positions, mm
 
 ``simulate_pattern_file`` is the ``selfshape simulate`` verb: it writes deployed.vtu,
-summary.json and deployed.png (mm, N).
+summary.json (forward.outputs) and deployed.png (forward.render) (mm, N). The supports a
+pattern states are turned into held DOFs in forward.supports.
 """
 from __future__ import annotations
 
-import json
 import os
 import time
 from dataclasses import dataclass
@@ -17,8 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from shellfem.errors import SelfshapeError
-from shellfem.boundary import (gauge_dofs, gauge_reaction, graph_laplacian, harmonic_extension, nearest_vertices,
-                               smooth_perturbation)
+from forward.outputs import write_summary, write_vtu
+from forward.supports import carry_support_motion, support_constraints
+from shellfem.boundary import gauge_dofs, gauge_reaction, smooth_perturbation
 from shellfem.model import ShellModel
 from shellfem.multilevel import prolongate
 from shellfem.sheet import Sheet
@@ -59,61 +60,6 @@ class Simulation:
         }
 
 
-def _support_constraints(sheet: Sheet, topo, supports, fabric, tol: float):
-    """(dofs, values) held by the pattern's supports (topo: the model's edge topology)."""
-    dofs, vals = [], []
-    sx, sy = fabric.stretch
-    for k, sup in enumerate(supports):
-        label = sup.label or f"[[support]] #{k + 1}"
-        if sup.boundary:
-            idx = np.unique(topo.edges[~topo.interior])
-        else:
-            idx = nearest_vertices(sheet.points, sup.points, tol, label)
-        if sup.fix == "z":
-            dofs.append(3 * idx + 2)
-            vals.append(np.zeros(len(idx)))
-        elif sup.fix == "xyz":
-            if sup.position is not None:
-                pos = np.asarray(sup.position, float).reshape(-1, 3)
-            else:
-                p = sheet.points[idx]
-                pos = np.column_stack([p[:, 0] / sx, p[:, 1] / sy, np.zeros(len(idx))])
-            dofs.append((3 * idx[:, None] + np.arange(3)).ravel())
-            vals.append(pos.ravel())
-        else:
-            raise SelfshapeError(f"{label}: fix must be \"z\" or \"xyz\", got {sup.fix!r}")
-    if not dofs:
-        return np.zeros(0, dtype=np.int64), np.zeros(0)
-    d, v = np.concatenate(dofs), np.concatenate(vals)
-    d, first = np.unique(d, return_index=True)
-    return d, v[first]
-
-
-def _carry_support_motion(model, plain, q, fixed, free):
-    """Supports that move ("xyz" at relaxed positions, or "z" on the ground under a perturbed
-    start) would leave their neighbours behind and invert or kink triangles: carry each held
-    component's motion into the free vertices harmonically, when that start has finite energy."""
-    n = model.n_vertices
-    held = np.zeros(3 * n, bool)
-    held[fixed] = True
-    held = held.reshape(n, 3)
-    movable = free[:3 * n].reshape(n, 3)
-    jump = (plain - q)[:3 * n].reshape(n, 3)
-    moved = plain.copy()
-    pos = moved[:3 * n].reshape(n, 3)
-    L = None
-    for c in range(3):
-        h = np.flatnonzero(held[:, c])
-        if len(h) == 0 or np.abs(jump[h, c]).max() == 0:
-            continue
-        L = graph_laplacian(n, model.topo.edges) if L is None else L
-        u = harmonic_extension(L, h, jump[h, c])[:, 0]
-        pos[:, c] += np.where(movable[:, c], u, 0.0)
-    if L is not None and np.isfinite(model.energy(moved)):
-        return moved
-    return plain
-
-
 def _level_setup(sheet: Sheet, fabric, plastic, supports, seed: int, tol_support: float | None):
     """(model, perturbed flat start, held DOFs, their values, gauge DOFs, free mask) of one mesh."""
     model = ShellModel.from_materials(sheet, fabric, plastic)
@@ -123,7 +69,7 @@ def _level_setup(sheet: Sheet, fabric, plastic, supports, seed: int, tol_support
     x[:, 2] += smooth_perturbation(sheet.points, seed, 0.01 * size)
     edge = np.linalg.norm(sheet.points[sheet.triangles[:, 1]] - sheet.points[sheet.triangles[:, 0]], axis=1)
     tol = tol_support if tol_support is not None else 2.0 * float(edge.max())
-    fixed, values = _support_constraints(sheet, model.topo, supports, fabric, tol)
+    fixed, values = support_constraints(sheet, model.topo, supports, fabric, tol)
     gravity = model.external_force is not None
     from shellfem.boundary import rigid_modes
     gauge = np.zeros(0, dtype=np.int64)
@@ -153,7 +99,7 @@ def _release(sheet, model, q, fixed, values, free, fabric, plastic, steps, newto
         model_k = model if k == steps else ShellModel.from_materials(sheet, fab_k, pla_k)
         plain = q.copy()
         plain[fixed] = start + (values - start) * t
-        plain = _carry_support_motion(model_k, plain, q, fixed, free)
+        plain = carry_support_motion(model_k, plain, q, fixed, free)
         guess = plain
         if q_prev is not None and result is not None and result.converged:
             # secant predictor, kept only if it beats the previous equilibrium: extrapolating
@@ -269,22 +215,6 @@ def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=F
                           metric_floor=pattern.metric_floor, coarse=coarse)
 
 
-def write_vtu(sim: Simulation, path: str):
-    """deployed.vtu: deployed surface with point data `reference` and cell data `region`,
-    `thickness_mm`, `side` (+1 front, -1 back, 0 fabric, 2 both), curvatures (1/mm)."""
-    import meshio
-    sheet = sim.sheet
-    k, H, K = sim.model.curvatures(sim.result.q)
-    ref = np.column_stack([sheet.points, np.zeros(sheet.n_vertices)])
-    cells = {"region": sheet.region, "thickness_mm": sheet.thickness, "side": sheet.side,
-             "thickness_front_mm": sheet.thickness_front, "thickness_back_mm": sheet.thickness_back,
-             "k1_per_mm": k[:, 0], "k2_per_mm": k[:, 1], "mean_curvature_per_mm": H,
-             "gaussian_curvature_per_mm2": K}
-    meshio.write(path, meshio.Mesh(sim.positions, [("triangle", sheet.triangles)],
-                                   point_data={"reference": ref},
-                                   cell_data={name: [np.asarray(v)] for name, v in cells.items()}))
-
-
 def simulate_pattern_file(pattern_path, out_dir, *, size_mm=None, seed=None, render=True, max_iterations=None,
                           verbose=False, coarse_levels=None) -> dict:
     """`selfshape simulate`: writes DIR/deployed.vtu, DIR/summary.json, DIR/deployed.png.
@@ -307,9 +237,7 @@ def simulate_pattern_file(pattern_path, out_dir, *, size_mm=None, seed=None, ren
             png = os.path.join(out_dir, "deployed.png")
             render_deployed(sim, png, title=os.path.basename(str(pattern_path)))
             written.append(png)
-        path = os.path.join(out_dir, "summary.json")
-        with open(path, "w") as f:
-            json.dump(summary, f, indent=2)
+        write_summary(summary, os.path.join(out_dir, "summary.json"))
         return summary
     except BaseException:
         for p in written:

@@ -45,7 +45,7 @@ def _cmd_simulate(a):
 
 
 def _cmd_design(a):
-    from inverse.pipeline import design_file
+    from inverse.design import design_file
     from inverse.printer import load_printer
     printer = load_printer(a.printer) if a.printer else None
     r = design_file(a.target, a.output, verify=a.verify, diagonal_mm=a.diagonal, stretch=a.stretch,
@@ -99,7 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-v", "--verbose", action="store_true")
     s.set_defaults(fn=_cmd_simulate)
 
-    d = sub.add_parser("design", help="inverse design from a target surface (inverse.pipeline.design_file)")
+    d = sub.add_parser("design", help="inverse design from a target surface (inverse.design.design_file)")
     d.add_argument("target")
     d.add_argument("-o", "--output", required=True)
     d.add_argument("--verify", action="store_true", help="simulate the design and report its deviation")

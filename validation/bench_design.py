@@ -1,7 +1,7 @@
 """Benchmark: the whole inverse-design pipeline on a ~100k-face refined target. ONE JSON line.
 
 The target (default the saddle) is Loop-refined with geometry.target.refine to the face count
-closest to --faces (levels_for_faces); `inverse.pipeline.design` then runs with that mesh as
+closest to --faces (levels_for_faces); `inverse.design.design` then runs with that mesh as
 its coarse level (no further refinement), so its multilevel flattening starts from the
 unrefined target as in `selfshape design`. Then the outputs are written as by design_file
 (pattern.toml, flat.vtu, G-code, pattern.png) to a temporary directory. Reported: wall and CPU
@@ -36,7 +36,11 @@ def main(argv=None):
     import tomli_w
 
     from geometry.flattening import flatten
-    from inverse import pipeline
+    from inverse.design import design
+    from inverse.plots import plot_pattern
+    from inverse.report import report_dict
+    from inverse.to_pattern import pattern_dict
+    from inverse.vtu import write_flat_vtu
     from inverse.gcode import ribbons_to_gcode_files
 
     w0, c0 = time.perf_counter(), time.process_time()
@@ -45,20 +49,20 @@ def main(argv=None):
     # design() refines by edge length; give it the edge length that yields exactly `levels`
     e = float(np.linalg.norm(V0[F0[:, [1, 2, 0]]] - V0[F0], axis=2).mean())
     edge_mm = e / 2 ** levels * 1.0001
-    d = pipeline.design(V0, F0, diagonal_mm=None, edge_mm=edge_mm)
+    d = design(V0, F0, diagonal_mm=None, edge_mm=edge_mm)
     wd, cd = time.perf_counter(), time.process_time()
     with tempfile.TemporaryDirectory() as tmp:
         with open(os.path.join(tmp, "pattern.toml"), "wb") as f:
-            tomli_w.dump(pipeline.pattern_dict(d), f)
-        pipeline.write_flat_vtu(d, os.path.join(tmp, "flat.vtu"))
+            tomli_w.dump(pattern_dict(d), f)
+        write_flat_vtu(d, os.path.join(tmp, "flat.vtu"))
         ribbons_to_gcode_files(d.ribbons, tmp)
-        pipeline.plot_pattern(d, os.path.join(tmp, "pattern.png"))
+        plot_pattern(d, os.path.join(tmp, "pattern.png"))
     ww, cw = time.perf_counter(), time.process_time()
     stages = {k: round(v, 3) for k, v in d.times.items()}
     stages["write"] = round(ww - wd, 3)
     flat_s = d.times["flatten"] + d.times["flatten_coarse"]
     flat_cpu = d.cpu_times["flatten"] + d.cpu_times["flatten_coarse"]
-    rep = pipeline.report_dict(d)
+    rep = report_dict(d)
     out = {
         "bench": "design", "target": os.path.basename(a.target), "n_faces": rep["n_faces"],
         "n_faces_input": rep["n_faces_input"], "refine_levels": rep["refine_levels"],

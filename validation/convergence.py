@@ -135,7 +135,7 @@ def gradient_case(size: float, length: float = 40.0, width: float = 3.0, t0: flo
 
 def rigid_align(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
     """X moved by the rotation + translation that best fits it to Y (Kabsch, least squares)."""
-    from inverse.pipeline import kabsch
+    from inverse.registration import kabsch
     R, t = kabsch(X, Y)
     return X @ R.T + t
 

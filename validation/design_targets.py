@@ -1,6 +1,6 @@
 """Design every target in meshes/targets (+ --verify where feasible) for the README.
 
-For each TARGET.obj: `inverse.pipeline.design_file` -> out/design/TARGET/ (all outputs), then
+For each TARGET.obj: `inverse.design.design_file` -> out/design/TARGET/ (all outputs), then
 docs/design/TARGET_{target,flat,ribbons,simulated}.png pictures and docs/design/table.md, a
 Markdown table with the seed's Table 5.1 columns and the simulated deviation. Prints ONE JSON
 line per target and a final summary line.
@@ -118,7 +118,7 @@ def main(argv=None):
         return
     np.seterr(all="ignore")
     from geometry.target import load_target
-    from inverse.pipeline import design_file
+    from inverse.design import design_file
 
     os.makedirs(a.docs, exist_ok=True)
     paths = sorted(glob.glob(TARGETS))

@@ -166,7 +166,8 @@ def run(names=None, out_root="out/gallery", docs="docs/gallery", examples="examp
     import tomli_w
 
     from geometry.patterns import load_pattern
-    from forward.simulate import simulate, write_vtu
+    from forward.outputs import write_vtu
+    from forward.simulate import simulate
     os.makedirs(examples, exist_ok=True)
     os.makedirs(docs, exist_ok=True)
     results = {}

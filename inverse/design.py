@@ -1,0 +1,403 @@
+"""Inverse design, seed chapter 5: a target surface -> a printable ribbon pattern (`selfshape design`).
+
+    design(V, F)            arrays in, a Design record out (no files)
+    design_file(path, dir)  the CLI verb: writes pattern.toml, flat.vtu, front/back.gcode,
+                            pattern.png, report.json (and with verify deployed.vtu, verify.png)
+
+Stages (times in Design.times / report.json "stages_s"):
+ 1. check (disk topology, one-line errors), centre and scale to a bounding-box diagonal
+    (default 110 mm), Loop-refine until the mean edge is <= ``edge_mm`` (stripes of period
+    2 mu2 >= 7.8 mm need several edges per period; the seed's meshes had 40k-160k faces);
+ 2. principal curvatures and the Knoppel 2013 line field (seed lambda);
+ 3. flattening with bounded directional stretch (geometry.flattening, bounds Sec. 5.3.4 from
+    Eq. 5.15). Stop rule as the seed states it (Sec. 5.3.4): the *average* change of sigma1
+    and of sigma2 between iterations below 1e-6, i.e. mean |d sigma| over the faces (flatten
+    stop="mean"; the alternative ||d sigma||_2 / m is sqrt(m) times looser). Initialisation
+    (seed: Tutte + SLIM): on the unrefined mesh Tutte + 2 SLIM iterations and the bounded
+    flattening there, prolongated to the refined mesh (midpoint upsampling of the flat
+    positions: same connectivity as Loop) as the start of the fine solve; without refinement,
+    Tutte + 2 SLIM iterations on the mesh itself;
+ 4. ribbon layout (inverse.layout: Eq. 5.15 spacing, two stripe fields, staggered dashes,
+    clipping, trimming > 25 deg, front/back split by the sign of the target normal curvature
+    along the ribbons, pieces < 2 mm dropped), stretches clamped into the bounds first, on the
+    coarsest hierarchy level with edges <= ``layout_edge_mm`` (the stripes need a few edges per
+    period, not the flattening's resolution); then the ribbons are kept ``gap_mm`` apart and
+    inside the outline (inverse.separation) so that the pattern meshes without slivers;
+ 5. thickness per ribbon from the curvature law (inverse.thickness_law) at the ribbon's mean
+    |kappa| and transverse spacing mu2, rounded to layer-height multiples.
+
+The files: inverse.to_pattern (pattern.toml), inverse.vtu (flat.vtu, deployed.vtu),
+inverse.plots (pattern.png, verify.png), inverse.report (report.json), inverse.gcode
+(front/back.gcode); the verification: inverse.verify with inverse.registration.
+
+Units: mm, 1/mm; the flat pattern is in printed (pre-stretched) mm.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from inverse.plots import plot_pattern
+from inverse.report import report_dict
+from inverse.separation import separate_ribbons, simplify_paths
+from inverse.to_pattern import pattern_dict
+from inverse.verify import verify_design
+from inverse.vtu import write_flat_vtu
+from shellfem.errors import SelfshapeError
+
+RIBBON_LENGTH_MM, RIBBON_WIDTH_MM = 15.0, 1.5
+#: Every file design_file may write (removed from the output directory before a new run writes).
+OUTPUTS = ("report.json", "pattern.toml", "flat.vtu", "front.gcode", "back.gcode", "pattern.png", "deployed.vtu",
+           "verify.png")
+
+
+# ----------------------------------------------------------------------------- record
+@dataclass
+class Design:
+    """Everything the pipeline computed (mm). V, F: scaled and refined target; V_input, F_input:
+    the scaled input before refinement; curvature, field: geometry.curvature / fields records;
+    flat: geometry.flattening.FlatResult; kappa1 (m,): signed target normal curvature along the
+    ribbon direction (> 0: front); outline (k, 2): flattened boundary polygon; ribbons:
+    geometry.elements.Ribbon list with thickness_mm and side; thickness_info: clamp counts per
+    side; times: seconds per stage."""
+    V: np.ndarray
+    F: np.ndarray
+    V_input: np.ndarray
+    F_input: np.ndarray
+    curvature: object
+    field: object
+    flat: object
+    kappa1: np.ndarray
+    outline: np.ndarray
+    ribbons: list
+    stretch: float
+    bounds: tuple
+    refine_levels: int
+    layout_levels: int = 0
+    lam: float = 0.0
+    stop: str = "mean"
+    thickness_info: dict = field(default_factory=dict)
+    law_source: str = ""
+    law_plastic_mpa: float | None = None     # the plastic modulus the law holds for (MPa), if it says
+    times: dict = field(default_factory=dict)
+    cpu_times: dict = field(default_factory=dict)
+    coarse_iterations: int = 0
+    separation: dict = field(default_factory=dict)
+
+
+# ----------------------------------------------------------------------------- stages
+def refine_levels_for_edge(V, F, edge_mm: float, max_faces: int = 600_000) -> int:
+    """Loop levels (each halves the edges, x4 faces) until the mean edge is <= edge_mm, at most
+    while the face count stays <= max_faces."""
+    e = np.linalg.norm(V[F[:, [1, 2, 0]]] - V[F], axis=2).mean()
+    lev = 0
+    while e > edge_mm and len(F) * 4 ** (lev + 1) <= max_faces:
+        e *= 0.5
+        lev += 1
+    return lev
+
+
+def normal_curvature_along(curv, dirs: np.ndarray) -> np.ndarray:
+    """Euler's formula per face: k1 cos^2 + k2 sin^2 of the angle between dirs (m, 3) and d1."""
+    d = dirs / np.linalg.norm(dirs, axis=1)[:, None]
+    c2 = np.einsum("ij,ij->i", d, curv.face_d1) ** 2
+    return curv.face_k1 * c2 + curv.face_k2 * (1.0 - c2)
+
+
+def boundary_polygon(uv: np.ndarray, F: np.ndarray, simplify_mm: float = 0.02) -> np.ndarray:
+    """The flat mesh's boundary loop as a simple polygon (k, 2), counter-clockwise, simplified
+    within ``simplify_mm``; SelfshapeError if it self-intersects (a flipped flattening)."""
+    import igl
+    import shapely
+
+    loop = igl.boundary_loop(np.ascontiguousarray(F, dtype=np.int64))
+    poly = shapely.Polygon(uv[loop])
+    if not poly.is_valid:
+        raise SelfshapeError(f"flattening: the flat boundary self-intersects ({shapely.is_valid_reason(poly)})")
+    if simplify_mm > 0:
+        simple = poly.simplify(simplify_mm, preserve_topology=True)
+        if simple.is_valid and simple.geom_type == "Polygon":
+            poly = simple
+    poly = shapely.geometry.polygon.orient(poly, 1.0)
+    return np.asarray(poly.exterior.coords)[:-1]
+
+
+def flatten_multilevel(V0, F0, levels, V, F, dir1, bounds, lam, curv0=None, stop="mean", max_iter=1000):
+    """Bounded flattening of the refined mesh (V, F) started from the flattening of the coarse
+    mesh (V0, F0) prolongated by midpoint upsampling (levels = Loop levels between them).
+    Returns (FlatResult, coarse FlatResult or None, wall and CPU seconds of the coarse stage)."""
+    import igl
+
+    from geometry.curvature import principal_curvature
+    from geometry.fields import curvature_line_field
+    from geometry.flattening import flatten
+
+    if levels == 0:
+        return flatten(V, F, dir1, bounds, stop=stop, slim_iterations=2, max_iter=max_iter), None, 0.0, 0.0
+    t0, p0 = time.perf_counter(), time.process_time()
+    c0 = principal_curvature(V0, F0) if curv0 is None else curv0
+    lf0 = curvature_line_field(V0, F0, lam, c0)
+    coarse = flatten(V0, F0, lf0.face_dirs, bounds, stop=stop, slim_iterations=2)
+    uv3 = np.column_stack([coarse.uv, np.zeros(len(coarse.uv))])
+    uv = igl.upsample(uv3, np.ascontiguousarray(F0, dtype=np.int64), int(levels))[0][:, :2]
+    t1, c1 = time.perf_counter() - t0, time.process_time() - p0
+    fine = flatten(V, F, dir1, bounds, stop=stop, uv_init=uv, isometric_iterations=0, max_iter=max_iter)
+    return fine, coarse, t1, c1
+
+
+def assign_thickness(ribbons, law, layer_height_mm: float) -> dict:
+    """Set ribbon.thickness_mm from the law at (meta kappa_mean_abs, meta mu2, side); returns the
+    clamp counts per side."""
+    from inverse.thickness_law import thickness_for_curvature
+
+    info = {}
+    for side in ("front", "back"):
+        idx = [i for i, r in enumerate(ribbons) if r.side == side]
+        if not idx:
+            continue
+        k = np.array([ribbons[i].meta["kappa_mean_abs"] for i in idx])
+        mu2 = np.array([ribbons[i].meta["mu2"] for i in idx])
+        t, inf = thickness_for_curvature(law, k, mu2, side, layer_height_mm)
+        for i, ti in zip(idx, t):
+            ribbons[i].thickness_mm = float(round(ti, 6))
+        info[side] = inf
+    return info
+
+
+def coarsen_for_layout(F0, levels: int, coarse_levels: int, uv, area, dir1, sigma1, sigma2, kappa1):
+    """The flat mesh and per-face fields at Loop level ``coarse_levels`` <= ``levels`` of the
+    hierarchy built from F0. Loop/midpoint subdivision keep the coarser vertices first and put
+    the 4^k children of face f at rows f 4^k .. (f + 1) 4^k - 1, so the coarse flat mesh is
+    uv[:n_coarse] and per-face fields are area-weighted means over the children (the line
+    direction dir1 through its doubled angle, sign-free). Returns (uv, F, dir1, sigma1,
+    sigma2, kappa1) at the coarse level."""
+    import igl
+
+    F0 = np.ascontiguousarray(F0, dtype=np.int64)
+    if coarse_levels == levels:
+        return uv, None, dir1, sigma1, sigma2, kappa1
+    if coarse_levels > 0:
+        Fc = igl.upsample(np.zeros((int(F0.max()) + 1, 3)), F0, int(coarse_levels))[1]
+    else:
+        Fc = F0
+    k = 4 ** (levels - coarse_levels)
+    w = area.reshape(len(Fc), k)
+    wsum = w.sum(axis=1)
+    mean = lambda v: (w * v.reshape(len(Fc), k)).sum(axis=1) / wsum  # noqa: E731
+    ang2 = 2.0 * np.arctan2(dir1[:, 1], dir1[:, 0])
+    a = 0.5 * np.arctan2(mean(np.sin(ang2)), mean(np.cos(ang2)))
+    return (uv[: int(Fc.max()) + 1], Fc, np.column_stack([np.cos(a), np.sin(a)]), mean(sigma1), mean(sigma2),
+            mean(kappa1))
+
+
+@dataclass(frozen=True)
+class DesignOptions:
+    """The choices of an inverse design (mm, 1/mm).
+
+    stretch: fabric pre-stretch s (> 1). diagonal_mm: scale the target to this bounding-box
+    diagonal (None: V is already in mm). printer: inverse.printer.Printer (its layer height
+    rounds the thickness; None: the default printer). lam: the seed's line-field lambda
+    (<= 0, 1/mm^2). thickness_law: a ThicknessLaw, a CSV path or None (the shipped law).
+    edge_mm: Loop-refine until the mean edge is below it (None: no refinement), while the
+    face count stays <= max_faces. bounds: (s1min, s1max, s2min, s2max), default
+    stretch_bounds(stretch, ribbon_length, ribbon_width). ribbon_length, ribbon_width: the
+    printed dash size. seed: seed of the stagger of the dashes (also the pattern's [solver]
+    seed). stop, flatten_max_iter: the flattening's stop rule ("mean": the seed's, "norm":
+    ||d sigma||_2 / m) and its iteration cap on the fine mesh (reported as flatten_converged =
+    false when reached). gap_mm: minimum distance between printed ribbons and to the outline
+    (`inverse.separation.separate_ribbons`). layout_edge_mm: the ribbon layout runs on the
+    coarsest level of the refinement hierarchy whose mean edge is below it (None: on the
+    flattening's mesh)."""
+    stretch: float = 1.6
+    diagonal_mm: float | None = 110.0
+    printer: object = None
+    lam: float = 0.0
+    thickness_law: object = None
+    edge_mm: float | None = 1.0
+    max_faces: int = 600_000
+    bounds: tuple | None = None
+    ribbon_length: float = RIBBON_LENGTH_MM
+    ribbon_width: float = RIBBON_WIDTH_MM
+    seed: int = 0
+    stop: str = "mean"
+    flatten_max_iter: int = 1000
+    gap_mm: float = 0.5
+    layout_edge_mm: float | None = 2.0
+
+
+def design(V, F, options: DesignOptions | None = None, *, where: str = "target", **overrides) -> Design:
+    """Inverse design of a disk-topology target (V (n, 3), F (m, 3)); see the module doc.
+
+    ``options`` (default DesignOptions()) with any of its fields overridden by keyword, e.g.
+    ``design(V, F, stretch=1.4, edge_mm=None)``; ``where`` names the target in messages."""
+    from geometry.curvature import principal_curvature
+    from geometry.fields import curvature_line_field
+    from geometry.flattening import stretch_bounds
+    from geometry.target import check_disk, normalize, refine
+    from inverse.layout import ribbon_layout
+    from inverse.printer import Printer
+    from inverse.thickness_law import ThicknessLaw, load_thickness_law
+
+    o = replace(options or DesignOptions(), **overrides)
+    stretch, printer, thickness_law, bounds = o.stretch, o.printer, o.thickness_law, o.bounds
+    ribbon_length, ribbon_width, stop, gap_mm = o.ribbon_length, o.ribbon_width, o.stop, o.gap_mm
+    times, cpu = {}, {}
+    t, c = time.perf_counter(), time.process_time()
+
+    def lap(name):
+        nonlocal t, c
+        now, cnow = time.perf_counter(), time.process_time()
+        times[name], cpu[name] = now - t, cnow - c
+        t, c = now, cnow
+
+    if not (isinstance(stretch, (int, float)) and math.isfinite(stretch) and stretch > 1.0):
+        raise SelfshapeError(f"design: fabric stretch must be a number > 1, got {stretch!r}")
+    printer = Printer() if printer is None else printer
+    law = thickness_law if isinstance(thickness_law, ThicknessLaw) else load_thickness_law(thickness_law)
+    bounds = stretch_bounds(stretch, ribbon_length, ribbon_width) if bounds is None else tuple(bounds)
+    V0, F0 = check_disk(V, F, where=where)
+    V0 = normalize(V0, o.diagonal_mm)
+    total_area = float(0.5 * np.linalg.norm(np.cross(V0[F0[:, 1]] - V0[F0[:, 0]], V0[F0[:, 2]] - V0[F0[:, 0]]),
+                                            axis=1).sum())
+    if not total_area > 0:
+        raise SelfshapeError(f"{where}: zero total area")
+    levels = 0 if o.edge_mm is None else refine_levels_for_edge(V0, F0, o.edge_mm, o.max_faces)
+    Vf, Ff = refine(V0, F0, levels) if levels else (V0, F0)
+    Ff = np.ascontiguousarray(Ff, dtype=np.int64)
+    lap("load_refine")
+
+    curv = principal_curvature(Vf, Ff)
+    lap("curvature")
+    lf = curvature_line_field(Vf, Ff, o.lam, curv)
+    lap("field")
+    flat, coarse, t_coarse, c_coarse = flatten_multilevel(V0, F0, levels, Vf, Ff, lf.face_dirs, bounds, o.lam,
+                                                          stop=stop, max_iter=o.flatten_max_iter)
+    times["flatten_coarse"] = t_coarse
+    lap("flatten")
+    times["flatten"] -= t_coarse
+    cpu["flatten_coarse"], cpu["flatten"] = c_coarse, cpu["flatten"] - c_coarse
+    if flat.flipped:
+        raise SelfshapeError(f"{where}: the flattening has {flat.flipped} flipped triangles; "
+                             f"the surface cannot be flattened within the stretch bounds")
+
+    kappa1 = normal_curvature_along(curv, lf.face_dirs)
+    outline = boundary_polygon(flat.uv, Ff)
+    s1 = np.clip(flat.sigma1, bounds[0], bounds[1])
+    s2 = np.clip(flat.sigma2, bounds[2], bounds[3])
+    # the stripes need a few edges per period (2 mu2 >= 7.8 mm), not the flattening's resolution
+    lay_levels = levels
+    if o.layout_edge_mm is not None:
+        e0 = float(np.linalg.norm(V0[F0[:, [1, 2, 0]]] - V0[F0], axis=2).mean())
+        while lay_levels > 0 and e0 / 2 ** (lay_levels - 1) <= o.layout_edge_mm:
+            lay_levels -= 1
+    area = 0.5 * np.linalg.norm(np.cross(Vf[Ff[:, 1]] - Vf[Ff[:, 0]], Vf[Ff[:, 2]] - Vf[Ff[:, 0]]), axis=1)
+    uv_l, F_l, d_l, s1_l, s2_l, k_l = coarsen_for_layout(F0, levels, lay_levels, flat.uv, area, flat.dir1,
+                                                         s1, s2, kappa1)
+    ribbons = ribbon_layout(uv_l, Ff if F_l is None else F_l, d_l, s1_l, s2_l, k_l, stretch, outline=outline,
+                            ribbon_length=ribbon_length, ribbon_width=ribbon_width, seed=o.seed)
+    if not ribbons:
+        raise SelfshapeError(f"{where}: the layout produced no ribbons (surface too small for "
+                             f"{ribbon_length:g} x {ribbon_width:g} mm ribbons?)")
+    simplify_paths(ribbons, 0.01)
+    ribbons, sep = separate_ribbons(ribbons, outline, gap_mm, min_length=2.0)
+    if not ribbons:
+        raise SelfshapeError(f"{where}: no ribbon is left after keeping them {gap_mm:g} mm apart")
+    lap("layout")
+    tinfo = assign_thickness(ribbons, law, printer.layer_height_mm)
+    lap("thickness")
+    return Design(V=Vf, F=Ff, V_input=V0, F_input=F0, curvature=curv, field=lf, flat=flat, kappa1=kappa1,
+                  outline=outline, ribbons=ribbons, stretch=float(stretch), bounds=tuple(bounds),
+                  refine_levels=levels, layout_levels=lay_levels, lam=float(o.lam), stop=stop, thickness_info=tinfo,
+                  law_source=law.source, law_plastic_mpa=law.plastic_young_modulus_mpa,
+                  times=times, cpu_times=cpu, separation=sep,
+                  coarse_iterations=coarse.iterations if coarse is not None else 0)
+
+
+# ----------------------------------------------------------------------------- the verb
+def design_file(target_path, out_dir, options: DesignOptions | None = None, *, verify: bool = False,
+                mesh_size_mm: float = 2.0, mesh_across: float | None = None, verify_iterations: int | None = None,
+                metric_floor: float | None = None, **overrides) -> dict:
+    """`selfshape design TARGET -o DIR`: writes DIR/pattern.toml, flat.vtu, front.gcode (and
+    back.gcode when a ribbon is on the back), pattern.png and report.json (last); with
+    ``verify`` also deployed.vtu and verify.png and the deviation in report.json.
+
+    ``options``/``overrides``: the design's DesignOptions, as for `design`. mesh_size_mm,
+    mesh_across: pattern.toml's [mesh]. verify_iterations: Newton cap of the verification,
+    written to pattern.toml's [solver] max_iterations (default: the simulator's 300);
+    metric_floor: [solver] metric_floor (default: the simulator's 10). The verification
+    simulates the written pattern from memory (`inverse.verify.verify_design`). time_s is the
+    design time (read to written outputs, Table 5.1's "Time"), total_time_s includes the
+    verification. Outputs of an earlier run in the directory are removed first; on failure
+    every file this run wrote is removed. Returns the report dict."""
+    import tomli_w
+
+    from geometry.target import read_mesh
+    from inverse.gcode import ribbons_to_gcode_files
+
+    t_start = time.perf_counter()
+    from geometry.patterns import parse_pattern, solver_options
+    # the values go to pattern.toml's [solver]: checked as load_pattern will check them
+    solver_options({k: v for k, v in (("max_iterations", verify_iterations), ("metric_floor", metric_floor))
+                    if v is not None}, "verification [solver] (--verify-iterations, --metric-floor)")
+    name = os.path.basename(str(target_path))
+    V, F = read_mesh(target_path)
+    out_dir = os.fspath(out_dir)
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise SelfshapeError(f"{out_dir}: exists and is not a directory")
+    created = not os.path.isdir(out_dir)
+    written: list = []
+    try:
+        o = replace(options or DesignOptions(), **overrides)
+        d = design(V, F, o, where=name)
+        t = time.perf_counter()
+        os.makedirs(out_dir, exist_ok=True)
+        for stale in OUTPUTS:                 # an earlier run's files must not mix with this run's
+            if os.path.isfile(os.path.join(out_dir, stale)):
+                os.remove(os.path.join(out_dir, stale))
+        p = p_toml = os.path.join(out_dir, "pattern.toml")
+        written.append(p)
+        raw = pattern_dict(d, mesh_size_mm=mesh_size_mm, mesh_across=mesh_across, seed=o.seed, target_name=name,
+                           max_iterations=verify_iterations, metric_floor=metric_floor)
+        with open(p, "wb") as f:
+            tomli_w.dump(raw, f)
+        p = os.path.join(out_dir, "flat.vtu")
+        written.append(p)
+        write_flat_vtu(d, p)
+        for side in ("front", "back"):
+            written.append(os.path.join(out_dir, f"{side}.gcode"))
+        ribbons_to_gcode_files(d.ribbons, out_dir, o.printer)
+        p = os.path.join(out_dir, "pattern.png")
+        written.append(p)
+        plot_pattern(d, p, title=name)
+        d.times["write"] = time.perf_counter() - t
+        rep = {"target": os.path.abspath(str(target_path)), "time_s": None}
+        rep.update(report_dict(d))
+        rep["stages_s"] = {k: round(v, 3) for k, v in d.times.items()}
+        rep["stages_cpu_s"] = {k: round(v, 3) for k, v in d.cpu_times.items()}
+        rep["time_s"] = round(time.perf_counter() - t_start, 3)
+        if verify:
+            t = time.perf_counter()
+            pattern = parse_pattern(raw, p_toml, os.path.dirname(os.path.abspath(p_toml)))
+            rep.update(verify_design(d, pattern, out_dir, written))
+            rep["stages_s"]["verify"] = round(time.perf_counter() - t, 3)
+        rep["total_time_s"] = round(time.perf_counter() - t_start, 3)
+        rep["files"] = sorted(os.path.basename(p) for p in written if os.path.exists(p)) + ["report.json"]
+        p = os.path.join(out_dir, "report.json")
+        written.append(p)
+        tmp = p + ".tmp"
+        with open(tmp, "w") as f:
+            json.dump(rep, f, indent=2)
+        os.replace(tmp, p)
+        return rep
+    except BaseException:
+        for p in written + [os.path.join(out_dir, "report.json.tmp")]:
+            if os.path.exists(p):
+                os.remove(p)
+        if created and os.path.isdir(out_dir) and not os.listdir(out_dir):
+            os.rmdir(out_dir)
+        raise

@@ -1,0 +1,71 @@
+"""Pictures of a design (PNG, off-screen matplotlib): pattern.png (the printed pattern to scale)
+and verify.png (the simulated deployment against the target)."""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from inverse.design import Design
+
+
+def plot_pattern(d: Design, path: str, title: str = ""):
+    """pattern.png: outline and ribbons to scale (front red, back blue, darker = thicker)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import shapely
+    from matplotlib.collections import PolyCollection
+    from matplotlib.colors import to_rgb
+
+    ext = d.outline.max(0) - d.outline.min(0)
+    fig, ax = plt.subplots(figsize=(8, 8 * max(ext[1], 1) / max(ext[0], 1) + 0.6))
+    ax.fill(*d.outline.T, facecolor="0.94", edgecolor="0.3", lw=0.8)
+    th = np.array([r.thickness_mm for r in d.ribbons])
+    lo = th.min()
+    polys, cols = [], []
+    for r, t in zip(d.ribbons, th):
+        g = shapely.LineString(r.path).buffer(r.width_mm / 2, cap_style="flat", join_style="mitre")
+        for part in getattr(g, "geoms", [g]):
+            if part.geom_type == "Polygon" and not part.is_empty:
+                polys.append(np.asarray(part.exterior.coords))
+                base = np.array(to_rgb("tab:red" if r.side == "front" else "tab:blue"))
+                shade = 0.3 + 0.7 * t / th.max()
+                cols.append(1 - shade * (1 - base))
+    ax.add_collection(PolyCollection(polys, facecolors=cols, edgecolors="none"))
+    ax.set_aspect("equal")
+    ax.autoscale_view()
+    n_f = sum(r.side == "front" for r in d.ribbons)
+    ax.set_title(f"{title}  {n_f} front (red), {len(d.ribbons) - n_f} back (blue); "
+                 f"thickness {lo:.1f}-{th.max():.1f} mm (darker = thicker)", fontsize=9)
+    ax.set_xlabel("x (printed mm)")
+    ax.set_ylabel("y (printed mm)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+def plot_verify(d: Design, X, T, pct, path: str):
+    """verify.png: the registered simulated surface coloured by distance to the target (%),
+    the target as a grey wireframe, two views."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = plt.figure(figsize=(11, 5))
+    col = pct[T].mean(axis=1)
+    for k, (elev, azim) in enumerate(((25, -60), (70, 30))):
+        ax = fig.add_subplot(1, 2, k + 1, projection="3d")
+        surf = ax.plot_trisurf(X[:, 0], X[:, 1], X[:, 2], triangles=T, cmap="viridis", linewidth=0)
+        surf.set_array(col)
+        surf.set_clim(0, max(float(pct.max()), 1e-9))
+        ax.plot_trisurf(d.V_input[:, 0], d.V_input[:, 1], d.V_input[:, 2], triangles=d.F_input,
+                        color=(0.5, 0.5, 0.5, 0.08), edgecolor=(0.3, 0.3, 0.3, 0.15), linewidth=0.2)
+        ax.view_init(elev, azim)
+        ax.set_box_aspect(np.ptp(np.vstack([X, d.V_input]), axis=0))
+        ax.set_axis_off()
+    fig.colorbar(surf, ax=fig.axes, shrink=0.6, label="distance to target (% of bbox diagonal)")
+    fig.suptitle(f"simulated (colour) vs target (grey): mean {pct.mean():.2f} %, max {pct.max():.2f} %")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

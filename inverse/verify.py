@@ -1,0 +1,66 @@
+"""Verification of a design: simulate the designed pattern (forward.simulate), register the
+deployed surface rigidly to the target and measure closest-point distances both ways, in % of
+the target's bounding-box diagonal (mm for the diagonal)."""
+from __future__ import annotations
+
+import os
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from shellfem.errors import SelfshapeError
+
+if TYPE_CHECKING:
+    from inverse.design import Design
+
+
+def verify_design(d: Design, pattern, out_dir: str | None = None, written: list | None = None) -> dict:
+    """Simulate ``pattern`` (the geometry.patterns.Pattern of the design d), register the deployed
+    surface to the target and return the report entries: verify_converged, verify_reason,
+    Newton iterations, deviation_pct_bbox [mean, max] (deployed -> target),
+    deviation_target_to_deployed_pct_bbox [mean, max], deviation_p99_pct_bbox. A simulation
+    that fails or does not converge reports no deviation. With ``out_dir``, deployed.vtu and
+    verify.png are written there and their paths appended to ``written``."""
+    import igl
+
+    from forward.simulate import simulate
+    from inverse.plots import plot_verify
+    from inverse.registration import flat_to_target, register
+    from inverse.vtu import write_deployed_vtu
+
+    t0 = time.perf_counter()
+    try:
+        sim = simulate(pattern)
+    except SelfshapeError as e:      # the design stays valid; the verification could not run
+        return {"verify_converged": False, "verify_reason": f"simulation failed: {e}", "deviation_pct_bbox": None,
+                "verify_note": "the simulation could not run; no deviation reported",
+                "verify_simulation_s": round(time.perf_counter() - t0, 2)}
+    s = sim.summary()
+    out = {"verify_converged": bool(s["converged"]), "verify_reason": s["reason"],
+           "verify_newton_iterations": s["newton_iterations"], "verify_n_triangles": s["n_triangles"],
+           "verify_simulation_s": round(time.perf_counter() - t0, 2)}
+    if not s["converged"]:
+        out["deviation_pct_bbox"] = None
+        out["verify_note"] = f"simulation did not converge ({s['reason']}); no deviation reported"
+        return out
+    X = sim.positions
+    diag = float(np.linalg.norm(d.V_input.max(0) - d.V_input.min(0)))
+    Y0 = flat_to_target(sim.sheet.points, d.flat.uv, d.F, d.V)
+    Xr, dist, icp_it = register(X, d.V_input, d.F_input, Y0)
+    pct = 100.0 * dist / diag
+    back = 100.0 * np.sqrt(igl.point_mesh_squared_distance(d.V_input, Xr, np.ascontiguousarray(
+        sim.sheet.triangles, dtype=np.int64))[0]) / diag
+    out.update({"deviation_pct_bbox": [float(pct.mean()), float(pct.max())],
+                "deviation_target_to_deployed_pct_bbox": [float(back.mean()), float(back.max())],
+                "deviation_p99_pct_bbox": float(np.percentile(pct, 99)), "icp_iterations": int(icp_it),
+                "bbox_diagonal_mm": diag})
+    if out_dir is not None:
+        written = [] if written is None else written
+        p = os.path.join(out_dir, "deployed.vtu")
+        written.append(p)
+        write_deployed_vtu(p, Xr, sim.sheet, pct)
+        p = os.path.join(out_dir, "verify.png")
+        written.append(p)
+        plot_verify(d, Xr, sim.sheet.triangles, pct, p)
+    return out
