@@ -16,7 +16,7 @@ import tempfile
 
 from geometry.patterns import load_pattern
 from geometry.target import sphere_cap
-from inverse.pipeline import design_file
+from inverse.design import design_file
 
 V, F = sphere_cap(radius=40.0, half_angle_deg=30.0, n_radial=8)
 
