@@ -21,7 +21,7 @@ class BlockScatter:
 
     free: boolean mask over all DOFs; rows/columns of fixed DOFs are dropped.
     upper: keep only the upper triangle (row <= column) of the symmetric result: half the
-    gather and sum work; what the Cholesky backends read (see shellfem.solver.SparseSPD).
+    gather and sum work; what the Cholesky backends read (see shellfem.linalg.SparseSPD).
     """
 
     def __init__(self, index_sets, n_dofs: int, free: np.ndarray, upper: bool = False):

@@ -31,7 +31,7 @@ def test_all_entries_round_trip(tmp_path):
     assert f.stretch == (1.6, 1.2) and f.thickness == 0.7 and f.model == "orthotropic"
     assert (f.young_modulus, f.poisson, f.bending_stiffness, f.course_angle_deg, f.areal_weight) == \
         (1.2, 0.25, 0.02, 15.0, 1e-6)
-    assert f.orthotropic == dict(a1=0.03, a2=0.09, a3=0.06, b1=0.03, b2=0.02, g1=1.5, g2=1.5)
+    assert f.parameters["orthotropic"] == dict(a1=0.03, a2=0.09, a3=0.06, b1=0.03, b2=0.02, g1=1.5, g2=1.5)
     assert (p.plastic.young_modulus, p.plastic.poisson, p.plastic.rest_curvature) == (70.0, 0.45, 0.01)
     assert p.outline.area == 2400.0 and p.outline.bounds == (0.0, 0.0, 60.0, 40.0)
     assert p.mesh_size == 2.0 and p.seed == 7 and p.raw["solver"]["max_iterations"] == 50 and p.max_iterations == 50
