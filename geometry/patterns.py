@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import shapely
 import tomli_w
-from shapely.geometry import LineString, Point, Polygon
+from shapely.geometry import LineString, Polygon
 
 from geometry import outlines
 from geometry.elements import PrintedElement, Support
@@ -158,6 +158,15 @@ def _array_of_tables(raw: dict, name: str, src: str) -> list:
     return [_table(t, f"{src}: [[{name}]] #{i + 1}", KEYS[name]) for i, t in enumerate(v)]
 
 
+def _entries(raw: dict, name: str, src: str, required: str):
+    """(1-based index, where, table) of each [[name]] entry, each holding ``required``."""
+    for i, t in enumerate(_array_of_tables(raw, name, src)):
+        where = f"{src}: [[{name}]] #{i + 1}"
+        if required not in t:
+            raise SelfshapeError(f"{where}: missing {required}")
+        yield i + 1, where, t
+
+
 def _rewrap(where: str, fn, *args, **kw):
     """Call a record constructor, prefixing its SelfshapeError with the file."""
     try:
@@ -220,15 +229,12 @@ def _plastic(raw: dict, src: str) -> Plastic:
 
 def _regions(raw, src, outline) -> list[PrintedElement]:
     out = []
-    for i, t in enumerate(_array_of_tables(raw, "region", src)):
-        where = f"{src}: [[region]] #{i + 1}"
-        if "polygon" not in t:
-            raise SelfshapeError(f"{where}: missing polygon")
+    for i, where, t in _entries(raw, "region", src, "polygon"):
         poly = outlines.polygon(t["polygon"], where)
         h = _num(t, "thickness_mm", where, lo=0.0, lo_open=True)
         side = _choice(t, "side", where, ("front", "back"), "front")
         outlines.check_inside(outline, poly, where)
-        out.append(PrintedElement(poly, h, side, "region", f"region #{i + 1}"))
+        out.append(PrintedElement(poly, h, side, "region", f"region #{i}"))
     return out
 
 
@@ -247,10 +253,7 @@ def ribbon_polygon(path: np.ndarray, width: float, ends: str = "square", segment
 
 def _ribbons(raw, src, outline) -> list[PrintedElement]:
     out = []
-    for i, t in enumerate(_array_of_tables(raw, "ribbon", src)):
-        where = f"{src}: [[ribbon]] #{i + 1}"
-        if "path" not in t:
-            raise SelfshapeError(f"{where}: missing path")
+    for i, where, t in _entries(raw, "ribbon", src, "path"):
         path = outlines.as_points(t["path"], f"{where} path", 2)
         keep = np.ones(len(path), bool)
         keep[1:] = np.any(path[1:] != path[:-1], axis=1)
@@ -268,7 +271,7 @@ def _ribbons(raw, src, outline) -> list[PrintedElement]:
         clipped = _polygonal(clipped)
         if clipped.is_empty or clipped.area <= 1e-12 * geom.area:
             raise SelfshapeError(f"{where}: ribbon lies entirely outside the fabric")
-        out.append(PrintedElement(clipped, h, side, "ribbon", f"ribbon #{i + 1}"))
+        out.append(PrintedElement(clipped, h, side, "ribbon", f"ribbon #{i}"))
     return out
 
 
