@@ -4,7 +4,10 @@ z = (a, b) with b = b(h, psi) the discrete second fundamental form of shellfem.b
 W(z) = the layered quadratic of shellfem.layers (kept as a sum of squares, layer by layer)
 + an optional membrane term W_m(a) (a fabric model of shellfem.materials). The chain rule
 z(a, h, psi) -> y runs in one compiled loop over the faces with the quadratic (the
-vectorised version's (m, 6, 9) products cost 20 of its 26 ms at 21k faces).
+vectorised version's (m, 6, 9) products cost 20 of its 26 ms at 21k faces). The kernel
+inlines compiled helpers of other modules (the bending module's edge coefficients,
+shellfem.kinematics.sandwich_into), whose edits numba's on-disk cache does not see: touch
+this file after changing them.
 """
 from __future__ import annotations
 

@@ -9,7 +9,10 @@ derivation and the sign convention. b is linear in h, so d2 beta / dh2 = 0.
 
 The edge coefficient and its derivatives are written once, in :func:`edge_coefficients`:
 compiled (numba) for the face-energy kernel, evaluated by numpy on whole arrays by
-:func:`coefficients` (EdgeAngleProblem, the model's derived fields).
+:func:`coefficients` (EdgeAngleProblem, the model's derived fields). numba's on-disk cache
+does not notice edits in another file: after changing :func:`edge_coefficients`, delete
+shellfem/__pycache__/face_energy*.nbi/.nbc (or touch shellfem/face_energy.py) so the face
+kernel that inlines it is recompiled.
 """
 from __future__ import annotations
 
