@@ -23,7 +23,7 @@ from shellfem.boundary import gauge_dofs, gauge_reaction, smooth_perturbation
 from shellfem.model import ShellModel
 from shellfem.multilevel import prolongate
 from shellfem.sheet import Sheet
-from shellfem.solver import DEFAULT_METRIC_FLOOR, MAX_ITERATIONS_REASON, SolveResult, newton
+from shellfem.newton import MAX_ITERATIONS_REASON, SolveResult, newton
 
 COARSE_RTOL = 1e-5      # gradient tolerance of the coarse levels of nested iteration (relative)
 
@@ -126,7 +126,7 @@ def _release(sheet, model, q, fixed, values, free, fabric, plastic, steps, newto
 
 def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0, max_iterations: int = 300,
                    release_steps: int = 1, tol_support: float | None = None, verbose: bool = False,
-                   rtol: float = 1e-8, metric_floor: float = DEFAULT_METRIC_FLOOR, coarse=()) -> Simulation:
+                   rtol: float = 1e-8, metric_floor: float | None = None, coarse=()) -> Simulation:
     """Released equilibrium of a meshed sheet (printed-state mm) with the given materials.
 
     The start is the flat printed state with a smooth out-of-plane perturbation of 1 % of
@@ -136,7 +136,7 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
     prediction of the previous two equilibria (large rotations converge in far fewer Newton
     iterations along such a path). ``max_iterations`` bounds each step; newton_iterations in
     the result is the total. Only the final step's tolerance decides ``converged``.
-    ``metric_floor``: the solver's trust-region metric floor (shellfem.solver.lm_metric).
+    ``metric_floor``: the solver's trust-region metric floor (shellfem.newton.lm_metric; None: its default).
 
     ``coarse``: coarser Sheets of the same pattern, coarsest first (geometry.meshing.coarse_meshes):
     nested iteration (shellfem.multilevel). The release runs on the coarsest; each finer mesh

@@ -1,4 +1,4 @@
-"""Pattern files (TOML, see INTERFACE.md and the README) -> a validated Pattern.
+"""Pattern files (TOML, see INTERFACE.md and the README): read into a validated Pattern, and written.
 
 ``load_pattern(source)`` takes a path to a .toml pattern (or a .gcode print, see below)
 or an already-parsed dict. Every problem raises SelfshapeError with one line naming the
@@ -9,6 +9,11 @@ resolved here: [[region]] polygons must lie inside the fabric; [[ribbon]], [star
 A bare ``.gcode`` file is a pattern too: its printed paths (geometry.gcode_import) on a
 rectangle of fabric = the print's bounding box plus a 10 mm margin on every side, with
 the default fabric and plastic (seed Table 4.1) and the default mesh size.
+
+This module owns the format both ways: :func:`fabric_table` and :func:`plastic_table` are
+the inverses of the [fabric] and [plastic] parse (every field), :func:`write_pattern`
+writes a pattern dict as TOML. [fabric.<model>] tables are those of the membrane models
+registered in shellfem.materials, validated against each model's parameter schema.
 """
 from __future__ import annotations
 
@@ -18,7 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import shapely
-from shapely.geometry import LineString, Point, Polygon
+import tomli_w
+from shapely.geometry import LineString, Polygon
 
 from geometry import outlines
 from geometry.elements import PrintedElement, Support
@@ -26,15 +32,15 @@ from geometry.expressions import compile_field
 from geometry.stars import star_elements
 from shellfem.errors import SelfshapeError, check_number
 from geometry.tomlfile import read_toml
-from shellfem.materials import Fabric, Plastic
-from shellfem.solver import DEFAULT_METRIC_FLOOR
+from shellfem.materials import MEMBRANE_MODELS, Fabric, Plastic
 
 GCODE_MARGIN_MM = 10.0
 
+SHAPES = ("rectangle", "outline", "disk", "hexagon")
+#: [fabric] keys besides the shape and the [fabric.<model>] tables of the registered models
+FABRIC_RECORD_KEYS = ("stretch", "thickness_mm", "model", "young_modulus_mpa", "poisson", "bending_stiffness_nmm",
+                      "course_angle_deg", "areal_weight_n_per_mm2")
 KEYS = {
-    "fabric": {"rectangle", "outline", "disk", "hexagon", "stretch", "thickness_mm", "model", "young_modulus_mpa",
-               "poisson", "bending_stiffness_nmm", "course_angle_deg", "areal_weight_n_per_mm2", "orthotropic"},
-    "fabric.orthotropic": {"a1", "a2", "a3", "b1", "b2", "g1", "g2"},
     "plastic": {"young_modulus_mpa", "poisson", "rest_curvature_per_mm"},
     "region": {"polygon", "thickness_mm", "side"},
     "ribbon": {"path", "width_mm", "thickness_mm", "side", "ends"},
@@ -43,8 +49,20 @@ KEYS = {
     "mesh": {"size_mm", "across"},
     "print": {"gcode", "side", "origin_mm"},
 }
+#: (key, Fabric attribute, lower bound, bound exclusive) of the numeric [fabric] entries
+FABRIC_FIELDS = (("thickness_mm", "thickness", 0.0, True), ("young_modulus_mpa", "young_modulus", 0.0, True),
+                 ("poisson", "poisson", None, False), ("bending_stiffness_nmm", "bending_stiffness", 0.0, False),
+                 ("course_angle_deg", "course_angle_deg", None, False),
+                 ("areal_weight_n_per_mm2", "areal_weight", 0.0, False))
+#: (key, Plastic attribute) of the [plastic] entries
+PLASTIC_FIELDS = (("young_modulus_mpa", "young_modulus"), ("poisson", "poisson"),
+                  ("rest_curvature_per_mm", "rest_curvature"))
 TOP_LEVEL = {"fabric", "plastic", "region", "ribbon", "stars", "support", "mesh", "solver", "print", "meta"}
-SHAPES = ("rectangle", "outline", "disk", "hexagon")
+
+
+def fabric_keys() -> set:
+    """The keys [fabric] allows: shape, record fields, one table per registered membrane model."""
+    return {*SHAPES, *FABRIC_RECORD_KEYS, *MEMBRANE_MODELS}
 
 
 @dataclass
@@ -56,8 +74,8 @@ class Pattern:
     boundary conditions. mesh_size: target edge length in bare fabric, mm. mesh_across:
     triangle rows across the narrowest printed feature ([mesh] across, default 2). seed: the
     solver's symmetry-breaking seed. max_iterations: the Newton cap ([solver] max_iterations,
-    default 300). metric_floor: the solver's trust-region metric floor ([solver] metric_floor,
-    default 10; see shellfem.solver.lm_metric). coarse_levels: coarser meshes solved first ([solver]
+    default 300). metric_floor: the solver's trust-region metric floor ([solver] metric_floor;
+    None when absent, meaning the solver's default, shellfem.newton.lm_metric). coarse_levels: coarser meshes solved first ([solver]
     coarse_levels, "auto" or an integer >= 0, 0 = none; see shellfem.multilevel). source: file path or "<dict>". raw: the parsed TOML
     (unknown [solver] and [meta] keys are kept here for the solver).
     """
@@ -70,7 +88,7 @@ class Pattern:
     seed: int = 0
     mesh_across: float = 2.0
     max_iterations: int = 300
-    metric_floor: float = DEFAULT_METRIC_FLOOR
+    metric_floor: float | None = None
     coarse_levels: int | str = "auto"
     source: str = "<dict>"
     raw: dict = field(default_factory=dict)
@@ -90,16 +108,18 @@ def _num(table: dict, key: str, where: str, default=None, lo=None, lo_open=False
     return check_number(f"{where}: {key}", v, lo=lo, hi=hi, lo_open=lo_open)
 
 
-def solver_options(solver: dict, where: str) -> tuple[int, int, float]:
-    """(seed, max_iterations, metric_floor) of a [solver] table, defaults 0, 300, 10.0; a one-line
-    SelfshapeError naming ``where`` for a bad value. Unknown keys are left to the caller."""
+def solver_options(solver: dict, where: str) -> tuple[int, int, float | None]:
+    """(seed, max_iterations, metric_floor) of a [solver] table, defaults 0, 300 and None (the
+    solver's own default); a one-line SelfshapeError naming ``where`` for a bad value. Unknown
+    keys are left to the caller."""
     seed = solver.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise SelfshapeError(f"{where}: seed must be an integer, got {seed!r:.40}")
     cap = solver.get("max_iterations", 300)
     if isinstance(cap, bool) or not isinstance(cap, int) or cap < 1:
         raise SelfshapeError(f"{where}: max_iterations must be a positive integer, got {cap!r:.40}")
-    return seed, cap, _num(solver, "metric_floor", where, DEFAULT_METRIC_FLOOR, lo=0.0)
+    floor = _num(solver, "metric_floor", where, lo=0.0) if "metric_floor" in solver else None
+    return seed, cap, floor
 
 
 def coarse_levels_option(solver: dict, where: str) -> int | str:
@@ -138,6 +158,15 @@ def _array_of_tables(raw: dict, name: str, src: str) -> list:
     return [_table(t, f"{src}: [[{name}]] #{i + 1}", KEYS[name]) for i, t in enumerate(v)]
 
 
+def _entries(raw: dict, name: str, src: str, required: str):
+    """(1-based index, where, table) of each [[name]] entry, each holding ``required``."""
+    for i, t in enumerate(_array_of_tables(raw, name, src)):
+        where = f"{src}: [[{name}]] #{i + 1}"
+        if required not in t:
+            raise SelfshapeError(f"{where}: missing {required}")
+        yield i + 1, where, t
+
+
 def _rewrap(where: str, fn, *args, **kw):
     """Call a record constructor, prefixing its SelfshapeError with the file."""
     try:
@@ -150,7 +179,7 @@ def _rewrap(where: str, fn, *args, **kw):
 
 def _fabric(raw: dict, src: str, mesh_size: float):
     where = f"{src}: [fabric]"
-    t = _table(raw.get("fabric"), where, KEYS["fabric"]) if "fabric" in raw else None
+    t = _table(raw.get("fabric"), where, fabric_keys()) if "fabric" in raw else None
     if t is None:
         raise SelfshapeError(f"{src}: missing [fabric] table")
     shapes = [k for k in SHAPES if k in t]
@@ -176,16 +205,13 @@ def _fabric(raw: dict, src: str, mesh_size: float):
         s = tuple(_num({"stretch": v}, "stretch", where, lo=1.0) for v in s)
     else:
         s = _num(t, "stretch", where, 1.35, lo=1.0)
-    ortho = {}
-    if "orthotropic" in t:
-        o = _table(t["orthotropic"], f"{where} orthotropic", KEYS["fabric.orthotropic"])
-        ortho = {k: _num(o, k, f"{where} orthotropic", lo=0.0, lo_open=True) for k in o}
-    model = t.get("model", "neo-hookean")
-    kw = dict(stretch=s, model=model, orthotropic=ortho)
-    for key, attr, lo, lo_open in (("thickness_mm", "thickness", 0.0, True), ("young_modulus_mpa", "young_modulus", 0.0, True),
-                                   ("poisson", "poisson", None, False), ("bending_stiffness_nmm", "bending_stiffness", 0.0, False),
-                                   ("course_angle_deg", "course_angle_deg", None, False),
-                                   ("areal_weight_n_per_mm2", "areal_weight", 0.0, False)):
+    params = {}
+    for name, membrane in MEMBRANE_MODELS.items():      # bounds: the model's schema, via Fabric
+        if name in t:
+            o = _table(t[name], f"{where} {name}", {p.name for p in membrane.parameters})
+            params[name] = {k: _num(o, k, f"{where} {name}") for k in o}
+    kw = dict(stretch=s, model=t.get("model", "neo-hookean"), parameters=params)
+    for key, attr, lo, lo_open in FABRIC_FIELDS:
         if key in t:
             kw[attr] = _num(t, key, where, lo=lo, lo_open=lo_open)
     return _rewrap(src, Fabric, **kw), outline
@@ -195,8 +221,7 @@ def _plastic(raw: dict, src: str) -> Plastic:
     where = f"{src}: [plastic]"
     t = _table(raw.get("plastic", {}), where, KEYS["plastic"])
     kw = {}
-    for key, attr in (("young_modulus_mpa", "young_modulus"), ("poisson", "poisson"),
-                      ("rest_curvature_per_mm", "rest_curvature")):
+    for key, attr in PLASTIC_FIELDS:
         if key in t:
             kw[attr] = _num(t, key, where)
     return _rewrap(src, Plastic, **kw)
@@ -204,15 +229,12 @@ def _plastic(raw: dict, src: str) -> Plastic:
 
 def _regions(raw, src, outline) -> list[PrintedElement]:
     out = []
-    for i, t in enumerate(_array_of_tables(raw, "region", src)):
-        where = f"{src}: [[region]] #{i + 1}"
-        if "polygon" not in t:
-            raise SelfshapeError(f"{where}: missing polygon")
+    for i, where, t in _entries(raw, "region", src, "polygon"):
         poly = outlines.polygon(t["polygon"], where)
         h = _num(t, "thickness_mm", where, lo=0.0, lo_open=True)
         side = _choice(t, "side", where, ("front", "back"), "front")
         outlines.check_inside(outline, poly, where)
-        out.append(PrintedElement(poly, h, side, "region", f"region #{i + 1}"))
+        out.append(PrintedElement(poly, h, side, "region", f"region #{i}"))
     return out
 
 
@@ -231,10 +253,7 @@ def ribbon_polygon(path: np.ndarray, width: float, ends: str = "square", segment
 
 def _ribbons(raw, src, outline) -> list[PrintedElement]:
     out = []
-    for i, t in enumerate(_array_of_tables(raw, "ribbon", src)):
-        where = f"{src}: [[ribbon]] #{i + 1}"
-        if "path" not in t:
-            raise SelfshapeError(f"{where}: missing path")
+    for i, where, t in _entries(raw, "ribbon", src, "path"):
         path = outlines.as_points(t["path"], f"{where} path", 2)
         keep = np.ones(len(path), bool)
         keep[1:] = np.any(path[1:] != path[:-1], axis=1)
@@ -252,7 +271,7 @@ def _ribbons(raw, src, outline) -> list[PrintedElement]:
         clipped = _polygonal(clipped)
         if clipped.is_empty or clipped.area <= 1e-12 * geom.area:
             raise SelfshapeError(f"{where}: ribbon lies entirely outside the fabric")
-        out.append(PrintedElement(clipped, h, side, "ribbon", f"ribbon #{i + 1}"))
+        out.append(PrintedElement(clipped, h, side, "ribbon", f"ribbon #{i}"))
     return out
 
 
@@ -399,3 +418,42 @@ def load_pattern(source) -> Pattern:
         return pattern_from_gcode(src)
     raw = read_toml(src)
     return parse_pattern(raw, src, os.path.dirname(os.path.abspath(src)))
+
+
+# ---------------------------------------------------------------- writing
+
+def fabric_table(fabric: Fabric) -> dict:
+    """The [fabric] entries of a Fabric record, every field (the inverse of the parse; the
+    outline's shape key is the caller's): stretch (a number when sx = sy), model, the numeric
+    fields and the [fabric.<model>] table of the model in use, plus any other model's table
+    whose parameters differ from its defaults."""
+    sx, sy = fabric.stretch
+    t = {"stretch": float(sx) if sx == sy else [float(sx), float(sy)], "model": fabric.model}
+    for key, attr, _, _ in FABRIC_FIELDS:
+        t[key] = float(getattr(fabric, attr))
+    for name, params in fabric.parameters.items():
+        if params and (name == fabric.model or params != MEMBRANE_MODELS[name].defaults()):
+            t[name] = {k: float(v) for k, v in params.items()}
+    return t
+
+
+def plastic_table(plastic: Plastic) -> dict:
+    """The [plastic] entries of a Plastic record, every field (the inverse of the parse)."""
+    return {key: float(getattr(plastic, attr)) for key, attr in PLASTIC_FIELDS}
+
+
+def _plain(v):
+    """TOML-ready values: numpy scalars and arrays, tuples -> Python numbers and lists."""
+    if isinstance(v, dict):
+        return {k: _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return [_plain(x) for x in v]
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def write_pattern(path, raw: dict) -> None:
+    """Write a pattern dict (as :func:`parse_pattern` reads it) to ``path`` as TOML."""
+    with open(path, "wb") as f:
+        tomli_w.dump(_plain(raw), f)

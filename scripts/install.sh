@@ -24,7 +24,7 @@ $PY -m pip install -q "scikit-sparse==0.4.16" 2>&1 | grep -v -i warning || true
 $PY -m pip install -q -e ".[test]" 2>&1 | grep -v -i warning || true
 $PY -c "import shellfem, geometry, gmsh, skfem, pyvista; print('selfshape installed')"
 $PY -c "import sksparse.cholmod" 2>/dev/null && echo "CHOLMOD available" || echo "CHOLMOD not available"
-$PY -c "from shellfem.solver import default_backend; print('sparse Cholesky used by the solver:', default_backend())"
+$PY -c "from shellfem.linalg import default_backend; print('sparse Cholesky used by the solver:', default_backend())"
 # compile the numba kernels once (~20 s; cached beside the modules) so the first run is not slower
 $PY -c "
 import numpy as np

@@ -5,8 +5,7 @@ are built once per mesh; each Newton iteration is then one compiled gather over 
 (parallel, each slot summed in a fixed order, so bitwise repeatable): 0.02 s for the 7.3M
 entries of the 85 x 60 benchmark's upper triangle, against 0.07 s for a gather of the kept
 entries and ``np.bincount`` (and ~0.44 s for COO -> CSR, toolchain.md). Building the pattern
-and the slot lists (compiled, linear in the entries) takes 0.28 s there, against 0.76 s for the
-argsort of the entry keys it replaced; the solver builds three per mesh (full Hessian, edge
+and the slot lists (compiled, linear in the entries) takes 0.28 s there; the solver builds three per mesh (full Hessian, edge
 angles, printed block), and nested iteration one set per level.
 """
 from __future__ import annotations
@@ -21,7 +20,7 @@ class BlockScatter:
 
     free: boolean mask over all DOFs; rows/columns of fixed DOFs are dropped.
     upper: keep only the upper triangle (row <= column) of the symmetric result: half the
-    gather and sum work; what the Cholesky backends read (see shellfem.solver.SparseSPD).
+    gather and sum work; what the Cholesky backends read (see shellfem.linalg.SparseSPD).
     """
 
     def __init__(self, index_sets, n_dofs: int, free: np.ndarray, upper: bool = False):

@@ -24,7 +24,7 @@ normals n_i = n_f + tan(psi_i) t_i gives, exactly,
 with the convention b_ab = -dn(E_a) . E_b: b = a / R > 0 when the centre of curvature lies
 on the +normal side (a sheet with normal +z bending into a valley). With this b the metric at
 height z along the normal is a(z) = a - 2 z b + O(z^2). The seed's Eq. 4.1 stencil
-"(n_j - n_i).(v_j - v_i)" is b/2 in this convention (see shellfem.energies for how the
+"(n_j - n_i).(v_j - v_i)" is b/2 in this convention (see shellfem.layers for how the
 seed's bilayer coefficients map onto it).
 
 The per-element derivatives run in compiled (numba) loops over triangles/hinges and are

@@ -2,7 +2,7 @@
 
 DOFs q = [x (n x 3, vertex-major), theta (one angle per edge)], mm and radians.
 Energy in N mm. Per triangle the energy is a function of y = (a, h, psi) (see
-shellfem.kinematics and shellfem.energies); derivatives are chained exactly:
+shellfem.kinematics, shellfem.face_energy); derivatives are chained exactly:
 
     W_q = J^T W_y,    W_qq = J^T W_yy J + sum_k W_y,k d2y_k/dq2
 
@@ -12,28 +12,17 @@ assembled per hinge (12 x 12).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
 
-from shellfem import energies as en
+from shellfem.bending.midedge_tan import coefficients, from_coefficients, inadmissible, second_fundamental_form
+from shellfem.face_energy import face_energy
 from shellfem.kinematics import (C_OUTER, build_topology, face_chain, face_metrics, hinge_angle_values,
                                  hinge_angles)
-from shellfem.materials import Fabric, Plastic
+from shellfem.layers import QuadraticForm, bending_quadratic, layer_quadratic, rest_area, sym_to_mat
+from shellfem.materials import MEMBRANE_MODELS, Fabric, Plastic, RestState
 from shellfem.sheet import Sheet
-
-
-@dataclass
-class Layer:
-    """A St.Venant-Kirchhoff layer on a set of triangles (arrays per masked triangle)."""
-    mask: np.ndarray   # (m,) bool
-    E: np.ndarray      # MPa
-    nu: np.ndarray
-    z0: np.ndarray     # mm, below/above the mesh surface
-    z1: np.ndarray
-    abar: np.ndarray   # (m, 3) rest metric (edge basis)
-    bbar: np.ndarray   # (m, 3) rest second fundamental form
 
 
 def edge_metric(P: np.ndarray) -> np.ndarray:
@@ -49,7 +38,7 @@ class ShellModel:
     :meth:`homogeneous` (one isotropic St.Venant-Kirchhoff shell, for benchmarks).
     """
 
-    def __init__(self, sheet: Sheet, quad: en.QuadraticForm, membrane_mask=None, membrane=None,
+    def __init__(self, sheet: Sheet, quad: QuadraticForm, membrane_mask=None, membrane=None,
                  external_force=None):
         self.sheet = sheet
         self.topo = build_topology(sheet.triangles)
@@ -75,14 +64,14 @@ class ShellModel:
             Em = np.stack([P2[:, 1] - P2[:, 0], P2[:, 2] - P2[:, 0]], 2)        # columns E1, E2
             Bm = np.einsum("mji,jk,mkl->mil", Em, np.asarray(rest_curvature, float), Em)
             bbar = np.stack([Bm[:, 0, 0], Bm[:, 0, 1], Bm[:, 1, 1]], 1)
-        quad = en.QuadraticForm(sheet.n_triangles)
-        quad.add(*en.layer_quadratic(abar, bbar, E, nu, -h / 2, h / 2))
+        quad = QuadraticForm(sheet.n_triangles)
+        quad.add(*layer_quadratic(abar, bbar, E, nu, -h / 2, h / 2))
         return cls(sheet, quad)
 
     @classmethod
     def from_materials(cls, sheet: Sheet, fabric: Fabric, plastic: Plastic, gravity: bool = True):
-        """The seed's model: bare fabric = membrane model (neo-Hookean or orthotropic) +
-        bending with k_B; printed triangles = fabric layer (E2, nu_f) + plastic layer(s)
+        """The seed's model: bare fabric = the fabric's membrane model (Fabric.model, from the
+        registry of shellfem.materials) + bending with k_B; printed triangles = fabric layer (E2, nu_f) + plastic layer(s)
         on the front (+z) and/or back (-z) face, plastic with rest curvature (plastic set).
         The fabric's rest metric is diag(1/sx^2, 1/sy^2) in printed coordinates."""
         m = sheet.n_triangles
@@ -96,41 +85,27 @@ class ShellModel:
         tf, tb = sheet.thickness_front, sheet.thickness_back
         printed = (tf > 0) | (tb > 0)
         bare = ~printed
-        quad = en.QuadraticForm(m)
+        quad = QuadraticForm(m)
         kap = plastic.rest_curvature
         if printed.any():
-            quad.add(*en.layer_quadratic(abar_fab, np.zeros((m, 3)), fabric.young_modulus, fabric.poisson,
+            quad.add(*layer_quadratic(abar_fab, np.zeros((m, 3)), fabric.young_modulus, fabric.poisson,
                                          -hf / 2, hf / 2), mask=printed)
             front = tf > 0
             if front.any():
                 # front plastic bends the sheet towards -z (centre of curvature on the fabric side): b < 0
-                quad.add(*en.layer_quadratic(abar_print, -kap * abar_print, plastic.young_modulus, plastic.poisson,
+                quad.add(*layer_quadratic(abar_print, -kap * abar_print, plastic.young_modulus, plastic.poisson,
                                              hf / 2, hf / 2 + tf), mask=front)
             back = tb > 0
             if back.any():
-                quad.add(*en.layer_quadratic(abar_print, kap * abar_print, plastic.young_modulus, plastic.poisson,
+                quad.add(*layer_quadratic(abar_print, kap * abar_print, plastic.young_modulus, plastic.poisson,
                                              -hf / 2 - tb, -hf / 2), mask=back)
         membrane = None
         if bare.any():
             if fabric.bending_stiffness > 0:
-                quad.add(*en.bending_quadratic(abar_fab, fabric.bending_stiffness, fabric.poisson), mask=bare)
+                quad.add(*bending_quadratic(abar_fab, fabric.bending_stiffness, fabric.poisson), mask=bare)
             ab = abar_fab[bare]
-            area = en.rest_area(ab)
-            if fabric.model == "neo-hookean":
-                E, nu = fabric.young_modulus, fabric.poisson
-
-                def membrane(a, ab=ab, area=area):
-                    return en.neo_hookean(a, ab, E, nu, hf, area)
-            else:
-                c, s = np.cos(np.radians(fabric.course_angle_deg)), np.sin(np.radians(fabric.course_angle_deg))
-                Rot = np.array([[c, s], [-s, c]])                # printed frame -> course frame
-                rest = Prest[bare]
-                edges = np.stack([rest[:, 1] - rest[:, 0], rest[:, 2] - rest[:, 0]], 2)   # columns E1, E2
-                T = en.strain_map(np.einsum("ij,mjk->mik", Rot, edges))
-                params, nu = fabric.orthotropic, fabric.poisson
-
-                def membrane(a, T=T, area=area):
-                    return en.orthotropic(a, T, params, nu, hf, area)
+            rest = RestState(points=Prest[bare], metric=ab, area=rest_area(ab))
+            membrane = MEMBRANE_MODELS[fabric.model](rest, fabric).energy
         force = None
         if gravity and fabric.areal_weight > 0:
             force = np.zeros((sheet.n_vertices, 3))
@@ -197,7 +172,7 @@ class ShellModel:
                 H = np.zeros((m, 3, 3))
                 W[mm], g[mm], H[mm] = self.membrane(aa[mm])
                 return W, g, H
-        W, Wy, Wyy = en.face_energy(a, h, psi, self.quad, membrane, order=order)
+        W, Wy, Wyy = face_energy(a, h, psi, self.quad, membrane, order=order)
         E = W.sum()
         if self.external_force is not None:
             E -= float(np.sum(self.external_force * x))
@@ -263,7 +238,7 @@ class ShellModel:
         xf = x[self.sheet.triangles]
         a, h = face_metrics(xf)
         psi = self._psi(x, theta, False)[0]
-        return a, en.second_fundamental_form(h, psi)
+        return a, second_fundamental_form(h, psi)
 
     def cartesian_forms(self, q):
         """First and second fundamental forms (m, 2, 2) in the printed Cartesian coordinates
@@ -271,13 +246,13 @@ class ShellModel:
         a, b = self.fundamental_forms(q)
         P = self.sheet.points[self.sheet.triangles]
         Dinv = np.linalg.inv(np.stack([P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]], 1))   # rows: edge vectors
-        return tuple(Dinv @ en.sym_to_mat(f) @ np.swapaxes(Dinv, 1, 2) for f in (a, b))
+        return tuple(Dinv @ sym_to_mat(f) @ np.swapaxes(Dinv, 1, 2) for f in (a, b))
 
     def curvatures(self, q):
         """Principal curvatures (m, 2) (1/mm, k1 >= k2; > 0 = centre of curvature on the +normal
         side) and mean/Gaussian curvature per triangle, from the shape operator a^-1 b."""
         a, b = self.fundamental_forms(q)
-        S = np.linalg.solve(en.sym_to_mat(a), en.sym_to_mat(b))
+        S = np.linalg.solve(sym_to_mat(a), sym_to_mat(b))
         tr = S[:, 0, 0] + S[:, 1, 1]
         det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
         disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
@@ -293,7 +268,7 @@ class EdgeAngleProblem:
     With x frozen, each face's energy depends only on its own three tan(psi_i), and each
     angle on its two faces: the Hessian has the sparsity of the face-edge adjacency and
     factorises in a fraction of the full Hessian's time (used by
-    shellfem.solver.EdgeAngleRelaxation)."""
+    shellfem.relaxations.EdgeAngleRelaxation)."""
 
     def __init__(self, model: ShellModel, q):
         x, _ = model.split(q)
@@ -308,24 +283,21 @@ class EdgeAngleProblem:
         angle leaves the admissible set |psi| < PSI_MAX (0.49 pi)."""
         topo, quad = self.model.topo, self.model.quad
         psi = topo.face_sign * theta[topo.face_edges] + self.half_phi
-        tp = np.tan(psi)
-        sec2 = 1 + tp * tp
         h = self.h
-        b = -2 * np.einsum("mi,ik->mk", tp * h, C_OUTER)
-        W, Wz, Wzz = quad.evaluate(np.concatenate([self.a, b], 1))
-        E = float(np.where(np.abs(psi).max(1) >= en.PSI_MAX, np.inf, W).sum())
+        beta, _, b_psi, _, b_psipsi = coefficients(h, psi)
+        W, Wz, Wzz = quad.evaluate(np.concatenate([self.a, from_coefficients(beta)], 1))
+        E = float(np.where(inadmissible(psi), np.inf, W).sum())
         if order == 0:
             return E, None, None
-        gi = Wz[:, 3:] @ C_OUTER.T                       # dW/d(tan psi_i) = -2 h_i g_i
-        Wpsi = -2 * sec2 * h * gi
+        gi = Wz[:, 3:] @ C_OUTER.T                       # dW/d beta_i
+        Wpsi = b_psi * gi
         grad = np.bincount(topo.face_edges.ravel(), weights=(topo.face_sign * Wpsi).ravel(),
                            minlength=self.model.n_edges)
         if order == 1:
             return E, grad, None
-        s = 2 * sec2 * h                                  # d b / d psi_i = -s_i c_i c_i^T
-        Hpsi = s[:, :, None] * s[:, None, :] * self._CWC
+        Hpsi = b_psi[:, :, None] * b_psi[:, None, :] * self._CWC
         idx = np.arange(3)
-        Hpsi[:, idx, idx] += -4 * sec2 * tp * h * gi      # face_sign^2 = 1 on the diagonal
+        Hpsi[:, idx, idx] += b_psipsi * gi                # face_sign^2 = 1 on the diagonal
         return E, grad, Hpsi
 
 

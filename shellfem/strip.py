@@ -2,7 +2,7 @@
 
 A strip fully covered by plastic deforms (away from its ends) into a uniform state:
 constant first and second fundamental forms. The layered energy of
-:mod:`shellfem.energies` is quadratic in (a, b), so the uniform equilibrium is one small
+:mod:`shellfem.layers` is quadratic in (a, b), so the uniform equilibrium is one small
 linear solve per strip, vectorised over any number of strips. tests/test_strip.py checks
 that the full finite-element simulation of a strip reproduces these values, so the
 calibration and validation code may use them as "the project's own model".
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shellfem.energies import QuadraticForm, layer_quadratic
+from shellfem.layers import QuadraticForm, layer_quadratic
 
 
 def strip_state(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, plastic_poisson=0.5,

@@ -4,9 +4,12 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from shellfem import energies as en
+from shellfem import layers
 from shellfem.assembly import BlockScatter
-from shellfem.materials import Fabric, Plastic
+from shellfem.materials import MEMBRANE_MODELS, Fabric, Plastic, RestState
+from shellfem.materials.base import strain_map
+from shellfem.materials.neo_hookean import neo_hookean
+from shellfem.materials.orthotropic import orthotropic
 from shellfem.model import ShellModel
 from shellfem.sheet import Sheet
 
@@ -20,7 +23,7 @@ def _sheet(seed=1):
     return Sheet(sh.points, sh.triangles, thickness_front=tf, thickness_back=tb)
 
 
-@pytest.mark.parametrize("model_name", ["neo-hookean", "orthotropic"])
+@pytest.mark.parametrize("model_name", sorted(MEMBRANE_MODELS))
 def test_total_energy_gradient_and_hessian(model_name):
     rng = np.random.default_rng(2)
     sh = _sheet()
@@ -112,10 +115,15 @@ def test_membrane_models_derivatives():
     m = 15
     abar = np.tile([1.0, 0.3, 1.2], (m, 1))
     a0 = abar * 1.2 + rng.normal(scale=0.05, size=(m, 3))
-    T = en.strain_map(np.tile(np.array([[1.0, 0.3], [0.0, 1.0]]), (m, 1, 1)))
-    params = Fabric().orthotropic
-    for fun in (lambda a: en.neo_hookean(a, abar, 1.05, 0.3, 0.8),
-                lambda a: en.orthotropic(a, T, params, 0.3, 0.8, np.ones(m))):
+    T = strain_map(np.tile(np.array([[1.0, 0.3], [0.0, 1.0]]), (m, 1, 1)))
+    params = Fabric().parameters["orthotropic"]
+    rest = np.tile(np.array([[0.0, 0.0], [1.0, 0.0], [0.3, 1.0]]), (m, 1, 1))
+    rest_metric = np.tile([1.0, 0.3, 1.09], (m, 1))
+    state = RestState(points=rest, metric=rest_metric, area=layers.rest_area(rest_metric))
+    fab = Fabric(course_angle_deg=25.0)
+    registered = [MEMBRANE_MODELS[name](state, fab).energy for name in sorted(MEMBRANE_MODELS)]
+    for fun in [lambda a: neo_hookean(a, abar, 1.05, 0.3, 0.8),
+                lambda a: orthotropic(a, T, params, 0.3, 0.8, np.ones(m))] + registered:
         W, g, H = fun(a0)
         eps = 1e-7
         for k in range(3):
@@ -132,18 +140,18 @@ def test_layer_integral_matches_quadrature():
     abar = np.array([[1.0, 0.2, 0.9]])
     bbar = np.array([[0.01, 0.0, -0.02]])
     E, nu, z0, z1 = 3.0, 0.35, 0.4, 0.75
-    Q, zbar = en.layer_quadratic(abar, bbar, E, nu, z0, z1)
-    qf = en.QuadraticForm(1)
+    Q, zbar = layers.layer_quadratic(abar, bbar, E, nu, z0, z1)
+    qf = layers.QuadraticForm(1)
     qf.add(Q, zbar)
     z = np.concatenate([abar * 1.1, bbar + 0.05], 1) + rng.normal(scale=0.01, size=(1, 6))
     W = qf.evaluate(z)[0][0]
-    ainv = np.linalg.inv(en.sym_to_mat(abar)[0])
-    A = ainv @ en.sym_to_mat(z[:, :3])[0] - np.eye(2)
-    B = ainv @ en.sym_to_mat(z[:, 3:] - bbar)[0]
+    ainv = np.linalg.inv(layers.sym_to_mat(abar)[0])
+    A = ainv @ layers.sym_to_mat(z[:, :3])[0] - np.eye(2)
+    B = ainv @ layers.sym_to_mat(z[:, 3:] - bbar)[0]
     zs, w = np.polynomial.legendre.leggauss(6)
     zz = 0.5 * (z1 - z0) * zs + 0.5 * (z1 + z0)
     total = 0.0
     for zi, wi in zip(zz, w):
         eps = 0.5 * A - zi * B
         total += wi * 0.5 * (z1 - z0) * E / 2 * (nu / (1 - nu ** 2) * np.trace(eps) ** 2 + np.trace(eps @ eps) / (1 + nu))
-    assert W == pytest.approx(total * en.rest_area(abar)[0], rel=1e-12)
+    assert W == pytest.approx(total * layers.rest_area(abar)[0], rel=1e-12)

@@ -5,7 +5,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from shellfem import pardiso
-from shellfem.solver import HAVE_CHOLMOD, NotPositiveDefinite, SparseSPD, default_backend
+from shellfem.linalg import HAVE_CHOLMOD, NotPositiveDefinite, SparseSPD, default_backend
 
 needs_pardiso = pytest.mark.skipif(not pardiso.available(), reason="MKL PARDISO not installed")
 

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import tomli_w
 
-from geometry.patterns import load_pattern
+from geometry.patterns import fabric_table, load_pattern, plastic_table, write_pattern
+from shellfem.materials import MEMBRANE_MODELS, Fabric, Plastic
 from shellfem.errors import SelfshapeError
 
 HERE = os.path.dirname(__file__)
@@ -31,7 +32,7 @@ def test_all_entries_round_trip(tmp_path):
     assert f.stretch == (1.6, 1.2) and f.thickness == 0.7 and f.model == "orthotropic"
     assert (f.young_modulus, f.poisson, f.bending_stiffness, f.course_angle_deg, f.areal_weight) == \
         (1.2, 0.25, 0.02, 15.0, 1e-6)
-    assert f.orthotropic == dict(a1=0.03, a2=0.09, a3=0.06, b1=0.03, b2=0.02, g1=1.5, g2=1.5)
+    assert f.parameters["orthotropic"] == dict(a1=0.03, a2=0.09, a3=0.06, b1=0.03, b2=0.02, g1=1.5, g2=1.5)
     assert (p.plastic.young_modulus, p.plastic.poisson, p.plastic.rest_curvature) == (70.0, 0.45, 0.01)
     assert p.outline.area == 2400.0 and p.outline.bounds == (0.0, 0.0, 60.0, 40.0)
     assert p.mesh_size == 2.0 and p.seed == 7 and p.raw["solver"]["max_iterations"] == 50 and p.max_iterations == 50
@@ -205,3 +206,75 @@ def test_gcode_print_entry_and_bare_gcode(tmp_path):
     assert len(bare.elements) == 2 and bare.fabric.stretch == (1.35, 1.35)
     with pytest.raises(SelfshapeError, match=r"\[print\] nothere.gcode: G-code file .* not found"):
         load_pattern({"fabric": {"rectangle": [30.0, 30.0]}, "print": {"gcode": "nothere.gcode"}})
+
+
+def _every_entry(model: str) -> dict:
+    """A pattern with every key of every table set, each to a value other than its default."""
+    return {
+        "fabric": {"rectangle": [60.0, 40.0], "stretch": [1.6, 1.2], "thickness_mm": 0.7, "model": model,
+                   "young_modulus_mpa": 1.2, "poisson": 0.25, "bending_stiffness_nmm": 0.02,
+                   "course_angle_deg": 15.0, "areal_weight_n_per_mm2": 1e-6,
+                   "orthotropic": {"a1": 0.03, "a2": 0.09, "a3": 0.06, "b1": 0.03, "b2": 0.02, "g1": 1.5, "g2": 1.5},
+                   "orthotropic-stvk": {"e1_mpa": 0.6, "e2_mpa": 1.4, "g12_mpa": 0.25, "nu12": 0.35}},
+        "plastic": {"young_modulus_mpa": 70.0, "poisson": 0.45, "rest_curvature_per_mm": 0.01},
+        "region": [{"polygon": [[5.0, 5.0], [15.0, 5.0], [15.0, 15.0], [5.0, 15.0]], "thickness_mm": 0.4,
+                    "side": "back"}],
+        "ribbon": [{"path": [[20.0, 5.0], [50.0, 5.0], [50.0, 20.0]], "width_mm": 1.2, "thickness_mm": 0.3,
+                    "side": "back", "ends": "round"}],
+        "stars": {"spacing_mm": 12.0, "arm_length": "where(x > 30, 0.5, 0)", "thickness_mm": "0.2 + 0.001 * r",
+                  "arm_width_mm": 0.9, "side": "back", "origin": [30.0, 30.0], "angle_deg": 10.0},
+        "print": {"gcode": os.path.abspath(os.path.join(DATA, "two_lines.gcode")), "side": "back",
+                  "origin_mm": [170.0, 3.0]},    # the back is mirrored about x = 111.5 mm
+        "support": [{"points": [[0.0, 0.0], [60.0, 0.0]], "fix": "z"},
+                    {"points": [[30.0, 40.0]], "fix": "xyz", "position": [[20.0, 25.0, 1.0]]},
+                    {"boundary": True, "fix": "xyz"}],
+        "mesh": {"size_mm": 2.0, "across": 1.5},
+        "solver": {"seed": 7, "max_iterations": 50, "metric_floor": 3.0, "coarse_levels": 2},
+        "meta": {"generator": "tests/test_patterns.py"},
+    }
+
+
+@pytest.mark.parametrize("model", sorted(MEMBRANE_MODELS))
+def test_every_field_round_trips_through_the_writer(tmp_path, model):
+    """raw -> Pattern -> fabric_table / plastic_table -> write_pattern -> Pattern: the same
+    Fabric, Plastic, elements, supports, mesh and solver fields; the tables give back every
+    [fabric] and [plastic] entry that was set."""
+    raw = _every_entry(model)
+    p = load_pattern(raw)
+    fab, pla = fabric_table(p.fabric), plastic_table(p.plastic)
+    given = {k: v for k, v in raw["fabric"].items() if k != "rectangle"}
+    assert {k: fab[k] for k in given if k in fab} == given and set(fab) <= set(given)
+    assert pla == raw["plastic"]
+    again = {**raw, "fabric": {"rectangle": raw["fabric"]["rectangle"], **fab}, "plastic": pla}
+    path = tmp_path / "again.toml"
+    write_pattern(path, again)
+    q = load_pattern(path)
+    assert q.fabric == p.fabric and q.plastic == p.plastic
+    assert q.fabric.model == model and q.fabric.parameters == p.fabric.parameters
+    assert q.outline.equals(p.outline)
+    assert [(e.kind, e.label, e.thickness_mm, e.side) for e in q.elements] == \
+        [(e.kind, e.label, e.thickness_mm, e.side) for e in p.elements]
+    assert {e.kind for e in p.elements} == {"region", "ribbon", "star", "gcode"}
+    assert all(a.geometry.equals(b.geometry) for a, b in zip(p.elements, q.elements))
+    assert [(s.fix, s.boundary, s.label) for s in q.supports] == [(s.fix, s.boundary, s.label) for s in p.supports]
+    for a, b in zip(p.supports, q.supports):
+        np.testing.assert_array_equal(a.points, b.points)
+        assert (a.position is None) == (b.position is None)
+        if a.position is not None:
+            np.testing.assert_array_equal(a.position, b.position)
+    fields = ("mesh_size", "mesh_across", "seed", "max_iterations", "metric_floor", "coarse_levels")
+    assert [getattr(q, f) for f in fields] == [getattr(p, f) for f in fields] == [2.0, 1.5, 7, 50, 3.0, 2]
+    assert q.raw["meta"] == raw["meta"]
+
+
+def test_fabric_table_writes_the_model_in_use_and_changed_tables_only():
+    default = fabric_table(Fabric())
+    assert default["model"] == "neo-hookean" and default["stretch"] == 1.35
+    assert not set(default) & set(MEMBRANE_MODELS)            # neo-Hookean has no own parameters
+    ortho = fabric_table(Fabric(model="orthotropic"))
+    assert ortho["orthotropic"] == Fabric().parameters["orthotropic"] and "orthotropic-stvk" not in ortho
+    changed = Fabric(parameters={"orthotropic": {"a1": 0.05}})
+    assert fabric_table(changed)["orthotropic"]["a1"] == 0.05
+    assert load_pattern({"fabric": {"disk": 10.0, **fabric_table(changed)}}).fabric == changed
+    assert plastic_table(Plastic()) == {"young_modulus_mpa": 72.3, "poisson": 0.5, "rest_curvature_per_mm": 0.0}
+

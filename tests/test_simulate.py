@@ -115,11 +115,11 @@ def test_metric_floor_reaches_the_same_equilibrium():
 
     from geometry.patterns import load_pattern
     from forward.simulate import simulate
-    from shellfem.solver import DEFAULT_METRIC_FLOOR
+    from shellfem.newton import DEFAULT_METRIC_FLOOR
     with open(EXAMPLE, "rb") as f:
         raw = tomllib.load(f)
     floored = simulate(load_pattern(raw))
-    assert load_pattern(raw).metric_floor == DEFAULT_METRIC_FLOOR == 10.0
+    assert load_pattern(raw).metric_floor is None and DEFAULT_METRIC_FLOOR == 10.0   # None: the solver's default
     raw.setdefault("solver", {})["metric_floor"] = 0.0
     pat = load_pattern(raw)
     assert pat.metric_floor == 0.0
@@ -136,7 +136,8 @@ def test_edge_angle_relaxation_recovers_the_equilibrium_angles():
     equilibrium (narrow strip)."""
     from geometry.patterns import load_pattern
     from forward.simulate import simulate
-    from shellfem.solver import EdgeAngleRelaxation, newton
+    from shellfem.newton import newton
+    from shellfem.relaxations import EdgeAngleRelaxation
     sim = simulate(load_pattern(EXAMPLE))
     r, M = sim.result, sim.model
     assert r.converged
@@ -186,7 +187,8 @@ def test_printed_region_relaxation_recovers_the_equilibrium():
     the energy and leaves the other DOFs alone; newton with and without it reaches the same
     equilibrium."""
     from forward.simulate import simulate_sheet
-    from shellfem.solver import StiffRegionRelaxation, newton
+    from shellfem.newton import newton
+    from shellfem.relaxations import StiffRegionRelaxation
     pat, sheet = _small_star_sheet()
     sim = simulate_sheet(sheet, pat.fabric, pat.plastic, seed=0, max_iterations=300)
     r, M = sim.result, sim.model

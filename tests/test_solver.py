@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from shellfem.energies import QuadraticForm
+from shellfem.layers import QuadraticForm
 from shellfem.model import ShellModel
 from shellfem.sheet import Sheet
-from shellfem.solver import lm_metric, newton
+from shellfem.newton import lm_metric, newton
 
 E, H, B = 1.2e6, 0.1, 1.0
 

@@ -6,7 +6,7 @@ from shellfem.boundary import gauge_dofs, gauge_reaction, smooth_perturbation
 from shellfem.materials import Fabric, Plastic
 from shellfem.model import ShellModel
 from shellfem.sheet import Sheet
-from shellfem.solver import newton
+from shellfem.newton import newton
 from shellfem.strip import strip_curvature, strip_state, timoshenko_curvature
 
 

@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from shellfem.solver import DEFAULT_METRIC_FLOOR
+from shellfem.newton import DEFAULT_METRIC_FLOOR
 
 
 def pattern(width: float = 85.0, height: float = 60.0, across: float = 1.0,

@@ -32,12 +32,12 @@ import time
 
 import numpy as np
 
-from shellfem.energies import sym_to_mat
+from shellfem.layers import sym_to_mat
 from shellfem.materials import Fabric, Plastic
 from shellfem.sheet import Sheet
 from shellfem.boundary import gauge_dofs, smooth_perturbation
 from shellfem.model import ShellModel
-from shellfem.solver import newton
+from shellfem.newton import newton
 from shellfem.strip import strip_curvature
 from validation.shell_cases import gmsh_rectangle
 

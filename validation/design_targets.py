@@ -108,7 +108,7 @@ def main(argv=None):
     ap.add_argument("--verify-iterations", type=int, default=None, help="Newton cap of the verification")
     ap.add_argument("--law", default=None, help="curvature-law CSV (default: the shipped law)")
     ap.add_argument("--metric-floor", type=float, default=None,
-                    help="[solver] metric_floor of the verification (default: the solver's 10; shellfem.solver.lm_metric)")
+                    help="[solver] metric_floor of the verification (default: the solver's 10; shellfem.newton.lm_metric)")
     ap.add_argument("--table", action="store_true", help="only rebuild DOCS/table.md from OUT/*/report.json")
     a = ap.parse_args(argv)
     if a.table:

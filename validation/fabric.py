@@ -34,6 +34,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from shellfem.errors import SelfshapeError
+from shellfem.materials.orthotropic import orthotropic_stress
 from validation import elastica
 from validation.plots import Series, plot_series
 
@@ -359,24 +360,6 @@ def _stiffness_with_se(A1, se1, A2, se2, nu):
 
 
 # ----------------------------------------------------------------------------- the model
-
-def orthotropic_stress(eps, params: dict, nu: float):
-    """Stress (n,3) and tangent (n,3,3) of the orthotropic log-barrier model (Eq. 4.5).
-
-    eps: (n,3) Voigt Green strain (e11, e22, 2 e12) in the course frame; needs |e_ii| < g_i.
-    """
-    eps = np.atleast_2d(np.asarray(eps, dtype=float))
-    a1, a2, a3 = params["a1"], params["a2"], params["a3"]
-    c12 = np.sqrt(a1 * a2) * nu
-    C = np.array([[a1, c12, 0.0], [c12, a2, 0.0], [0.0, 0.0, a3 * (1 - nu * nu)]]) / (1 - nu * nu)
-    sig = eps @ C.T
-    K = np.broadcast_to(C, (eps.shape[0], 3, 3)).copy()
-    for i, (b, g) in enumerate(((params["b1"], params["g1"]), (params["b2"], params["g2"]))):
-        x = np.abs(eps[:, i])
-        sig[:, i] -= np.sign(eps[:, i]) * b * np.log1p(-x / g)
-        K[:, i, i] += b / (g - x)
-    return sig, K
-
 
 def strain_rotation(angle_deg: float) -> np.ndarray:
     """T with eps_course = T @ eps_specimen (Voigt, engineering shear) for a specimen

@@ -12,11 +12,11 @@ from __future__ import annotations
 import numpy as np
 
 from shellfem.boundary import gauge_dofs, smooth_perturbation
-from shellfem.energies import QuadraticForm
+from shellfem.layers import QuadraticForm
 from shellfem.kinematics import build_topology
 from shellfem.model import ShellModel
 from shellfem.sheet import Sheet
-from shellfem.solver import newton
+from shellfem.newton import newton
 
 # --------------------------------------------------------------------------- meshes
 

@@ -1,17 +1,15 @@
 """Material parameters of the fabric and the printed plastic (mm, N, MPa).
 
-These are plain records with validation; the energies that use them live in
-:mod:`shellfem.energies`. Defaults are the seed's Table 4.1 (spandex + TPU95A).
+Plain records with validation; the fabric's membrane energies are the models of
+shellfem.materials (the registry), the layered energies are in shellfem.layers.
+Defaults are the seed's Table 4.1 (spandex + TPU95A).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 from shellfem.errors import SelfshapeError, check_number
-
-#: Seed Table 4.1 orthotropic log-barrier parameters, converted from Pa to MPa.
-TABLE_4_1_ORTHOTROPIC = {"a1": 0.024161, "a2": 0.090890, "a3": 0.063419,
-                         "b1": 0.029676, "b2": 0.020512, "g1": 0.9626, "g2": 0.9637}
+from shellfem.materials.base import MEMBRANE_MODELS, membrane_model
 
 
 def _check(name: str, value, lo=None, hi=None, lo_open=False):
@@ -24,13 +22,16 @@ class Fabric:
 
     stretch: (sx, sy) pre-stretch factors along printed x and y (>= 1); the fabric's
         rest (unstretched) metric is diag(1/sx^2, 1/sy^2) in printed coordinates.
-    thickness: mm. model: "neo-hookean" or "orthotropic" (seed Eq. 4.2-4.3).
+    thickness: mm. model: the bare fabric's membrane model, a name in
+        shellfem.materials.MEMBRANE_MODELS ("neo-hookean", "orthotropic", ...).
     young_modulus: MPa, the neo-Hookean modulus and the fabric layer's modulus E2
         inside printed bilayers (the seed's pseudo-Young modulus at release).
     poisson: fabric Poisson's ratio. bending_stiffness: k_B, N mm (moment per width
         per unit curvature). course_angle_deg: course direction from +x.
     areal_weight: N/mm^2 of relaxed fabric; > 0 adds gravity along -z.
-    orthotropic: a1, a2, a3, b1, b2 (MPa), g1, g2 (Green strain) of Eq. 4.2-4.3.
+    parameters: {model name: {parameter: value}}, the membrane models' own parameters
+        (pattern tables [fabric.<name>]); every registered model's table is filled with
+        its defaults and validated against its schema, whichever model is in use.
     """
     stretch: tuple = (1.35, 1.35)
     thickness: float = 0.8
@@ -40,7 +41,7 @@ class Fabric:
     bending_stiffness: float = 0.0192
     course_angle_deg: float = 0.0
     areal_weight: float = 0.0
-    orthotropic: dict = field(default_factory=lambda: dict(TABLE_4_1_ORTHOTROPIC))
+    parameters: dict = field(default_factory=dict)
 
     def __post_init__(self):
         s = self.stretch
@@ -59,23 +60,18 @@ class Fabric:
         self.bending_stiffness = _check("fabric.bending_stiffness_nmm", self.bending_stiffness, 0.0)
         self.course_angle_deg = _check("fabric.course_angle_deg", self.course_angle_deg)
         self.areal_weight = _check("fabric.areal_weight_n_per_mm2", self.areal_weight, 0.0)
-        if self.model not in ("neo-hookean", "orthotropic"):
-            raise SelfshapeError(f"fabric.model must be \"neo-hookean\" or \"orthotropic\", got {self.model!r}")
-        o = dict(TABLE_4_1_ORTHOTROPIC)
-        o.update(self.orthotropic or {})
-        unknown = set(o) - set(TABLE_4_1_ORTHOTROPIC)
+        model = membrane_model(self.model)
+        given = dict(self.parameters or {})
+        unknown = [k for k in given if k not in MEMBRANE_MODELS]
         if unknown:
-            raise SelfshapeError(f"fabric.orthotropic: unknown parameter(s) {sorted(unknown)}")
-        for k in ("a1", "a2", "a3", "b1", "b2", "g1", "g2"):
-            o[k] = _check(f"fabric.orthotropic.{k}", o[k], 0.0, lo_open=True)
-        self.orthotropic = o
-        if self.model == "orthotropic":
-            # the log barrier must admit the pre-stretched state: Green strain < g
-            for k, si in (("g1", max(self.stretch)), ("g2", max(self.stretch))):
-                eps = 0.5 * (si * si - 1.0)
-                if eps >= o[k]:
-                    raise SelfshapeError(f"fabric.orthotropic.{k} = {o[k]:g} is below the pre-stretch Green strain {eps:.3f}; "
-                                         "the log-barrier model cannot represent this stretch")
+            raise SelfshapeError(f"fabric.parameters: unknown membrane model(s) {sorted(unknown)}")
+        self.parameters = {name: m.validated(given.get(name)) for name, m in MEMBRANE_MODELS.items()}
+        model.check(self)
+
+    @property
+    def model_parameters(self) -> dict:
+        """The parameters of the membrane model in use."""
+        return self.parameters[self.model]
 
 
 @dataclass
