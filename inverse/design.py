@@ -334,13 +334,11 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
     design time (read to written outputs, Table 5.1's "Time"), total_time_s includes the
     verification. Outputs of an earlier run in the directory are removed first; on failure
     every file this run wrote is removed. Returns the report dict."""
-    import tomli_w
-
     from geometry.target import read_mesh
     from inverse.gcode import ribbons_to_gcode_files
 
     t_start = time.perf_counter()
-    from geometry.patterns import parse_pattern, solver_options
+    from geometry.patterns import parse_pattern, solver_options, write_pattern
     # the values go to pattern.toml's [solver]: checked as load_pattern will check them
     solver_options({k: v for k, v in (("max_iterations", verify_iterations), ("metric_floor", metric_floor))
                     if v is not None}, "verification [solver] (--verify-iterations, --metric-floor)")
@@ -363,8 +361,7 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
         written.append(p)
         raw = pattern_dict(d, mesh_size_mm=mesh_size_mm, mesh_across=mesh_across, seed=o.seed, target_name=name,
                            max_iterations=verify_iterations, metric_floor=metric_floor)
-        with open(p, "wb") as f:
-            tomli_w.dump(raw, f)
+        write_pattern(p, raw)
         p = os.path.join(out_dir, "flat.vtu")
         written.append(p)
         write_flat_vtu(d, p)

@@ -11,34 +11,27 @@ if TYPE_CHECKING:
     from inverse.design import Design
 
 
-def _material_tables(fabric, plastic) -> tuple[dict, dict]:
-    """The [fabric] keys of the materials (all but outline and stretch, which are the design's)
-    and the [plastic] table, as the pattern reader names them."""
-    return ({"thickness_mm": fabric.thickness, "model": fabric.model, "young_modulus_mpa": fabric.young_modulus,
-             "poisson": fabric.poisson, "bending_stiffness_nmm": fabric.bending_stiffness},
-            {"young_modulus_mpa": plastic.young_modulus, "poisson": plastic.poisson,
-             "rest_curvature_per_mm": plastic.rest_curvature})
-
-
 def pattern_dict(d: Design, *, fabric=None, plastic=None, mesh_size_mm: float = 2.0,
                  mesh_across: float | None = None, seed: int = 0, target_name: str = "",
                  max_iterations: int | None = None, metric_floor: float | None = None) -> dict:
     """The pattern TOML (geometry.patterns) of a design as a dict: [fabric] outline = flat boundary,
     [[ribbon]] per ribbon, [plastic] (default: the modulus the thickness law states), [mesh],
     [solver] (seed, and max_iterations when given: the Newton cap `selfshape simulate` uses for
-    this pattern; metric_floor when given: shellfem.solver.lm_metric), [meta] provenance."""
+    this pattern; metric_floor when given: shellfem.newton.lm_metric), [meta] provenance.
+    [fabric] and [plastic] carry every field of the materials (geometry.patterns.fabric_table,
+    plastic_table), so an orthotropic or other model's fabric reloads as it was designed."""
+    from geometry.patterns import fabric_table, plastic_table
     from shellfem.materials import Fabric, Plastic
 
     fab = fabric or Fabric()
     # the plastic the thickness law was computed for, so the pattern simulates what was designed
     pla = plastic or (Plastic(young_modulus=d.law_plastic_mpa) if d.law_plastic_mpa else Plastic())
-    fabric_table, plastic_table = _material_tables(fab, pla)
     r4 = lambda a: np.round(np.asarray(a, float), 4).tolist()  # noqa: E731
     return {
         "meta": {"generator": "selfshape design (inverse.design)", "target": target_name,
                  "stretch_bounds": list(d.bounds), "thickness_law": os.path.basename(d.law_source)},
-        "fabric": {"outline": r4(d.outline), "stretch": d.stretch, **fabric_table},
-        "plastic": plastic_table,
+        "fabric": {"outline": r4(d.outline), **fabric_table(fab), "stretch": d.stretch},
+        "plastic": plastic_table(pla),
         "ribbon": [{"path": r4(r.path), "width_mm": float(r.width_mm), "thickness_mm": float(r.thickness_mm),
                     "side": r.side} for r in d.ribbons],
         "mesh": {"size_mm": float(mesh_size_mm), **({} if mesh_across is None else {"across": float(mesh_across)})},

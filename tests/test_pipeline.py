@@ -409,3 +409,25 @@ def test_design_options_record_equals_keywords(cylinder_design):
         assert a.thickness_mm == b.thickness_mm and a.side == b.side
     with pytest.raises(TypeError, match="stretch_factor"):
         design(V, F, stretch_factor=1.5)
+
+
+def test_designed_pattern_keeps_every_material_field(cylinder_design, tmp_path):
+    """A design for an orthotropic fabric at a course angle with gravity reloads with exactly
+    that fabric and plastic (pattern_dict writes every field through geometry.patterns)."""
+    from dataclasses import asdict
+
+    from geometry.patterns import parse_pattern, write_pattern
+    from inverse.to_pattern import pattern_dict
+    from shellfem.materials import Fabric, Plastic
+
+    params = {"a1": 0.03, "a2": 0.08, "a3": 0.05, "b1": 0.02, "b2": 0.03, "g1": 1.1, "g2": 1.2}
+    fab = Fabric(stretch=(1.6, 1.6), thickness=0.7, model="orthotropic", young_modulus=1.2, poisson=0.25,
+                 bending_stiffness=0.03, course_angle_deg=30.0, areal_weight=2e-6,
+                 parameters={"orthotropic": params})
+    pla = Plastic(young_modulus=80.0, poisson=0.45, rest_curvature=0.002)
+    path = tmp_path / "pattern.toml"
+    write_pattern(path, pattern_dict(cylinder_design, fabric=fab, plastic=pla))
+    pat = parse_pattern(__import__("tomllib").loads(path.read_text()), str(path))
+    assert asdict(pat.fabric) == asdict(fab)
+    assert asdict(pat.plastic) == asdict(pla)
+    assert pat.fabric.model_parameters == params
