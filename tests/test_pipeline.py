@@ -7,7 +7,8 @@ import shapely
 
 from geometry.gcode_import import read_gcode
 from geometry.patterns import load_pattern, ribbon_polygon
-from geometry.target import cylinder_patch, face_areas, plane_patch
+from geometry.meshops import face_areas
+from geometry.target import cylinder_patch, plane_patch
 from inverse import pipeline
 from inverse.pipeline import design, design_file, kabsch, register
 from shellfem.errors import SelfshapeError

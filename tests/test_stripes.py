@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from geometry.stripes import isoline_set, isolines, mesh_edges, stripe_field
+from geometry.meshops import mesh_edges
+from geometry.stripes import isoline_set, isolines, stripe_field
 from shellfem.errors import SelfshapeError
 
 
