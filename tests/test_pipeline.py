@@ -296,7 +296,8 @@ def test_clean_path_removes_tiny_end_segments():
 
 
 def test_written_pattern_meshes_without_slivers(written):
-    from geometry.meshing import mesh_pattern, mesh_quality
+    from geometry.mesh_quality import mesh_quality
+    from geometry.meshing import mesh_pattern
     out, _ = written
     q = mesh_quality(mesh_pattern(load_pattern(out / "pattern.toml"), size_mm=3.0))
     assert q["min_angle_deg"] > 5.0
