@@ -281,7 +281,7 @@ def _stars(raw, src, outline) -> list[PrintedElement]:
 
 def _read_gcode(path: str, where: str, **options) -> list[PrintedElement]:
     try:
-        from geometry.gcode_import import read_gcode
+        from geometry.gcode import read_gcode
     except ImportError as e:
         raise SelfshapeError(f"{where}: G-code import is not available ({e})") from None
     if not os.path.isfile(path):

@@ -91,18 +91,6 @@ class Printer:
         return self.bed_size[0] / 2.0 if self.mirror_axis_x is None else self.mirror_axis_x
 
 
-def bead_area(width_mm, height_mm):
-    """Cross-section (mm^2) of an extruded bead: a rectangle with semicircular sides
-    (Slic3r's flow model), area = (w - h) h + pi h^2 / 4. Needs w >= h. Vectorised."""
-    return (width_mm - height_mm) * height_mm + math.pi * height_mm * height_mm / 4.0
-
-
-def bead_width(area_mm2, height_mm):
-    """Inverse of :func:`bead_area`: the width (mm) of a bead of given cross-section
-    and height. Vectorised."""
-    return area_mm2 / height_mm + height_mm * (1.0 - math.pi / 4.0)
-
-
 def load_printer(path: str) -> Printer:
     """A :class:`Printer` from a TOML file: its keys are Printer's field names (mm, mm/s,
     deg C), either at the top level or under ``[printer]``; missing keys keep the defaults.

@@ -191,7 +191,7 @@ def test_malformed_toml_names_the_line():
 
 
 def test_gcode_print_entry_and_bare_gcode(tmp_path):
-    pytest.importorskip("geometry.gcode_import", reason="G-code import (geometry/gcode_import.py) not available yet")
+    pytest.importorskip("geometry.gcode", reason="G-code reader (geometry/gcode.py) not available")
     gpath = os.path.join(DATA, "two_lines.gcode")
     raw = {"fabric": {"rectangle": [30.0, 30.0]}, "print": {"gcode": gpath}}
     p = load_pattern(raw)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import shapely
 
-from geometry.gcode_import import read_gcode
+from geometry.gcode import read_gcode
 from geometry.patterns import load_pattern, ribbon_polygon
 from geometry.meshops import face_areas
 from geometry.target import cylinder_patch, plane_patch
