@@ -3,7 +3,7 @@
 Default method "quadric": libigl's `principal_curvature` (a quadric fitted to the 2-ring
 of each vertex). Alternative "rusinkiewicz": Rusinkiewicz 2004, vectorised here (per-face
 shape operators fitted to the change of vertex normals along the edges, averaged into the
-vertices). Measured on coarse meshes (tests/test_curvature.py; README): on a 60-degree
+vertices). Measured on coarse meshes (tests/test_curvature.py): on a 60-degree
 sphere cap R = 40 mm with 4.5 mm edges the quadric fit has max |k|R error 1.5 % (k1) and
 1.2 % (k2), Rusinkiewicz 3 % and 50 %; on a cylinder R = 30 mm with 3 mm edges, max k1
 error 0.9 % vs 50 %. Rusinkiewicz fails at the boundary because one-sided vertex normals
