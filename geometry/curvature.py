@@ -3,7 +3,7 @@
 Default method "quadric": libigl's `principal_curvature` (a quadric fitted to the 2-ring
 of each vertex). Alternative "rusinkiewicz": Rusinkiewicz 2004, vectorised here (per-face
 shape operators fitted to the change of vertex normals along the edges, averaged into the
-vertices). Measured on coarse meshes (tests/test_curvature.py; README): on a 60-degree
+vertices). Measured on coarse meshes (tests/test_curvature.py): on a 60-degree
 sphere cap R = 40 mm with 4.5 mm edges the quadric fit has max |k|R error 1.5 % (k1) and
 1.2 % (k2), Rusinkiewicz 3 % and 50 %; on a cylinder R = 30 mm with 3 mm edges, max k1
 error 0.9 % vs 50 %. Rusinkiewicz fails at the boundary because one-sided vertex normals
@@ -23,7 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geometry.target import face_areas
+from geometry.meshops import (face_areas, face_frames, face_normals, rotation_between, tangent_frames,
+                              vertex_normals)
 
 
 @dataclass
@@ -39,56 +40,6 @@ class Curvature:
     face_d2: np.ndarray     # (m, 3)
     vertex_normals: np.ndarray  # (n, 3)
     face_normals: np.ndarray    # (m, 3)
-
-
-# ----------------------------------------------------------------------------- frames
-def _unit(X: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(X, axis=-1, keepdims=True)
-    return X / np.where(n > 0, n, 1.0)
-
-
-def face_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """Unit face normals (m, 3), right-hand rule on the winding."""
-    return _unit(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]))
-
-
-def vertex_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """Unit vertex normals (n, 3) with Max's 1999 weights (exact on a sphere)."""
-    N = np.zeros_like(V, dtype=float)
-    for c in range(3):
-        a = V[F[:, (c + 1) % 3]] - V[F[:, c]]
-        b = V[F[:, (c + 2) % 3]] - V[F[:, c]]
-        w = np.cross(a, b) / (np.einsum("ij,ij->i", a, a) * np.einsum("ij,ij->i", b, b))[:, None]
-        np.add.at(N, F[:, c], w)
-    return _unit(N)
-
-
-def face_frames(V: np.ndarray, F: np.ndarray):
-    """Orthonormal face frames: u along edge F[:,0]->F[:,1], w = n x u, n the face normal."""
-    N = face_normals(V, F)
-    U = _unit(V[F[:, 1]] - V[F[:, 0]])
-    return U, np.cross(N, U), N
-
-
-def tangent_frames(N: np.ndarray):
-    """Deterministic orthonormal tangent frames (e1, e2) for unit normals N (k, 3)."""
-    # pick the coordinate axis least aligned with n as the seed of e1
-    axis = np.argmin(np.abs(N), axis=1)
-    seed = np.zeros_like(N)
-    seed[np.arange(len(N)), axis] = 1.0
-    e1 = _unit(seed - np.einsum("ij,ij->i", seed, N)[:, None] * N)
-    return e1, np.cross(N, e1)
-
-
-def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Minimal rotations (k, 3, 3) taking unit vectors a to unit vectors b."""
-    v = np.cross(a, b)
-    c = np.einsum("ij,ij->i", a, b)
-    K = np.zeros((len(a), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
-    scale = 1.0 / np.maximum(1.0 + c, 1e-12)
-    return np.eye(3)[None] + K + np.einsum("kij,kjl->kil", K, K) * scale[:, None, None]
 
 
 # ----------------------------------------------------------------------------- shape operators

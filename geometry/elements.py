@@ -1,4 +1,4 @@
-"""Records shared by pattern parsing, G-code import and meshing (printed-state mm)."""
+"""Records shared by pattern parsing, G-code reading and meshing (printed-state mm)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field

@@ -33,45 +33,13 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from geometry.curvature import (Curvature, face_frames, principal_curvature, rotation_between,
-                                tangent_frames, vertex_normals)
-from geometry.target import face_areas, unique_edges
+from geometry.curvature import Curvature, principal_curvature
+from geometry.meshops import (cotan_weights, face_frames, face_normals, factorize, lumped_mass, rotation_between,
+                              smallest_eigenvector, tangent_frames, unique_edges, vertex_normals)
 from shellfem.errors import SelfshapeError
 
 
-# ----------------------------------------------------------------------------- sparse solves
-def factorize(A: sp.spmatrix):
-    """Factor a sparse Hermitian positive definite matrix once; returns solve(b).
-    CHOLMOD (scikit-sparse) when installed, else SuperLU."""
-    A = sp.csc_matrix(A)
-    try:
-        from sksparse.cholmod import cholesky
-    except ImportError:
-        cholesky = None
-    if cholesky is not None:
-        return cholesky(A)
-    from scipy.sparse.linalg import splu
-
-    lu = splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
-    return lu.solve
-
-
 # ----------------------------------------------------------------------------- operators
-def cotan_weights(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """cot(opposite angle) / 2 for each half-edge (3m,), half-edge 3f+c = F[f,c] -> F[f,c+1]."""
-    w = np.empty((len(F), 3))
-    for c in range(3):
-        o = F[:, (c + 2) % 3]
-        a, b = V[F[:, c]] - V[o], V[F[:, (c + 1) % 3]] - V[o]
-        w[:, c] = 0.5 * np.einsum("ij,ij->i", a, b) / np.linalg.norm(np.cross(a, b), axis=1)
-    return w.reshape(-1)
-
-
-def lumped_mass(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """Barycentric vertex areas (n,) in mm^2."""
-    return np.bincount(F.ravel(), weights=np.repeat(face_areas(V, F) / 3.0, 3), minlength=len(V))
-
-
 def transport_angles(E: np.ndarray, VN: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> np.ndarray:
     """Angle rho_ij (k,) by which a tangent vector at E[:,0] turns, in the frames, when carried
     to E[:,1] by the minimal rotation between the two tangent planes."""
@@ -115,22 +83,12 @@ def curvature_guidance(curv: Curvature, frames, n_sym: int = 2) -> np.ndarray:
     return mag * np.exp(1j * n_sym * phi)
 
 
-def _smallest_eigenvector(A, M, iters: int = 200, tol: float = 1e-10):
-    """Inverse iteration for the smallest generalised eigenvector of (A, diag(M));
-    deterministic start (all ones)."""
-    shift = 1e-8 * float(np.abs(A.diagonal()).mean()) / float(M.mean())
-    solve = factorize(A + shift * sp.diags(M))
-    u = np.ones(A.shape[0], dtype=complex)
-    u /= np.sqrt(np.vdot(u, M * u).real)
-    for _ in range(iters):
-        v = solve(M * u)
-        v /= np.sqrt(np.vdot(v, M * v).real)
-        # compare up to a global phase
-        if 1.0 - abs(np.vdot(u, M * v)) < tol:
-            u = v
-            break
-        u = v
-    return u
+def _smoothest_psi(A, M):
+    """The smoothest field: smallest generalised eigenvector of (A, diag(M)) by single-vector
+    inverse iteration from the deterministic all-ones start, up to 200 iterations, until the
+    vector changes by less than 1e-10 up to a global phase."""
+    return smallest_eigenvector(A, M, np.ones(A.shape[0], dtype=complex), rtol=1e-10, max_iter=200,
+                                stop="vector")[0]
 
 
 def vertex_to_face(V, F, psi, VN, frames, n_sym: int = 2) -> np.ndarray:
@@ -167,7 +125,7 @@ def curvature_line_field(V: np.ndarray, F: np.ndarray, lam: float = 0.0,
     qnorm = np.sqrt(np.vdot(q, M * q).real)
     kscale = float(np.sqrt(np.sum(M * (curv.vertex_k1 ** 2 + curv.vertex_k2 ** 2)) / M.sum()))
     if not qnorm > 1e-9 * max(kscale, 1e-300) * np.sqrt(M.sum()):
-        psi = _smallest_eigenvector(A, M)
+        psi = _smoothest_psi(A, M)
         return LineField(vertex_to_face(V, F, psi, VN, frames, n_sym), psi, float("nan"), True)
     qhat = q / qnorm
     shift = 1e-10 * float(np.abs(A.diagonal()).mean()) / float(M.mean())  # keeps A PD on flat disks
@@ -182,15 +140,13 @@ def smoothest_line_field(V: np.ndarray, F: np.ndarray, n_sym: int = 2) -> LineFi
     F = np.ascontiguousarray(F, dtype=np.int64)
     VN = vertex_normals(V, F)
     frames = tangent_frames(VN)
-    psi = _smallest_eigenvector(connection_laplacian(V, F, n_sym, VN, frames), lumped_mass(V, F))
+    psi = _smoothest_psi(connection_laplacian(V, F, n_sym, VN, frames), lumped_mass(V, F))
     return LineField(vertex_to_face(V, F, psi, VN, frames, n_sym), psi, float("nan"), True)
 
 
 def line_field_roughness(V: np.ndarray, F: np.ndarray, D: np.ndarray) -> np.ndarray:
     """Angle (deg, in [0, 90]) between the line directions of the two faces at each interior
     edge, after carrying one into the other's plane by the minimal rotation. (k_interior,)"""
-    from geometry.curvature import face_normals
-
     E, he2e, counts = unique_edges(F)
     # the two faces of each interior edge
     order = np.argsort(he2e, kind="stable")

@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from geometry.fields import cotan_weights, factorize
-from geometry.target import boundary_loop_count, face_areas, unique_edges
+from geometry.meshops import (boundary_loop_count, cotan_weights, face_areas, face_frames, factorize, signed_areas,
+                              unique_edges)
 from shellfem.errors import SelfshapeError
 
 
@@ -64,10 +64,7 @@ def local_triangles(V: np.ndarray, F: np.ndarray):
     e1 = V[F[:, 1]] - V[F[:, 0]]
     e2 = V[F[:, 2]] - V[F[:, 0]]
     l1 = np.linalg.norm(e1, axis=1)
-    U = e1 / l1[:, None]
-    N = np.cross(e1, e2)
-    N /= np.linalg.norm(N, axis=1)[:, None]
-    W = np.cross(N, U)
+    U, W, _ = face_frames(V, F)
     a, b = np.einsum("ij,ij->i", e2, U), np.einsum("ij,ij->i", e2, W)
     X = np.zeros((len(F), 3, 2))
     X[:, 1, 0], X[:, 2, 0], X[:, 2, 1] = l1, a, b
@@ -103,11 +100,6 @@ def tutte_embedding(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     if signed_areas(uv, F).sum() < 0:
         uv[:, 0] *= -1.0
     return uv
-
-
-def signed_areas(uv: np.ndarray, F: np.ndarray) -> np.ndarray:
-    a, b = uv[F[:, 1]] - uv[F[:, 0]], uv[F[:, 2]] - uv[F[:, 0]]
-    return 0.5 * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])
 
 
 def slim_map(V: np.ndarray, F: np.ndarray, uv0: np.ndarray, iterations: int = 3) -> np.ndarray:

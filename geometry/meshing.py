@@ -2,12 +2,11 @@
 
 The fabric outline is cut by every printed polygon so that each Gmsh surface lies
 entirely inside or outside each printed element. Two ways, same result (tested):
-kernel "geo" (default) computes the planar arrangement with shapely (snap-rounded noding
-+ polygonize, 0.1 s for 800 ribbons) and gives it to Gmsh's built-in kernel with shared
-points and lines; kernel "occ" fragments the outline with all pieces in OpenCASCADE
-(robust too, but its fragment and meshing take about 2x longer). A printed *region* is a
-connected component of the union of the printed geometry (region 0 = bare fabric, regions
-1..K numbered in the order of their first element in the pattern). A triangle's plastic
+kernel "geo" (default) computes the planar arrangement with shapely (geometry.arrangement:
+snap-rounded noding + polygonize, 0.1 s for 800 ribbons) and gives it to Gmsh's built-in
+kernel with shared points and lines; kernel "occ" fragments the outline with all pieces in
+OpenCASCADE (robust too, but its fragment and meshing take about 2x longer). Printed
+regions are those of geometry.arrangement. A triangle's plastic
 thickness on each face is the sum of the thicknesses of the elements covering it on that
 face (front and back separately).
 
@@ -25,13 +24,15 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-import re
 import time
 
 import numpy as np
 import shapely
 from shapely.geometry import Polygon
 
+from geometry.arrangement import GRID, arrangement, feature_width, piece_regions, printed_pieces
+from geometry.mesh_quality import mesh_quality
+from geometry.msh import add_physical_groups, write_msh
 from shellfem.errors import SelfshapeError
 from shellfem.sheet import Sheet
 
@@ -40,7 +41,6 @@ GRADING = 0.4         # growth of the fabric's target size per mm of distance to
 SIZE_STEP = 1.15      # ratio between quantised size classes
 ALGORITHM = 6         # Gmsh 2D algorithm: 6 = Frontal-Delaunay (best angles), 5 = Delaunay
 KERNEL = "geo"        # "geo": shapely arrangement + built-in kernel; "occ": OpenCASCADE fragment
-GRID = 1e-5           # mm: geometry is snap-rounded to this grid (merges round-off slivers)
 
 
 @contextlib.contextmanager
@@ -66,59 +66,7 @@ def gmsh_session(name: str = "selfshape"):
                 gmsh.model.remove()
 
 
-# ---------------------------------------------------------------- printed geometry
-
-def printed_pieces(elements, tol: float = None):
-    """Split elements into simple polygon pieces (arrays in, arrays out).
-
-    Returns (geoms, thickness, side, element): shapely Polygons snapped to a ``tol`` mm
-    grid (default GRID), their plastic thickness (mm), side (+1 front, -1 back) and source element index.
-    """
-    tol = GRID if tol is None else tol
-    geoms, thick, side, owner = [], [], [], []
-    for i, e in enumerate(elements):
-        g = shapely.set_precision(e.geometry, tol)
-        for p in shapely.get_parts(g):
-            if p.geom_type == "Polygon" and p.area > 0:
-                geoms.append(p)
-                thick.append(float(e.thickness_mm))
-                side.append(1 if e.side == "front" else -1)
-                owner.append(i)
-    return (np.array(geoms, dtype=object), np.array(thick, float), np.array(side, np.int64),
-            np.array(owner, np.int64))
-
-
-def piece_regions(geoms) -> np.ndarray:
-    """Region id (1..K) per piece: connected components of the union, numbered by first piece."""
-    if len(geoms) == 0:
-        return np.zeros(0, np.int64)
-    parts = np.array(shapely.get_parts(shapely.union_all(geoms)), dtype=object)
-    tree = shapely.STRtree(parts)
-    pts = shapely.point_on_surface(geoms)
-    ip, ic = tree.query(pts, predicate="intersects")
-    comp = np.full(len(geoms), -1, np.int64)
-    comp[ip] = ic                                   # a point on a piece lies in exactly one component
-    if (comp < 0).any():
-        raise RuntimeError("internal error: a printed piece is not inside the union of the print")
-    first = np.full(len(parts), len(geoms), np.int64)
-    np.minimum.at(first, comp, np.arange(len(geoms)))
-    order = np.argsort(first, kind="stable")
-    rank = np.empty(len(parts), np.int64)
-    rank[order] = np.arange(len(parts))
-    return rank[comp] + 1
-
-
-def region_elements(pattern) -> list[list[int]]:
-    """For region k (index k - 1), the indices of the pattern's elements that form it."""
-    geoms, _, _, owner = printed_pieces(pattern.elements)
-    reg = piece_regions(geoms)
-    return [sorted(set(owner[reg == k].tolist())) for k in range(1, int(reg.max(initial=0)) + 1)]
-
-
-def feature_width(geoms) -> np.ndarray:
-    """2 area / perimeter: the width of a strip, about the arm width of a star (mm)."""
-    return 2.0 * shapely.area(geoms) / np.maximum(shapely.length(geoms), 1e-300)
-
+# ---------------------------------------------------------------- mesh sizes
 
 def quantise_size(h, size_mm: float, base: float | None = None) -> np.ndarray:
     """Round target sizes down to base * SIZE_STEP**k (k >= 0 integer), capped at size_mm.
@@ -132,34 +80,6 @@ def quantise_size(h, size_mm: float, base: float | None = None) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- gmsh model
-
-def arrangement(outline: Polygon, geoms, grid: float = None):
-    """Planar subdivision of ``outline`` by the boundaries of the pieces ``geoms``.
-
-    Returns (faces, cover): an array of Polygons that tile the outline without overlap,
-    and per face the sorted indices of the pieces that contain it. The linework is
-    snap-rounded to a ``grid`` mm grid (default GRID) so that the noding is exact, shared
-    edges match and round-off slivers vanish; a face belongs to a piece when more than
-    half of its area lies in it.
-    """
-    grid = GRID if grid is None else grid
-    lines = shapely.union_all(shapely.boundary(np.concatenate([[outline], np.asarray(geoms, dtype=object)])),
-                              grid_size=grid)
-    faces = np.array(shapely.get_parts(shapely.polygonize(shapely.get_parts(lines))), dtype=object)
-    pts = shapely.point_on_surface(faces)
-    faces = faces[shapely.contains_xy(outline.buffer(10 * grid), shapely.get_x(pts), shapely.get_y(pts))]
-    cover = [[] for _ in faces]
-    if len(geoms):
-        fi, pi = shapely.STRtree(geoms).query(faces, predicate="intersects")
-        share = shapely.area(shapely.intersection(faces[fi], geoms[pi])) / shapely.area(faces[fi])
-        for f, p in zip(fi[share > 0.5].tolist(), pi[share > 0.5].tolist()):
-            cover[f].append(p)
-    total = float(shapely.area(faces).sum())
-    if abs(total - outline.area) > 1e-5 * outline.area:
-        raise RuntimeError(f"internal error: the planar arrangement covers {total:.9g} mm^2 of a "
-                           f"{outline.area:.9g} mm^2 fabric")
-    return faces, [np.array(sorted(c), np.int64) for c in cover]
-
 
 class _Face:
     """A Gmsh surface: the pieces covering it, its boundary curves and their lengths, its width."""
@@ -342,12 +262,8 @@ def _mesh_model(gmsh, pattern, size_mm, across, grading, algorithm, kernel):
         _cover_from_mesh(gmsh, faces, geoms)
         printed = [f for f, face in faces.items() if len(face.pieces)]
     k = int(regions.max(initial=0))
-    for r in range(1, k + 1):
-        gmsh.model.addPhysicalGroup(2, [f for f in printed if regions[faces[f].pieces[0]] == r], tag=r,
-                                    name=f"region_{r}")
-    bare = [f for f, face in faces.items() if not len(face.pieces)]
-    if bare:
-        gmsh.model.addPhysicalGroup(2, bare, tag=k + 1, name="fabric")
+    add_physical_groups(gmsh, [[f for f in printed if regions[faces[f].pieces[0]] == r] for r in range(1, k + 1)],
+                        [f for f, face in faces.items() if not len(face.pieces)])
     return _extract(gmsh, faces, thick, side, regions)
 
 
@@ -396,11 +312,9 @@ def coarse_meshes(pattern, n_fine: int, size_mm: float | None = None, levels: in
 
 
 def mesh_pattern_file(pattern_path, out_msh, size_mm: float | None = None) -> dict:
-    """Mesh a pattern file (.toml, or .gcode: see geometry.patterns) and write a Gmsh .msh.
-
-    The .msh (format 4.1) has one physical surface group per printed region, named
-    "region_k" with tag k, and "fabric" (tag K + 1) for bare fabric, plus element data
-    "region", "thickness_front" and "thickness_back" (mm). Written atomically.
+    """Mesh a pattern file (.toml, or .gcode: see geometry.patterns) and write a Gmsh .msh
+    (geometry.msh: physical groups per region, element data region and thickness). Written
+    atomically.
     Returns dict(n_vertices, n_triangles, n_regions, min_angle_deg, time_s).
     """
     from geometry.patterns import load_pattern
@@ -417,19 +331,7 @@ def mesh_pattern_file(pattern_path, out_msh, size_mm: float | None = None) -> di
     try:
         with gmsh_session() as gmsh:
             sheet, etags = _mesh_model(gmsh, pattern, size_mm, None, GRADING, ALGORITHM, KERNEL)
-            gmsh.option.setNumber("Mesh.SaveAll", 0)
-            gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
-            gmsh.option.setNumber("PostProcessing.SaveMesh", 0)
-            gmsh.option.setNumber("PostProcessing.SaveInterpolationMatrices", 0)
-            gmsh.write(tmp)
-            order = np.argsort(etags)          # element data in the file's element order
-            model = gmsh.model.getCurrent()
-            for name, values in (("region", sheet.region.astype(float)), ("thickness_front", sheet.thickness_front),
-                                 ("thickness_back", sheet.thickness_back)):
-                v = gmsh.view.add(name)
-                gmsh.view.addHomogeneousModelData(v, 0, model, "ElementData", etags[order].tolist(),
-                                                  values[order].tolist())
-                gmsh.view.write(v, tmp, append=True)
+            write_msh(gmsh, tmp, sheet, etags)
         os.replace(tmp, out_msh)
     finally:
         if os.path.exists(tmp):
@@ -437,93 +339,3 @@ def mesh_pattern_file(pattern_path, out_msh, size_mm: float | None = None) -> di
     q = mesh_quality(sheet)
     return dict(n_vertices=q["n_vertices"], n_triangles=q["n_triangles"], n_regions=q["n_regions"],
                 min_angle_deg=q["min_angle_deg"], time_s=time.perf_counter() - t0)
-
-
-def read_msh(path) -> Sheet:
-    """Read a .msh written by mesh_pattern_file (or any planar triangle .msh) as a Sheet.
-
-    Region ids come from the physical names ("fabric" -> 0, "region_k" -> k); without
-    physical names every triangle is region 0. Thickness comes from the element data
-    "thickness_front"/"thickness_back" when present, else 0.
-    """
-    import meshio
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise SelfshapeError(f"{path}: file not found")
-    with open(path, "rb") as f:
-        if b"$MeshFormat" not in f.read(4096):
-            raise SelfshapeError(f"{path}: cannot read Gmsh mesh (no $MeshFormat header)")
-    try:
-        m = meshio.read(path, file_format="gmsh")
-    except (Exception, SystemExit) as e:       # meshio exits on some malformed files
-        raise SelfshapeError(f"{path}: cannot read Gmsh mesh ({' '.join(str(e).split()) or type(e).__name__})") from None
-    for k in [k for k in m.cell_sets if k.startswith("gmsh:")]:
-        del m.cell_sets[k]
-    blocks = [i for i, c in enumerate(m.cells) if c.type == "triangle"]
-    if not blocks:
-        raise SelfshapeError(f"{path}: no triangles in the mesh")
-    tri = np.vstack([m.cells[i].data for i in blocks])
-
-    def cell_values(name, default):
-        if name not in m.cell_data:
-            return np.full(len(tri), default)
-        return np.concatenate([np.asarray(m.cell_data[name][i]).reshape(-1) for i in blocks])
-
-    names = {int(v[0]): k for k, v in m.field_data.items() if len(v) > 1 and int(v[1]) == 2}
-    phys = cell_values("gmsh:physical", 0).astype(np.int64)
-    region = np.zeros(len(tri), np.int64)
-    if names:
-        lut = {}
-        for tag, name in names.items():
-            mm = re.fullmatch(r"region_(\d+)", name)
-            if name == "fabric":
-                lut[tag] = 0
-            elif mm:
-                lut[tag] = int(mm.group(1))
-            else:
-                raise SelfshapeError(f"{path}: physical group {name!r} is neither \"fabric\" nor \"region_k\"")
-        unknown = sorted(set(np.unique(phys)) - set(lut))
-        if unknown:
-            raise SelfshapeError(f"{path}: triangles in physical group {unknown[0]} which has no name")
-        keys = np.array(sorted(lut))
-        region = np.array([lut[k] for k in keys], np.int64)[np.searchsorted(keys, phys)]
-    pts = np.asarray(m.points, float)
-    if pts.shape[1] == 3:
-        span = max(float(np.ptp(pts[:, :2], axis=0).max()), 1e-300)
-        if np.abs(pts[:, 2]).max() > 1e-9 * span:
-            raise SelfshapeError(f"{path}: the mesh is not flat (z != 0); a Sheet is a planar printed state")
-    used, inv = np.unique(tri, return_inverse=True)
-    return Sheet(pts[used, :2], inv.reshape(-1, 3), region, cell_values("thickness_front", 0.0),
-                 cell_values("thickness_back", 0.0))
-
-
-def triangle_angles(points, triangles) -> np.ndarray:
-    """(m, 3) interior angles in degrees (at vertex 0, 1, 2)."""
-    p = np.asarray(points, float)[np.asarray(triangles)]
-    a = np.linalg.norm(p[:, 2] - p[:, 1], axis=1)    # opposite vertex 0
-    b = np.linalg.norm(p[:, 0] - p[:, 2], axis=1)
-    c = np.linalg.norm(p[:, 1] - p[:, 0], axis=1)
-    def ang(opp, s1, s2):
-        return np.degrees(np.arccos(np.clip((s1 * s1 + s2 * s2 - opp * opp) / (2 * s1 * s2), -1.0, 1.0)))
-    return np.column_stack([ang(a, b, c), ang(b, c, a), ang(c, a, b)])
-
-
-def mesh_quality(sheet: Sheet) -> dict:
-    """Counts, angles (deg), areas (mm^2) and edge lengths (mm) of a Sheet."""
-    ang = triangle_angles(sheet.points, sheet.triangles)
-    p = sheet.points[sheet.triangles]
-    area = 0.5 * np.abs((p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1])
-                        - (p[:, 1, 1] - p[:, 0, 1]) * (p[:, 2, 0] - p[:, 0, 0]))
-    e = np.sort(np.vstack([sheet.triangles[:, [0, 1]], sheet.triangles[:, [1, 2]], sheet.triangles[:, [2, 0]]]), axis=1)
-    e = np.unique(e, axis=0)
-    L = np.linalg.norm(sheet.points[e[:, 0]] - sheet.points[e[:, 1]], axis=1)
-    tmin = ang.min(axis=1)
-    printed = sheet.printed
-    return dict(
-        n_vertices=int(sheet.n_vertices), n_triangles=int(sheet.n_triangles),
-        n_regions=int(len(np.unique(sheet.region[sheet.region > 0]))),
-        min_angle_deg=float(tmin.min()), max_angle_deg=float(ang.max()),
-        mean_min_angle_deg=float(tmin.mean()), pct_min_angle_below_30=float(100.0 * (tmin < 30).mean()),
-        area_mm2=float(area.sum()), printed_area_mm2=float(area[printed].sum()),
-        edge_min_mm=float(L.min()), edge_median_mm=float(np.median(L)), edge_max_mm=float(L.max()),
-    )

@@ -6,7 +6,7 @@ file, the entry (1-based, e.g. ``[[region]] #3``) and the problem. Printed geome
 resolved here: [[region]] polygons must lie inside the fabric; [[ribbon]], [stars] and
 [print] G-code elements are clipped to it. All lengths are printed-state mm.
 
-A bare ``.gcode`` file is a pattern too: its printed paths (geometry.gcode_import) on a
+A bare ``.gcode`` file is a pattern too: its printed paths (geometry.gcode) on a
 rectangle of fabric = the print's bounding box plus a 10 mm margin on every side, with
 the default fabric and plastic (seed Table 4.1) and the default mesh size.
 
@@ -300,7 +300,7 @@ def _stars(raw, src, outline) -> list[PrintedElement]:
 
 def _read_gcode(path: str, where: str, **options) -> list[PrintedElement]:
     try:
-        from geometry.gcode_import import read_gcode
+        from geometry.gcode import read_gcode
     except ImportError as e:
         raise SelfshapeError(f"{where}: G-code import is not available ({e})") from None
     if not os.path.isfile(path):
@@ -310,7 +310,7 @@ def _read_gcode(path: str, where: str, **options) -> list[PrintedElement]:
 
 def _print(raw, src, outline, base_dir) -> list[PrintedElement]:
     """[print] gcode = "file" or ["front.gcode", "back.gcode"]; optional side and origin_mm
-    (bed position of pattern (0, 0)) are passed to geometry.gcode_import.read_gcode."""
+    (bed position of pattern (0, 0)) are passed to geometry.gcode.read_gcode."""
     if "print" not in raw:
         return []
     where = f"{src}: [print]"

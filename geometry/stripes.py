@@ -26,9 +26,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg import eigh
 from scipy.sparse import csgraph
 
+from geometry.meshops import (NotPositiveDefiniteError, cotan_weights, face_areas, face_normals, lumped_mass,
+                              mesh_edges, smallest_eigenvector, tangent_frames, vertex_normals)
 from shellfem.errors import SelfshapeError
 
 TWO_PI = 2.0 * np.pi
@@ -114,19 +115,19 @@ def _mesh(V, F) -> tuple[np.ndarray, np.ndarray, int]:
 
 
 def _face_normals_areas(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    cr = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    dbl = np.linalg.norm(cr, axis=1)
+    """Unit face normals and areas; raises on a zero-area face."""
+    areas = face_areas(V, F)
     scale = np.max(np.ptp(V, axis=0)) ** 2
-    bad = dbl <= 1e-14 * scale
+    bad = 2.0 * areas <= 1e-14 * scale
     if bad.any():
         raise SelfshapeError(f"stripes: face {int(np.argmax(bad))} is degenerate (zero area)")
-    return cr / dbl[:, None], 0.5 * dbl
+    return face_normals(V, F), areas
 
 
-def _vertex_normals(F, n, face_normals, areas) -> np.ndarray:
-    acc = np.zeros((n, 3))
-    for c in range(3):
-        np.add.at(acc, F[:, c], face_normals * areas[:, None])
+def _vertex_normals(V, F, areas) -> np.ndarray:
+    """Area-weighted unit vertex normals; raises where the faces around a vertex cancel."""
+    n = len(V)
+    acc = vertex_normals(V, F, weighting="area", unit_length=False)
     nrm = np.linalg.norm(acc, axis=1)
     scale = np.bincount(F.ravel(), weights=np.repeat(areas, 3), minlength=n)
     bad = nrm <= 1e-9 * scale
@@ -134,40 +135,6 @@ def _vertex_normals(F, n, face_normals, areas) -> np.ndarray:
         raise SelfshapeError(f"stripes: faces around vertex {int(np.argmax(bad))} are inconsistently "
                              "oriented (vertex normal vanishes)")
     return acc / nrm[:, None]
-
-
-def _tangent_frames(N: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    a = np.zeros_like(N)
-    use_x = np.abs(N[:, 0]) < 0.9
-    a[use_x, 0] = 1.0
-    a[~use_x, 1] = 1.0
-    t1 = a - np.sum(a * N, axis=1)[:, None] * N
-    t1 /= np.linalg.norm(t1, axis=1)[:, None]
-    return t1, np.cross(N, t1)
-
-
-def mesh_edges(F: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Undirected edges. Returns E (k, 2) with a < b, face_edge (m, 3) id of the edge from corner
-    c to corner c + 1, and forward (m, 3) bool (corner c is the edge's first vertex a)."""
-    F = np.asarray(F, dtype=np.int64)
-    a = F
-    b = np.roll(F, -1, axis=1)
-    lo, hi = np.minimum(a, b), np.maximum(a, b)
-    key = lo * n + hi
-    uniq, inv = np.unique(key.ravel(), return_inverse=True)
-    E = np.column_stack([uniq // n, uniq % n])
-    return E, inv.reshape(F.shape), a == lo
-
-
-def _corner_cotangents(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """cot of the angle at corner c (m, 3); it weighs the opposite edge (c + 1 -> c + 2)."""
-    cots = np.empty(F.shape)
-    for c in range(3):
-        p = V[F[:, c]]
-        e1 = V[F[:, (c + 1) % 3]] - p
-        e2 = V[F[:, (c + 2) % 3]] - p
-        cots[:, c] = np.sum(e1 * e2, axis=1) / np.linalg.norm(np.cross(e1, e2), axis=1)
-    return cots
 
 
 # ----------------------------------------------------------------------------- direction field
@@ -248,52 +215,23 @@ def _energy_matrix(n, E, w, s, omega) -> sp.csr_matrix:
     return sp.csr_matrix((val, (r, q)), shape=(2 * n, 2 * n))
 
 
-def _factor(K: sp.spmatrix):
-    """Solve function for the SPD matrix K: CHOLMOD when available, else SuperLU."""
-    try:
-        from sksparse.cholmod import cholesky, CholmodNotPositiveDefiniteError
-    except ImportError:  # pragma: no cover - optional dependency
-        from scipy.sparse.linalg import splu
-        lu = splu(K.tocsc(), permc_spec="MMD_AT_PLUS_A", options=dict(SymmetricMode=True))
-        return lu.solve
-    try:
-        return cholesky(K.tocsc(), ordering_method="amd")
-    except CholmodNotPositiveDefiniteError as err:
-        raise SelfshapeError("stripes: energy matrix is not positive definite (mesh with "
-                             "degenerate or flipped faces?)") from err
-
-
-def _smallest_eigenvector(A, mass, seed, rtol, max_iter, block=6):
+def _smallest_stripe_mode(A, mass, seed, rtol, max_iter, block=6):
     """Smallest eigenpair of A x = lambda M x (M = diag(mass)), x M-normalised.
 
     Block inverse power iteration (subspace iteration with a Rayleigh-Ritz step) on ``block``
-    vectors, one sparse Cholesky factor of A + eps M. Frustrated fields have clustered low
-    modes (e.g. an almost free global phase), where single-vector inverse iteration crawls at
-    rate lambda_1 / lambda_2 ~ 1; the block converges at lambda_1 / lambda_(block + 1).
-    Stops when the smallest Ritz value changes by less than rtol * lambda + atol.
+    vectors from a seeded normal random start, one sparse Cholesky factor (AMD ordering).
+    Frustrated fields have clustered low modes (e.g. an almost free global phase), where
+    single-vector inverse iteration crawls at rate lambda_1 / lambda_2 ~ 1; the block
+    converges at lambda_1 / lambda_(block + 1). Stops when the smallest Ritz value changes by
+    less than rtol * lambda + atol.
     """
-    n2 = A.shape[0]
-    scale = A.diagonal().mean() / mass.mean()
-    solve = _factor(A + sp.diags(1e-8 * scale * mass))
-    rng = np.random.default_rng(seed)
-    X = rng.standard_normal((n2, min(block, n2)))
-    lam_prev = np.inf
-    it = 0
-    for it in range(1, max_iter + 1):
-        Y = solve(mass[:, None] * X)
-        Y /= np.sqrt(np.einsum("ij,i,ij->j", Y, mass, Y))
-        try:
-            ritz, Q = eigh(Y.T @ (A @ Y), Y.T @ (mass[:, None] * Y))   # Rayleigh-Ritz
-        except np.linalg.LinAlgError:                 # nearly dependent block: re-orthonormalise
-            Y = np.linalg.qr(np.sqrt(mass)[:, None] * Y)[0] / np.sqrt(mass)[:, None]
-            ritz, Q = np.linalg.eigh(Y.T @ (A @ Y))
-        X = Y @ Q
-        lam = max(float(ritz[0]), 0.0)
-        if abs(lam_prev - lam) <= rtol * lam + 1e-12 * scale:
-            break
-        lam_prev = lam
-    x = X[:, 0]
-    return x / np.sqrt(x @ (mass * x)), lam, it
+    start = np.random.default_rng(seed).standard_normal((A.shape[0], min(block, A.shape[0])))
+    try:
+        return smallest_eigenvector(A, mass, start, rtol=rtol, max_iter=max_iter, stop="eigenvalue",
+                                    ordering="amd")
+    except NotPositiveDefiniteError as err:
+        raise SelfshapeError("stripes: energy matrix is not positive definite (mesh with "
+                             "degenerate or flipped faces?)") from err
 
 
 # ----------------------------------------------------------------------------- texture coordinates
@@ -348,8 +286,8 @@ def stripe_field(V, F, direction, spacing, seed: int = 0, direction_on: str = "a
         raise SelfshapeError(f"stripes: spacing[{int(np.argmax(bad))}] = {spacing[bad][0]} mm must be finite and > 0")
 
     fn, areas = _face_normals_areas(V3, F)
-    N = _vertex_normals(F, n, fn, areas)
-    t1, t2 = _tangent_frames(N)
+    N = _vertex_normals(V3, F, areas)
+    t1, t2 = tangent_frames(N, seed="x_or_y")
     X, ref = _vertex_line_field(V3, F, N, t1, t2, areas, direction, direction_on)
     G = np.cross(N, X)                            # phase-gradient direction (across the stripes)
     nu = TWO_PI / spacing
@@ -364,13 +302,11 @@ def stripe_field(V, F, direction, spacing, seed: int = 0, direction_on: str = "a
             f"stripe periods (spacing {spacing[a]:.3g} mm); refine to edges below half the spacing")
 
     branch = s_edge[face_edge].prod(axis=1) < 0
-    cots = np.where(branch[:, None], 0.0, _corner_cotangents(V3, F))
-    # corner c weighs the edge opposite to it, i.e. face edge (c + 1) -> (c + 2)
-    w = 0.5 * np.bincount(np.roll(face_edge, -1, axis=1).ravel(), weights=cots.ravel(), minlength=len(E))
-    w = np.maximum(w, 0.0)
+    # cotangent weights, none across the faces where the line field branches
+    he_w = np.where(np.repeat(branch, 3), 0.0, cotan_weights(V3, F))
+    w = np.maximum(np.bincount(face_edge.ravel(), weights=he_w, minlength=len(E)), 0.0)
     A = _energy_matrix(n, E, w, s_edge, omega)
-    vmass = np.bincount(F.ravel(), weights=np.repeat(areas / 3.0, 3), minlength=n)
-    x, lam, iters = _smallest_eigenvector(A, np.repeat(vmass, 2), seed, rtol, max_iter)
+    x, lam, iters = _smallest_stripe_mode(A, np.repeat(lumped_mass(V3, F), 2), seed, rtol, max_iter)
 
     z = x[0::2] + 1j * x[1::2]
     amp = np.abs(z)

@@ -11,6 +11,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from geometry.meshops import boundary_loop_count, face_areas, halfedges, remove_unreferenced, unique_edges
 from shellfem.errors import SelfshapeError
 
 #: A face whose area is below this fraction of the squared bounding-box diagonal is "zero area".
@@ -88,49 +89,6 @@ def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ----------------------------------------------------------------------------- topology
-def face_areas(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """Triangle areas (m,)."""
-    return 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
-
-
-def unique_edges(F: np.ndarray):
-    """Undirected edges of a triangle mesh.
-
-    Returns E (k, 2) sorted vertex pairs, he2e (3m,) edge of each half-edge (half-edge
-    3f + c goes from F[f, c] to F[f, (c+1) % 3]) and the number of faces at each edge (k,).
-    """
-    H = halfedges(F)
-    n = int(F.max()) + 1
-    key = np.minimum(H[:, 0], H[:, 1]) * n + np.maximum(H[:, 0], H[:, 1])
-    ukey, he2e, counts = np.unique(key, return_inverse=True, return_counts=True)
-    return np.column_stack([ukey // n, ukey % n]), he2e.reshape(-1), counts
-
-
-def halfedges(F: np.ndarray) -> np.ndarray:
-    """Directed half-edges (3m, 2): row 3f + c is F[f, c] -> F[f, (c+1) % 3]."""
-    return np.stack([F, np.roll(F, -1, axis=1)], axis=2).reshape(-1, 2)
-
-
-def boundary_loop_count(F: np.ndarray, n: int) -> int:
-    """Number of boundary loops (components of the boundary-edge graph)."""
-    E, _, counts = unique_edges(F)
-    B = E[counts == 1]
-    if len(B) == 0:
-        return 0
-    verts = np.unique(B)
-    A = sp.coo_matrix((np.ones(len(B)), (B[:, 0], B[:, 1])), shape=(n, n))
-    _, labels = connected_components(A, directed=False)
-    return len(np.unique(labels[verts]))
-
-
-def remove_unreferenced(V: np.ndarray, F: np.ndarray):
-    """Drop vertices no face uses; returns (V, F, old index of each kept vertex)."""
-    used = np.unique(F)
-    remap = np.full(len(V), -1, dtype=np.int64)
-    remap[used] = np.arange(len(used))
-    return V[used], remap[F], used
-
-
 def check_disk(V: np.ndarray, F: np.ndarray, where: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
     """Validate a disk-topology triangle mesh; return it without unreferenced vertices.
 

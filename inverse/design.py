@@ -42,6 +42,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from geometry.meshops import face_areas
 from inverse.plots import plot_pattern
 from inverse.report import report_dict
 from inverse.separation import separate_ribbons, simplify_paths
@@ -262,8 +263,7 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     bounds = stretch_bounds(stretch, ribbon_length, ribbon_width) if bounds is None else tuple(bounds)
     V0, F0 = check_disk(V, F, where=where)
     V0 = normalize(V0, o.diagonal_mm)
-    total_area = float(0.5 * np.linalg.norm(np.cross(V0[F0[:, 1]] - V0[F0[:, 0]], V0[F0[:, 2]] - V0[F0[:, 0]]),
-                                            axis=1).sum())
+    total_area = float(face_areas(V0, F0).sum())
     if not total_area > 0:
         raise SelfshapeError(f"{where}: zero total area")
     levels = 0 if o.edge_mm is None else refine_levels_for_edge(V0, F0, o.edge_mm, o.max_faces)
@@ -295,7 +295,7 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
         e0 = float(np.linalg.norm(V0[F0[:, [1, 2, 0]]] - V0[F0], axis=2).mean())
         while lay_levels > 0 and e0 / 2 ** (lay_levels - 1) <= o.layout_edge_mm:
             lay_levels -= 1
-    area = 0.5 * np.linalg.norm(np.cross(Vf[Ff[:, 1]] - Vf[Ff[:, 0]], Vf[Ff[:, 2]] - Vf[Ff[:, 0]]), axis=1)
+    area = face_areas(Vf, Ff)
     uv_l, F_l, d_l, s1_l, s2_l, k_l = coarsen_for_layout(F0, levels, lay_levels, flat.uv, area, flat.dir1,
                                                          s1, s2, kappa1)
     ribbons = ribbon_layout(uv_l, Ff if F_l is None else F_l, d_l, s1_l, s2_l, k_l, stretch, outline=outline,

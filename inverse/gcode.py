@@ -1,31 +1,25 @@
-"""Ribbons -> G-code for an FDM printer printing onto fabric held in a flippable frame.
+"""Ribbons -> G-code: what to print and in which order, for an FDM printer printing onto
+fabric held in a flippable frame (mm, mm/s, deg C).
 
-Units: mm, mm/s, deg C. Each ribbon (geometry.elements.Ribbon: centre line, width,
-thickness, side) is printed as round(thickness / layer height) (>= 1) stacked beads. Layer
-by layer, the ribbons of a layer are ordered greedily by nearest endpoint (ties go to the
-lower ribbon index, then to the path's start), each printed in the direction that starts at
-the nearer end. Extrusion follows Slic3r's bead model: cross-section (w - h) h + pi h^2 / 4,
-filament length E = area * length * multiplier / filament cross-section. Travel longer than
-``printer.retract_min_travel_mm`` retracts and hops in z.
-
-Frame convention (seed section 5.5): a pattern point (x, y) is printed on the front at bed
-(x + ox, y + oy), (ox, oy) = printer.origin. To print the back, the frame is flipped about
-the bed line x = a (``mirror_axis_x``, default the bed centre), which sends the fabric point
-at bed x to bed 2a - x, y unchanged. The back side is therefore printed at bed
-(2a - (x + ox), y + oy), which lands on the same fabric point as the front. The origin and
-axis are written in the header so that :func:`geometry.gcode_import.read_gcode` maps a
-file back to pattern coordinates.
+Each ribbon (geometry.elements.Ribbon: centre line, width, thickness, side) is printed as
+round(thickness / layer height) (>= 1) stacked beads. Layer by layer, the ribbons of a
+layer are ordered greedily by nearest endpoint (ties go to the lower ribbon index, then to
+the path's start), each printed in the direction that starts at the nearer end. Extrusion
+follows the bead model of geometry.beads: filament length E = bead area * length *
+multiplier / filament cross-section. The file itself (header, moves, hints, the front/back
+frame convention) is geometry.gcode, which also reads it back.
 """
 from __future__ import annotations
 
 import math
 import os
-import tempfile
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from inverse.printer import Printer, bead_area
+from geometry.beads import bead_area
+from geometry.gcode import GcodeHeader, GcodeWriter, to_bed
+from inverse.printer import Printer
 from shellfem.errors import SelfshapeError
 
 SIDES = ("front", "back")
@@ -84,23 +78,6 @@ def default_origin(paths, bed_size):
     return (float(bed_size[0] / 2.0 - centre[0]), float(bed_size[1] / 2.0 - centre[1]))
 
 
-def to_bed(xy, origin, side, mirror_axis_x):
-    """Pattern (printed-state) coordinates -> bed coordinates for the given side. (k, 2)."""
-    b = np.asarray(xy, float) + np.asarray(origin, float)
-    if side == "back":
-        b = b.copy()
-        b[:, 0] = 2.0 * mirror_axis_x - b[:, 0]
-    return b
-
-
-def from_bed(xy, origin, side, mirror_axis_x):
-    """Inverse of :func:`to_bed`. (k, 2)."""
-    b = np.asarray(xy, float).copy()
-    if side == "back":
-        b[:, 0] = 2.0 * mirror_axis_x - b[:, 0]
-    return b - np.asarray(origin, float)
-
-
 def greedy_order(starts, ends, position=(0.0, 0.0)):
     """Visit every path once, always going to the nearest free endpoint.
 
@@ -143,114 +120,16 @@ def greedy_order(starts, ends, position=(0.0, 0.0)):
     return order, reverse, cur
 
 
-class _Emitter:
-    """Accumulates G-code lines, the tool position and print statistics."""
-
-    def __init__(self, printer: Printer, relative_e: bool):
-        self.p, self.rel = printer, relative_e
-        self.lines: list[str] = []
-        self.e = 0.0                  # absolute E (filament mm)
-        self.xy = np.zeros(2)
-        self.z = 0.0
-        self.retracted = False
-        self.stats = dict(print_length_mm=0.0, travel_length_mm=0.0, extruded_filament_mm=0.0,
-                          n_retractions=0, estimated_time_s=0.0)
-
-    def _e_word(self, de):
-        self.e += de
-        return f"E{de:.5f}" if self.rel else f"E{self.e:.5f}"
-
-    def retract(self):
-        if self.retracted or self.p.retraction_mm == 0:
-            return
-        f = self.p.retraction_speed_mm_s
-        self.lines.append(f"G1 {self._e_word(-self.p.retraction_mm)} F{f * 60:.0f}")
-        self.retracted = True
-        self.stats["n_retractions"] += 1
-        self.stats["estimated_time_s"] += self.p.retraction_mm / f
-
-    def unretract(self):
-        if not self.retracted:
-            return
-        f = self.p.retraction_speed_mm_s
-        self.lines.append(f"G1 {self._e_word(self.p.retraction_mm)} F{f * 60:.0f}")
-        self.retracted = False
-        self.stats["estimated_time_s"] += self.p.retraction_mm / f
-
-    def move_z(self, z):
-        if abs(z - self.z) > 1e-9:
-            self.lines.append(f"G1 Z{z:.3f} F{self.p.z_speed_mm_s * 60:.0f}")
-            self.stats["estimated_time_s"] += abs(z - self.z) / self.p.z_speed_mm_s
-            self.z = z
-
-    def travel(self, xy, z):
-        """Go to (xy, z) without extruding: retract and hop when the way is long."""
-        dist = float(np.hypot(*(xy - self.xy)))
-        if dist > self.p.retract_min_travel_mm or abs(z - self.z) > 1e-9:
-            self.retract()
-            self.move_z(max(z, self.z) + self.p.z_hop_mm)
-        if dist > 0:
-            self.lines.append(f"G0 X{xy[0]:.3f} Y{xy[1]:.3f} F{self.p.travel_speed_mm_s * 60:.0f}")
-            self.stats["travel_length_mm"] += dist
-            self.stats["estimated_time_s"] += dist / self.p.travel_speed_mm_s
-            self.xy = xy.copy()
-        self.move_z(z)
-        self.unretract()
-
-    def extrude(self, pts, e_per_mm):
-        """Print the polyline ``pts`` (k, 2), starting at the current position pts[0]."""
-        seg = np.hypot(*np.diff(pts, axis=0).T)
-        de = seg * e_per_mm
-        e_abs = self.e + np.cumsum(de)
-        words = de if self.rel else e_abs
-        lines = [f"G1 X{x:.3f} Y{y:.3f} E{e:.5f}"
-                 for x, y, e in zip(pts[1:, 0].tolist(), pts[1:, 1].tolist(), words.tolist())]
-        lines[0] += f" F{self.p.print_speed_mm_s * 60:.0f}"
-        self.lines += lines
-        self.e = float(e_abs[-1])
-        length = float(seg.sum())
-        self.stats["print_length_mm"] += length
-        self.stats["extruded_filament_mm"] += float(de.sum())
-        self.stats["estimated_time_s"] += length / self.p.print_speed_mm_s
-        self.xy = pts[-1].copy()
-
-
-def _header(p: Printer, side, origin, axis, relative_e, n_ribbons, n_layers):
+def _header(p: Printer, side, origin, axis, relative_e, n_ribbons, n_layers) -> GcodeHeader:
     h = p.layer_height_mm
-    return [
-        "; generated by selfshape (inverse.gcode.write_gcode)",
-        f"; selfshape side = {side}",
-        f"; selfshape origin_mm = {origin[0]:.6f}, {origin[1]:.6f}",
-        f"; selfshape mirror_axis_x_mm = {axis:.6f}",
-        f"; selfshape bed_offset_z_mm = {p.bed_offset_z_mm:.6f}",
-        f"; selfshape ribbons = {n_ribbons}",
-        f"; selfshape layers = {n_layers}",
-        "; pattern (x, y) is printed at bed (x + ox, y + oy) on the front and at "
-        "(2 a - x - ox, y + oy) on the back (frame flipped about bed x = a)",
-        f"; bed_shape = {p.bed_size[0]:g} x {p.bed_size[1]:g}",
-        f"; nozzle_diameter = {p.nozzle_mm:g}",
-        f"; filament_diameter = {p.filament_diameter_mm:g}",
-        f"; layer_height = {h:g}",
-        f"; first_layer_height = {h:g}",
-        f"; extrusion_multiplier = {p.extrusion_multiplier:g}",
-        f"; print_speed = {p.print_speed_mm_s:g}",
-        f"; travel_speed = {p.travel_speed_mm_s:g}",
-        f"; retract_length = {p.retraction_mm:g}",
-        f"; retract_speed = {p.retraction_speed_mm_s:g}",
-        f"; retract_lift = {p.z_hop_mm:g}",
-        f"; temperature = {p.nozzle_temperature_c:g}",
-        f"; bed_temperature = {p.bed_temperature_c:g}",
-        "G21 ; millimetres",
-        "G90 ; absolute positions",
-        "M83 ; relative extrusion" if relative_e else "M82 ; absolute extrusion",
-        f"M140 S{p.bed_temperature_c:.0f}",
-        f"M104 S{p.nozzle_temperature_c:.0f}",
-        "G28 ; home",
-        f"M190 S{p.bed_temperature_c:.0f}" if p.bed_temperature_c > 0 else "; no bed heating (fabric)",
-        f"M109 S{p.nozzle_temperature_c:.0f}",
-        "G92 E0",
-        "M107",
-    ]
+    return GcodeHeader(
+        side=side, origin_mm=(origin[0], origin[1]), mirror_axis_x_mm=axis, bed_offset_z_mm=p.bed_offset_z_mm,
+        ribbons=n_ribbons, layers=n_layers, bed_shape_mm=(p.bed_size[0], p.bed_size[1]),
+        nozzle_diameter_mm=p.nozzle_mm, filament_diameter_mm=p.filament_diameter_mm, layer_height_mm=h,
+        first_layer_height_mm=h, extrusion_multiplier=p.extrusion_multiplier, print_speed_mm_s=p.print_speed_mm_s,
+        travel_speed_mm_s=p.travel_speed_mm_s, retract_length_mm=p.retraction_mm,
+        retract_speed_mm_s=p.retraction_speed_mm_s, retract_lift_mm=p.z_hop_mm,
+        temperature_c=p.nozzle_temperature_c, bed_temperature_c=p.bed_temperature_c, relative_e=relative_e)
 
 
 def write_gcode(ribbons, path, printer: Printer | None = None, side="front", mirror_axis_x=None,
@@ -295,33 +174,29 @@ def write_gcode(ribbons, path, printer: Printer | None = None, side="front", mir
     n_layers = int(n_layers_each.max()) if len(sel) else 0
     e_per_mm = bead_area(widths[sel], h) * p.extrusion_multiplier / p.filament_area_mm2
 
-    em = _Emitter(p, rel)
-    em.lines += _header(p, side, origin, axis, rel, len(sel), n_layers)
+    writer = GcodeWriter(_header(p, side, origin, axis, rel, len(sel), n_layers), p.z_speed_mm_s,
+                         p.retract_min_travel_mm)
     pos = np.zeros(2)
     starts = np.array([b[0] for b in bed_paths]).reshape(-1, 2)
     ends = np.array([b[-1] for b in bed_paths]).reshape(-1, 2)
     for layer in range(1, n_layers + 1):
         z = p.bed_offset_z_mm + layer * h
-        em.lines += [";LAYER_CHANGE", f";Z:{z:.3f}", f";HEIGHT:{h:g}"]
+        writer.layer_change(z, h)
         live = np.flatnonzero(n_layers_each >= layer)
         order, rev, pos = greedy_order(starts[live], ends[live], pos)
         for k, r in zip(live[order], rev):
             b = bed_paths[k][::-1] if r else bed_paths[k]
-            em.travel(b[0], z)
-            em.lines += [";TYPE:Ribbon", f";WIDTH:{widths[sel[k]]:g}",
-                         f"; {_ribbon_name(int(sel[k]), ribbons[sel[k]])} layer {layer}"]
-            em.extrude(b, e_per_mm[k])
-    em.retract()
-    em.move_z(em.z + 10.0)
-    em.lines += ["M104 S0", "M140 S0", "M107", "M84", "; end of selfshape print"]
-
-    _write_atomic(path, "\n".join(em.lines) + "\n")
+            writer.travel(b[0], z)
+            writer.feature("Ribbon", widths[sel[k]], f"{_ribbon_name(int(sel[k]), ribbons[sel[k]])} layer {layer}")
+            writer.extrude(b, e_per_mm[k])
+    writer.finish()
+    writer.write(path)
     bbox = (np.concatenate(bed_paths).min(0).tolist() + np.concatenate(bed_paths).max(0).tolist()
             if bed_paths else [])
-    stats = dict(em.stats)
+    stats = dict(writer.stats)
     stats.update(
         path=str(path), side=side, n_ribbons=int(len(sel)), n_layers=n_layers, layer_height_mm=h,
-        n_lines=len(em.lines), relative_e=rel, origin_mm=[float(origin[0]), float(origin[1])],
+        n_lines=len(writer.lines), relative_e=rel, origin_mm=[float(origin[0]), float(origin[1])],
         mirror_axis_x_mm=axis, bed_bbox_mm=bbox,
         plastic_volume_mm3=stats["extruded_filament_mm"] * p.filament_area_mm2,
         ribbon_indices=sel.tolist(), thickness_printed_mm=(n_layers_each * h).tolist(),
@@ -329,23 +204,6 @@ def write_gcode(ribbons, path, printer: Printer | None = None, side="front", mir
         warnings=[] if len(sel) else [f"no {side} ribbons: the file prints nothing"],
     )
     return stats
-
-
-def _write_atomic(path, text):
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=".selfshape-", suffix=".gcode", dir=folder)
-    except OSError as e:
-        raise SelfshapeError(f"cannot write {path}: {e.strerror}") from None
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except OSError as e:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise SelfshapeError(f"cannot write {path}: {e.strerror}") from None
 
 
 def ribbons_to_gcode_files(ribbons, out_dir, printer: Printer | None = None) -> list:

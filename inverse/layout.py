@@ -21,7 +21,8 @@ import numpy as np
 import shapely
 
 from geometry.elements import Ribbon
-from geometry.stripes import isoline_set, mesh_edges, stripe_field
+from geometry.meshops import mesh_edges
+from geometry.stripes import isoline_set, stripe_field
 from inverse.spacing import ribbon_spacing
 from shellfem.errors import SelfshapeError
 

@@ -4,7 +4,7 @@ Defaults follow the seed (section 5.5): an Ultimaker 2 (223 x 223 mm bed, 2.85 m
 filament) with a 0.8 mm nozzle printing TPU 95A at 15 mm/s onto fabric held in a frame
 on the bed. Coordinates: a pattern point (x, y) in printed-state mm is printed at bed
 position (x + origin[0], y + origin[1]) (front side; the back side is mirrored, see
-:mod:`inverse.gcode`); the nozzle height is measured from the fabric
+:mod:`geometry.gcode`); the nozzle height is measured from the fabric
 top, which sits ``bed_offset_z_mm`` above the bed (0 when the nozzle is calibrated to
 start directly above the fabric, as in the seed).
 """
@@ -89,18 +89,6 @@ class Printer:
     def flip_axis_x(self) -> float:
         """Bed x of the frame's flip line (``mirror_axis_x`` or the bed centre), mm."""
         return self.bed_size[0] / 2.0 if self.mirror_axis_x is None else self.mirror_axis_x
-
-
-def bead_area(width_mm, height_mm):
-    """Cross-section (mm^2) of an extruded bead: a rectangle with semicircular sides
-    (Slic3r's flow model), area = (w - h) h + pi h^2 / 4. Needs w >= h. Vectorised."""
-    return (width_mm - height_mm) * height_mm + math.pi * height_mm * height_mm / 4.0
-
-
-def bead_width(area_mm2, height_mm):
-    """Inverse of :func:`bead_area`: the width (mm) of a bead of given cross-section
-    and height. Vectorised."""
-    return area_mm2 / height_mm + height_mm * (1.0 - math.pi / 4.0)
 
 
 def load_printer(path: str) -> Printer:

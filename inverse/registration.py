@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from geometry.meshops import face_normals
+
 
 def kabsch(X: np.ndarray, Y: np.ndarray, w=None):
     """Rotation R and translation t minimising sum w |R x + t - y|^2 (proper rotation, scale fixed)."""
@@ -32,8 +34,7 @@ def register(X: np.ndarray, V: np.ndarray, F: np.ndarray, Y0: np.ndarray | None 
     if Y0 is not None:
         R, t = kabsch(X, Y0)
         X = X @ R.T + t
-    N = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    N /= np.linalg.norm(N, axis=1)[:, None]
+    N = face_normals(V, F)
     prev = None
     best = (np.inf, X, None)
     it = 0

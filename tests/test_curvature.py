@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from geometry.curvature import principal_curvature, rotation_between, vertex_normals
+from geometry.curvature import principal_curvature
+from geometry.meshops import rotation_between, vertex_normals
 from geometry.target import cylinder_patch, grid_triangles, sphere_cap
 
 

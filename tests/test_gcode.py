@@ -1,4 +1,6 @@
-"""G-code writer (inverse.gcode), printer record (inverse.printer) and the write/read round trip."""
+"""G-code planning (inverse.gcode), the printer record (inverse.printer), the writer and header
+(geometry.gcode) and the write/read round trip of the header and the moves."""
+import dataclasses
 import math
 import os
 import re
@@ -8,10 +10,10 @@ import pytest
 import shapely
 
 from geometry.elements import Ribbon
-from geometry.gcode_import import parse_gcode, read_gcode
-from inverse.gcode import (greedy_order, layer_counts, ribbons_to_gcode_files, to_bed, from_bed,
-                           write_gcode)
-from inverse.printer import Printer, bead_area, bead_width, load_printer
+from geometry.beads import bead_area, bead_width
+from geometry.gcode import GcodeHeader, GcodeWriter, from_bed, parse_gcode, read_gcode, read_header, to_bed
+from inverse.gcode import greedy_order, layer_counts, ribbons_to_gcode_files, write_gcode
+from inverse.printer import Printer, load_printer
 from shellfem.errors import SelfshapeError
 
 
@@ -322,3 +324,98 @@ def test_load_printer_binary_file_is_a_one_line_error(tmp_path):
     p.write_bytes(b"\xff\xfe\x00binary")
     with pytest.raises(SelfshapeError, match="not a UTF-8 text file"):
         load_printer(str(p))
+
+
+# ---------------------------------------------------------------- header round trip
+
+def odd_printer(relative_e):
+    """Every setting away from its default, each exactly representable in the header's format."""
+    return Printer(bed_size=(250.0, 210.0), nozzle_mm=0.6, filament_diameter_mm=1.75, layer_height_mm=0.15,
+                   print_speed_mm_s=22.5, travel_speed_mm_s=120.0, z_speed_mm_s=8.0, retraction_mm=3.25,
+                   retraction_speed_mm_s=35.0, retract_min_travel_mm=2.0, z_hop_mm=0.375, extrusion_multiplier=1.05,
+                   nozzle_temperature_c=231.0, bed_temperature_c=55.0, bed_offset_z_mm=0.5, origin=(60.25, 70.5),
+                   mirror_axis_x=120.125, relative_e=relative_e)
+
+
+@pytest.mark.parametrize("side, relative_e", [("front", True), ("back", False)])
+def test_header_round_trips_every_field(tmp_path, side, relative_e):
+    p = odd_printer(relative_e)
+    out = tmp_path / f"{side}.gcode"
+    stats = write_gcode(design(), out, p, side=side)
+    expected = GcodeHeader(
+        side=side, origin_mm=(60.25, 70.5), mirror_axis_x_mm=120.125, bed_offset_z_mm=0.5,
+        ribbons=stats["n_ribbons"], layers=stats["n_layers"], bed_shape_mm=(250.0, 210.0), nozzle_diameter_mm=0.6,
+        filament_diameter_mm=1.75, layer_height_mm=0.15, first_layer_height_mm=0.15, extrusion_multiplier=1.05,
+        print_speed_mm_s=22.5, travel_speed_mm_s=120.0, retract_length_mm=3.25, retract_speed_mm_s=35.0,
+        retract_lift_mm=0.375, temperature_c=231.0, bed_temperature_c=55.0, relative_e=relative_e)
+    got = read_header(out)
+    for f in dataclasses.fields(GcodeHeader):
+        assert getattr(got, f.name) == getattr(expected, f.name), f.name
+    # the test can fail: each field read back differs from what the default printer writes
+    write_gcode(design(), tmp_path / "default.gcode", Printer(relative_e=not relative_e), side="back" if
+                side == "front" else "front")
+    default = read_header(tmp_path / "default.gcode")
+    same = [f.name for f in dataclasses.fields(GcodeHeader) if getattr(default, f.name) == getattr(got, f.name)]
+    assert same == []
+
+
+def test_every_header_line_is_read_back(tmp_path):
+    out = tmp_path / "f.gcode"
+    write_gcode(design(), out, odd_printer(True))
+    lines = gcode_lines(out)
+    keyed = [(i, m.group(1)) for i, l in enumerate(lines) if (m := re.fullmatch(r"; (?:selfshape )?(\w+) = .*", l))]
+    assert len(keyed) == len(dataclasses.fields(GcodeHeader)) - 1         # relative_e is the M83/M82 line
+    for i, key in keyed:                                                   # drop one line: the reader misses it
+        (tmp_path / "cut.gcode").write_text("\n".join(lines[:i] + lines[i + 1:]) + "\n")
+        with pytest.raises(SelfshapeError, match=rf"cut.gcode: .*\b{key} is missing"):
+            read_header(tmp_path / "cut.gcode")
+        (tmp_path / "bad.gcode").write_text("\n".join(lines[:i] + [f"{lines[i].split('=')[0]}= ?"]
+                                                      + lines[i + 1:]) + "\n")
+        with pytest.raises(SelfshapeError, match=rf"bad.gcode: .*\b{key} = '\?' is not valid"):
+            read_header(tmp_path / "bad.gcode")
+    with pytest.raises(SelfshapeError, match="no selfshape header"):
+        read_header(os.path.join(os.path.dirname(__file__), "data", "gcode", "prusa_relative.gcode"))
+
+
+def test_writer_moves_read_back_as_written(tmp_path):
+    h = GcodeHeader(side="front", origin_mm=(0.0, 0.0), mirror_axis_x_mm=100.0, bed_offset_z_mm=0.0, ribbons=1,
+                    layers=1, bed_shape_mm=(200.0, 200.0), nozzle_diameter_mm=0.4, filament_diameter_mm=1.75,
+                    layer_height_mm=0.2, first_layer_height_mm=0.2, extrusion_multiplier=1.0, print_speed_mm_s=20.0,
+                    travel_speed_mm_s=100.0, retract_length_mm=2.0, retract_speed_mm_s=30.0, retract_lift_mm=0.4,
+                    temperature_c=220.0, bed_temperature_c=0.0, relative_e=False)
+    w = GcodeWriter(h, z_speed_mm_s=10.0, retract_min_travel_mm=1.0)
+    pts = np.array([[10.0, 10.0], [40.0, 10.0], [40.0, 30.0], [25.0, 45.5]])
+    e_per_mm = bead_area(1.0, 0.2) / (math.pi * 1.75 ** 2 / 4)
+    w.layer_change(0.2, 0.2)
+    w.travel(pts[0], 0.2)
+    w.feature("Ribbon", 1.0, "one path")
+    w.extrude(pts, e_per_mm)
+    w.finish()
+    w.write(tmp_path / "w.gcode")
+    assert read_header(tmp_path / "w.gcode") == h
+    seg = parse_gcode(tmp_path / "w.gcode")
+    np.testing.assert_allclose(np.column_stack([seg["x0"], seg["y0"]]), pts[:-1], atol=5e-4)
+    np.testing.assert_allclose(np.column_stack([seg["x1"], seg["y1"]]), pts[1:], atol=5e-4)
+    length = np.hypot(*np.diff(pts, axis=0).T)
+    np.testing.assert_allclose(seg["e_mm"], e_per_mm * length, atol=5e-6)    # E has 5 decimals
+    assert seg["z"].tolist() == [0.2] * 3 and seg["width_hint"].tolist() == [1.0] * 3
+    assert w.stats["print_length_mm"] == pytest.approx(length.sum()) and w.stats["n_retractions"] == 2
+    els = read_gcode(tmp_path / "w.gcode")
+    ref = shapely.buffer(shapely.LineString(pts), 0.5, cap_style="square", join_style="round", quad_segs=8)
+    assert len(els) == 1 and els[0].thickness_mm == pytest.approx(0.2)
+    assert els[0].geometry.symmetric_difference(ref).area < 1e-4 * ref.area
+
+
+@pytest.mark.parametrize("side", ["front", "back"])
+def test_written_ribbons_read_back_as_the_same_printed_elements(tmp_path, side):
+    rib = [r for r in design() if r.side == side]
+    out = tmp_path / f"{side}.gcode"
+    write_gcode(design(), out, odd_printer(side == "front"), side=side)
+    els = read_gcode(out)
+    assert len(els) == len(rib)
+    ref = [reference_polygon(r) for r in rib]
+    for e in els:                                 # each element is one ribbon's bead, to G-code resolution
+        k = int(np.argmin([e.geometry.symmetric_difference(q).area for q in ref]))
+        assert e.geometry.symmetric_difference(ref[k]).area < 1e-3 * ref[k].area
+        assert e.thickness_mm == pytest.approx(layer_counts([rib[k].thickness_mm], 0.15)[0] * 0.15, abs=1e-9)
+        ref.pop(k), rib.pop(k)

@@ -1,4 +1,5 @@
-"""G-code import (geometry.gcode_import): dialects, bead widths, retractions, errors, speed.
+"""G-code reader (geometry.gcode) and bead geometry (geometry.beads): dialects, bead widths,
+retractions, errors, speed.
 
 The files in tests/data/gcode were designed by hand (see their README): every count and
 width asserted here is the one put into the file.
@@ -13,9 +14,10 @@ import pytest
 import shapely
 
 from geometry.elements import Ribbon
-from geometry.gcode_import import parse_gcode, read_gcode, stack_beads
+from geometry.beads import bead_area, stack_beads
+from geometry.gcode import parse_gcode, read_gcode
 from inverse.gcode import write_gcode
-from inverse.printer import Printer, bead_area
+from inverse.printer import Printer
 from shellfem.errors import SelfshapeError
 
 DATA = os.path.join(os.path.dirname(__file__), "data", "gcode")

@@ -7,8 +7,11 @@ import numpy as np
 import pytest
 import shapely
 
-from geometry.meshing import (feature_width, mesh_pattern, mesh_pattern_file, mesh_quality, piece_regions,
-                              printed_pieces, quantise_size, read_msh, region_elements, triangle_angles)
+from geometry.arrangement import feature_width, piece_regions, printed_pieces, region_elements
+from geometry.mesh_quality import mesh_quality
+from geometry.meshing import mesh_pattern, mesh_pattern_file, quantise_size
+from geometry.meshops import triangle_angles
+from geometry.msh import read_msh
 from geometry.patterns import load_pattern
 from geometry.stars import star_polygons
 from shellfem.errors import SelfshapeError
@@ -252,7 +255,6 @@ def test_cli_mesh(tmp_path, capsys):
 
 
 def test_gcode_input(tmp_path):
-    pytest.importorskip("geometry.gcode_import", reason="G-code import (geometry/gcode_import.py) not available yet")
     g = os.path.join(HERE, "data", "patterns", "two_lines.gcode")
     info = mesh_pattern_file(g, tmp_path / "print.msh", size_mm=3.0)
     s = read_msh(tmp_path / "print.msh")

@@ -192,7 +192,6 @@ def test_malformed_toml_names_the_line():
 
 
 def test_gcode_print_entry_and_bare_gcode(tmp_path):
-    pytest.importorskip("geometry.gcode_import", reason="G-code import (geometry/gcode_import.py) not available yet")
     gpath = os.path.join(DATA, "two_lines.gcode")
     raw = {"fabric": {"rectangle": [30.0, 30.0]}, "print": {"gcode": gpath}}
     p = load_pattern(raw)

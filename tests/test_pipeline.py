@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 import shapely
 
-from geometry.gcode_import import read_gcode
+from geometry.gcode import read_gcode
 from geometry.patterns import load_pattern, ribbon_polygon
-from geometry.target import cylinder_patch, face_areas, plane_patch
+from geometry.meshops import face_areas
+from geometry.target import cylinder_patch, plane_patch
 from inverse import design as design_module
 from inverse.design import design, design_file
 from inverse.registration import kabsch, register
@@ -318,7 +319,8 @@ def test_clean_path_removes_tiny_end_segments():
 
 
 def test_written_pattern_meshes_without_slivers(written):
-    from geometry.meshing import mesh_pattern, mesh_quality
+    from geometry.mesh_quality import mesh_quality
+    from geometry.meshing import mesh_pattern
     out, _ = written
     q = mesh_quality(mesh_pattern(load_pattern(out / "pattern.toml"), size_mm=3.0))
     assert q["min_angle_deg"] > 5.0

@@ -86,9 +86,12 @@ def test_stars_are_clipped_to_the_fabric():
         assert out.buffer(1e-9).covers(e.geometry)
         clipped += e.geometry.area < 3 * 9 * 0.8 - math.sqrt(3) / 4 * 0.64 - 1e-9
     assert clipped > 0
-    # the total printed area equals the clipped union of the unclipped stars
-    c = np.array([[e.geometry.centroid.x, e.geometry.centroid.y] for e in el])
-    assert len(c) == len(lattice_points(out, 10.0)[0])
+    # one element per lattice node, and together they print the unclipped stars cut by the fabric
+    centres, _ = lattice_points(out, 10.0)
+    assert len(el) == len(centres)
+    cut = shapely.union_all(star_polygons(centres, 9.0, 0.8)).intersection(out)
+    assert sum(e.geometry.area for e in el) == pytest.approx(cut.area, rel=1e-12)
+    assert shapely.union_all([e.geometry for e in el]).symmetric_difference(cut).area < 1e-9 * cut.area
 
 
 @pytest.mark.parametrize("kw,needle", [
@@ -111,7 +114,12 @@ def test_bad_star_fields(kw, needle):
 def test_rotated_lattice_and_origin():
     out = hexagon(67.0)
     # rotating the lattice by 30 deg: its rings point at the hexagon's edge midpoints
-    pts, _ = lattice_points(out, 18.0, angle_deg=30.0)
-    assert len(pts) == len(shapely.points(pts)) and len(pts) != 37
+    pts, idx = lattice_points(out, 18.0, angle_deg=30.0)
+    assert len(pts) == 43 and shapely.contains_xy(out.buffer(1e-9), pts[:, 0], pts[:, 1]).all()
+    centre = np.flatnonzero((idx == 0).all(axis=1))[0]
+    d = np.linalg.norm(pts - pts[centre], axis=1)
+    nbr = pts[np.isclose(d, 18.0)] - pts[centre]
+    ang = np.sort(np.degrees(np.arctan2(nbr[:, 1], nbr[:, 0])) % 360)
+    np.testing.assert_allclose(ang, [30, 90, 150, 210, 270, 330], atol=1e-9)
     pts, _ = lattice_points(out, 18.0, origin=(9.0, 0.0))
     assert np.isclose(np.min(np.hypot(pts[:, 0] - 9.0, pts[:, 1])), 0.0)

@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from geometry.stripes import isoline_set, isolines, mesh_edges, stripe_field
+from geometry.meshops import mesh_edges
+from geometry.stripes import isoline_set, isolines, stripe_field
 from shellfem.errors import SelfshapeError
 
 
@@ -120,7 +121,7 @@ def test_closed_isolines_on_an_annulus():
     d = np.column_stack([-P[:, 1], P[:, 0]])                # tangential: concentric stripes
     fld = stripe_field(P, F, d, 3.0, direction_on="vertex")
     S = isoline_set(P, F, fld, np.pi)
-    # the field's global phase is free (it moved with the BLAS thread count), so a level may fall
+    # the field's global phase is free (it depends on the BLAS thread count), so a level may fall
     # within a triangle of the inner rim (r ~ 7.7) and leave open 2-point pieces there: only
     # isolines clear of both rims must be closed circles
     rmin = np.array([np.hypot(*q.T).min() for q in S.polylines()])

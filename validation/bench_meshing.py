@@ -13,7 +13,8 @@ from __future__ import annotations
 import json
 import time
 
-from geometry.meshing import mesh_pattern, mesh_quality
+from geometry.mesh_quality import mesh_quality
+from geometry.meshing import mesh_pattern
 from geometry.patterns import load_pattern
 
 

@@ -1,6 +1,6 @@
-"""G-code -> printed elements: what an FDM print deposits on the fabric (printed-state mm).
+"""G-code, the format of a print: read into printed elements, written from planned moves (mm).
 
-Reads PrusaSlicer/SuperSlicer, Cura, Simplify3D and plain Marlin-style G-code: G0/G1,
+Reader: PrusaSlicer/SuperSlicer, Cura, Simplify3D and plain Marlin-style G-code: G0/G1,
 arcs G2/G3 in the XY plane (linearised to 0.002 mm chord error), G20/G21 units, G90/G91
 positions, M82/M83 extrusion (Marlin 2: G90/G91 also set the E mode, M82/M83 after them
 override), G92, G28, retractions as negative E moves and firmware G10/G11, z-hops, travels,
@@ -8,29 +8,39 @@ comments ``;...`` and ``(...)``, line numbers and checksums.
 
 Deposit: a positive E move first restores what earlier negative E moves retracted; only
 the remainder is plastic. An extruded *segment* is an XY move that deposits; a *path* is a
-run of consecutive segments with no travel, retraction or z change between them.
+run of consecutive segments with no travel, retraction or z change between them. Layer
+height h is the ``;HEIGHT:`` hint when present, else the z step from the extrusion level
+below (from the fabric for the first); what the segments deposit is geometry.beads.
 
-Bead model (Slic3r): cross-section (w - h) h + pi h^2 / 4, so a segment of length L that
-deposits filament length E of diameter d has width w = A / h + h (1 - pi / 4), A = E pi d^2
-/ (4 L). h is the ``;HEIGHT:`` hint when present, else the z step from the extrusion level
-below (from the bed for the first). ``;WIDTH:`` hints, when present, give w directly.
+Writer (:class:`GcodeWriter`): the header, travels with retraction and z-hop, extrusions
+with E from the bead volume, ``;LAYER_CHANGE`` / ``;Z:`` / ``;HEIGHT:`` / ``;TYPE:`` /
+``;WIDTH:`` hints, and the end sequence; what to print (ribbons -> layered, ordered paths)
+is planned by inverse.gcode.
 
-Coordinates: a file written by :func:`inverse.gcode.write_gcode` carries its origin, flip
-axis and fabric height in ``; selfshape ...`` header lines and reads back to pattern
-coordinates; for other files bed coordinates are pattern coordinates (origin (0, 0)) and
-the back side is un-mirrored about x = ``mirror_axis_x`` (default: the Ultimaker 2 bed
-centre, 111.5 mm), x -> 2 a - x.
+Header (:class:`GcodeHeader`): every setting the writer states, as ``; selfshape key =
+value`` lines (side, frame origin and flip axis, fabric height, counts) and slicer-style
+``; key = value`` lines (printer settings), each read back by :func:`read_header`.
+
+Frame (seed section 5.5): a pattern point (x, y) is printed on the front at bed
+(x + ox, y + oy), (ox, oy) = origin. To print the back, the frame is flipped about the bed
+line x = a (the mirror axis), which sends the fabric point at bed x to bed 2a - x, y
+unchanged: the back is printed at bed (2a - (x + ox), y + oy), the same fabric point as the
+front (:func:`to_bed`, :func:`from_bed`). A file with a selfshape header reads back to
+pattern coordinates; for other files bed coordinates are pattern coordinates (origin
+(0, 0)) and the back side is un-mirrored about x = ``mirror_axis_x`` (default: the
+Ultimaker 2 bed centre, 111.5 mm).
 """
 from __future__ import annotations
 
 import math
 import os
 import re
+import tempfile
+from dataclasses import dataclass
 
 import numpy as np
-import shapely
 
-from geometry.elements import PrintedElement
+from geometry.beads import printed_elements
 from shellfem.errors import SelfshapeError
 
 SEGMENT_DTYPE = np.dtype([
@@ -45,7 +55,7 @@ SEGMENT_DTYPE = np.dtype([
 ])
 
 DEFAULT_FILAMENT_DIAMETER_MM = 1.75
-DEFAULT_MIRROR_AXIS_X_MM = 111.5       # Ultimaker 2 bed centre, as inverse.printer.Printer
+DEFAULT_MIRROR_AXIS_X_MM = 111.5       # centre of the Ultimaker 2 bed (223 mm)
 ARC_TOLERANCE_MM = 0.002
 
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)"
@@ -57,6 +67,7 @@ _DIAMETER_RE = re.compile(r"(?:filament_diameter|filamentdiameters|material[._ ]
                           r"\s*[:=,]\s*([0-9]*\.?[0-9]+)", re.IGNORECASE)
 _LAYER_HEIGHT_RE = re.compile(r"^(?:layer_height\s*=|layerheight\s*,|layer height\s*:)\s*([0-9]*\.?[0-9]+)",
                               re.IGNORECASE)
+_SETTING_RE = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)\s*=\s*(.*)")               # slicer-style "key = value"
 _UNSUPPORTED_MOTION = {"G5": "cubic spline (G5)", "G5.1": "quadratic spline (G5.1)", "G6": "direct stepper move (G6)",
                        "G70": "unknown units (G70, use G20/G21)", "G71": "unknown units (G71, use G20/G21)"}
 
@@ -68,6 +79,138 @@ class GcodeElements(list):
         super().__init__(items)
         self.meta = meta or {}
 
+
+# ---------------------------------------------------------------- frame
+
+def to_bed(xy, origin, side, mirror_axis_x):
+    """Pattern (printed-state) coordinates -> bed coordinates for the given side. (k, 2)."""
+    b = np.asarray(xy, float) + np.asarray(origin, float)
+    if side == "back":
+        b = b.copy()
+        b[:, 0] = 2.0 * mirror_axis_x - b[:, 0]
+    return b
+
+
+def from_bed(xy, origin, side, mirror_axis_x):
+    """Inverse of :func:`to_bed`. (k, 2)."""
+    b = np.asarray(xy, float).copy()
+    if side == "back":
+        b[:, 0] = 2.0 * mirror_axis_x - b[:, 0]
+    return b - np.asarray(origin, float)
+
+
+# ---------------------------------------------------------------- header
+
+@dataclass
+class GcodeHeader:
+    """Every setting a selfshape G-code file states (mm, mm/s, deg C).
+
+    side: "front" or "back"; origin_mm: bed position of pattern (0, 0); mirror_axis_x_mm:
+    bed x of the frame's flip line; bed_offset_z_mm: fabric top above the bed; ribbons,
+    layers: what the file prints; the rest are the printer settings the moves were made
+    with; relative_e: M83 (True) or M82 extrusion.
+    """
+    side: str
+    origin_mm: tuple
+    mirror_axis_x_mm: float
+    bed_offset_z_mm: float
+    ribbons: int
+    layers: int
+    bed_shape_mm: tuple
+    nozzle_diameter_mm: float
+    filament_diameter_mm: float
+    layer_height_mm: float
+    first_layer_height_mm: float
+    extrusion_multiplier: float
+    print_speed_mm_s: float
+    travel_speed_mm_s: float
+    retract_length_mm: float
+    retract_speed_mm_s: float
+    retract_lift_mm: float
+    temperature_c: float
+    bed_temperature_c: float
+    relative_e: bool
+
+
+# field -> key in the file, its format (value -> text) and parser (text -> value)
+_SELFSHAPE_KEYS = (
+    ("side", "side", str, lambda t: _choice(t, ("front", "back"))),
+    ("origin_mm", "origin_mm", lambda v: f"{v[0]:.6f}, {v[1]:.6f}", lambda t: _numbers(t, ",", 2)),
+    ("mirror_axis_x_mm", "mirror_axis_x_mm", lambda v: f"{v:.6f}", float),
+    ("bed_offset_z_mm", "bed_offset_z_mm", lambda v: f"{v:.6f}", float),
+    ("ribbons", "ribbons", str, int),
+    ("layers", "layers", str, int),
+)
+_SETTING_KEYS = (
+    ("bed_shape_mm", "bed_shape", lambda v: f"{v[0]:g} x {v[1]:g}", lambda t: _numbers(t, "x", 2)),
+) + tuple((f, k, lambda v: f"{v:g}", float) for f, k in (
+    ("nozzle_diameter_mm", "nozzle_diameter"), ("filament_diameter_mm", "filament_diameter"),
+    ("layer_height_mm", "layer_height"), ("first_layer_height_mm", "first_layer_height"),
+    ("extrusion_multiplier", "extrusion_multiplier"), ("print_speed_mm_s", "print_speed"),
+    ("travel_speed_mm_s", "travel_speed"), ("retract_length_mm", "retract_length"),
+    ("retract_speed_mm_s", "retract_speed"), ("retract_lift_mm", "retract_lift"),
+    ("temperature_c", "temperature"), ("bed_temperature_c", "bed_temperature")))
+FRAME_NOTE = ("; pattern (x, y) is printed at bed (x + ox, y + oy) on the front and at "
+              "(2 a - x - ox, y + oy) on the back (frame flipped about bed x = a)")
+
+
+def _choice(text, allowed):
+    if text not in allowed:
+        raise ValueError(text)
+    return text
+
+
+def _numbers(text, sep, n):
+    vals = tuple(float(t) for t in text.split(sep))
+    if len(vals) != n:
+        raise ValueError(text)
+    return vals
+
+
+def header_lines(h: GcodeHeader) -> list[str]:
+    """The header of a selfshape G-code file: its settings as comments, then the start
+    sequence (units, positioning, E mode, temperatures, homing)."""
+    return (["; generated by selfshape (inverse.gcode.write_gcode)"]
+            + [f"; selfshape {key} = {fmt(getattr(h, f))}" for f, key, fmt, _ in _SELFSHAPE_KEYS]
+            + [FRAME_NOTE]
+            + [f"; {key} = {fmt(getattr(h, f))}" for f, key, fmt, _ in _SETTING_KEYS]
+            + ["G21 ; millimetres",
+               "G90 ; absolute positions",
+               "M83 ; relative extrusion" if h.relative_e else "M82 ; absolute extrusion",
+               f"M140 S{h.bed_temperature_c:.0f}",
+               f"M104 S{h.temperature_c:.0f}",
+               "G28 ; home",
+               f"M190 S{h.bed_temperature_c:.0f}" if h.bed_temperature_c > 0 else "; no bed heating (fabric)",
+               f"M109 S{h.temperature_c:.0f}",
+               "G92 E0",
+               "M107"])
+
+
+def _header_from_meta(meta) -> GcodeHeader:
+    """The GcodeHeader of a parsed file (meta of _parse); raises if a setting is missing or malformed."""
+    name = meta["name"]
+    if not meta["selfshape"]:
+        raise SelfshapeError(f"{name}: no selfshape header (the file was not written by selfshape)")
+    values = {}
+    for table, keys, what in ((meta["selfshape"], _SELFSHAPE_KEYS, "selfshape header"),
+                              (meta["settings"], _SETTING_KEYS, "header setting")):
+        for f, key, _, parse in keys:
+            if key not in table:
+                raise SelfshapeError(f"{name}: {what} {key} is missing")
+            try:
+                values[f] = parse(table[key])
+            except ValueError:
+                raise SelfshapeError(f"{name}: {what} {key} = {table[key]!r} is not valid") from None
+    return GcodeHeader(**values, relative_e=meta["e_mode"] == "relative")
+
+
+def read_header(path) -> GcodeHeader:
+    """The settings stated by a G-code file written by selfshape (:class:`GcodeHeader`).
+    Raises SelfshapeError when the file has no selfshape header or a setting is missing."""
+    return _header_from_meta(_parse(path)[1])
+
+
+# ---------------------------------------------------------------- reader
 
 def _fail(name, lineno, msg):
     raise SelfshapeError(f"{name}: line {lineno}: {msg}")
@@ -110,7 +253,7 @@ class _State:
         self.meta = dict(filament_diameter_mm_file=None, layer_height_setting_mm=None, slicer=None,
                          selfshape={}, e_mode=None, n_retractions=0, n_firmware_retractions=0,
                          n_travels=0, n_arcs=0, stationary_extrusion_mm=0.0, layer_change_hints=0,
-                         ignored_codes=set())
+                         ignored_codes=set(), settings={})
 
     def comment(self, c, lineno):
         c = c.strip()
@@ -131,6 +274,10 @@ class _State:
             k, _, v = c[10:].partition("=")
             self.meta["selfshape"][k.strip()] = v.strip()
         else:
+            if "=" in c:
+                m = _SETTING_RE.fullmatch(c)
+                if m:
+                    self.meta["settings"][m.group(1)] = m.group(2).strip()
             low = c.lower()
             if "diameter" in low and "nozzle" not in low[:20]:
                 m = _DIAMETER_RE.search(c)
@@ -399,35 +546,6 @@ def _finite(what, v):
     return v
 
 
-def segment_widths(seg, heights, filament_diameter_mm):
-    """Bead width (mm) per segment: the ;WIDTH: hint or the bead model inverted from the
-    deposited volume. heights: (n,) layer heights (mm). Vectorised."""
-    length = np.hypot(seg["x1"] - seg["x0"], seg["y1"] - seg["y0"])
-    area = seg["e_mm"] * (math.pi * filament_diameter_mm ** 2 / 4.0) / length
-    w_volume = area / heights + heights * (1.0 - math.pi / 4.0)
-    hint = seg["width_hint"]
-    return np.where(np.isfinite(hint), hint, w_volume), w_volume, length
-
-
-def _runs(seg, widths, heights, rel_tol=0.05):
-    """Run id per segment: consecutive segments of one path with similar width and the same height."""
-    n = len(seg)
-    brk = np.ones(n, dtype=bool)
-    if n > 1:
-        same = ((seg["path"][1:] == seg["path"][:-1])
-                & (np.abs(widths[1:] - widths[:-1]) <= rel_tol * widths[:-1])
-                & (heights[1:] == heights[:-1]))
-        brk[1:] = ~same
-    return np.cumsum(brk) - 1, brk
-
-
-def _thin(parts, min_feature):
-    """Mask of polygons thinner than min_feature (2 area / perimeter), i.e. overlay slivers."""
-    a = shapely.area(parts)
-    p = shapely.length(parts)
-    return 2 * a < min_feature * np.maximum(p, 1e-300)
-
-
 def read_gcode(path, *, side=None, mirror_axis_x=None, filament_diameter_mm=None, min_width_mm=0.1,
                cap="square", origin_mm=None, bed_z_mm=None, exclude_types=()) -> GcodeElements:
     """What a G-code print deposits: one PrintedElement per connected printed shape of
@@ -496,133 +614,137 @@ def read_gcode(path, *, side=None, mirror_axis_x=None, filament_diameter_mm=None
         k = bad[0]
         raise SelfshapeError(f"{name}: line {seg['line'][k]}: extrusion at z = {seg['z'][k]:g} mm is not above "
                              f"the fabric at z = {bed_z:g} mm")
-    widths, w_volume, length = segment_widths(seg, heights, d_f)
-    run, first = _runs(seg, widths, heights)
-    n_runs = int(run[-1]) + 1
-    run_len = np.bincount(run, length, n_runs)
-    run_w = np.bincount(run, widths * length, n_runs) / run_len
-    run_h = heights[first]
-    run_layer = seg["layer"][first]
-    run_line = seg["line"][first]
-    run_path = seg["path"][first]
-
-    # polylines per run, in pattern coordinates
-    p0 = np.column_stack([seg["x0"], seg["y0"]])
-    p1 = np.column_stack([seg["x1"], seg["y1"]])
-    start_idx = np.flatnonzero(first)
-    pos1 = np.arange(len(seg)) + run + 1
-    coords = np.empty((len(seg) + n_runs, 2))
-    coords[pos1] = p1
-    coords[start_idx + np.arange(n_runs)] = p0[start_idx]
-    if side == "back":
-        coords[:, 0] = 2.0 * axis - coords[:, 0]
-    coords -= origin
-    counts = np.bincount(run, minlength=n_runs) + 1
-    # canonical direction (lexicographically smaller end first): equal paths buffer equally
-    ends_idx = np.cumsum(counts)
-    beg_idx = ends_idx - counts
-    a, b = coords[beg_idx], coords[ends_idx - 1]
-    flip = (a[:, 0] > b[:, 0]) | ((a[:, 0] == b[:, 0]) & (a[:, 1] > b[:, 1]))
-    order = np.arange(len(coords))
-    rid = np.repeat(np.arange(n_runs), counts)
-    local = order - beg_idx[rid]
-    order = np.where(flip[rid], beg_idx[rid] + counts[rid] - 1 - local, order)
-    lines = shapely.linestrings(coords[order], indices=rid)
-
-    keep = run_w >= min_width_mm
-    meta["dropped_thin_paths"] = int((~keep).sum())
-    if not keep.any():
-        raise SelfshapeError(f"{name}: line {seg['line'][0]}: every extruded path is thinner than "
-                             f"min_width_mm = {min_width_mm:g} mm")
-    beads = shapely.buffer(lines[keep], run_w[keep] / 2.0, cap_style=cap, join_style="round", quad_segs=8)
-    r_layer, r_h, r_line, r_path = run_layer[keep], run_h[keep], run_line[keep], run_path[keep]
-
-    pieces = stack_beads(beads, r_layer, r_h, sliver=0.2 * min_width_mm)
-    elements = _elements(pieces, beads, r_line, r_path, side, name)
+    p0 = from_bed(np.column_stack([seg["x0"], seg["y0"]]), origin, side, axis)
+    p1 = from_bed(np.column_stack([seg["x1"], seg["y1"]]), origin, side, axis)
+    elements, dep = printed_elements(seg, p0, p1, heights, d_f, min_width_mm, cap, side, name)
+    meta["dropped_thin_paths"] = dep["dropped_thin_paths"]
+    widths, w_volume = dep["widths"], dep["w_volume"]
 
     hint = np.isfinite(seg["width_hint"])
     meta.update(
         side=side, origin_mm=origin.tolist(), mirror_axis_x_mm=axis, bed_z_mm=bed_z,
         filament_diameter_mm=d_f, filament_diameter_source=d_src,
-        layer_heights_mm=steps.tolist(), n_runs=n_runs, n_elements=len(elements),
+        layer_heights_mm=steps.tolist(), n_runs=dep["n_runs"], n_elements=len(elements),
         extruded_filament_mm=float(seg["e_mm"].sum()),
         plastic_volume_mm3=float(seg["e_mm"].sum() * math.pi * d_f ** 2 / 4),
         width_source="hint" if hint.all() else ("volume" if not hint.any() else "mixed"),
         width_hint_vs_volume_max_rel=(float(np.max(np.abs(w_volume[hint] / widths[hint] - 1)))
                                       if hint.any() else None),
-        path_widths_mm=run_w.tolist(), warnings=warnings)
+        path_widths_mm=dep["path_widths_mm"].tolist(), warnings=warnings)
     return GcodeElements(elements, meta)
 
 
-def stack_beads(beads, layer, height, sliver=0.02):
-    """Stacked deposit of beads (shapely polygons, one per path run) with their layer index
-    and height (mm): a list of (polygon, thickness_mm), each polygon a connected piece of
-    constant thickness = sum of the heights of the layers covering it. Pieces thinner than
-    ``sliver`` (2 area / perimeter, mm) are overlay noise and dropped.
+# ---------------------------------------------------------------- writer
 
-    Overlapping beads are grouped first (connected components of the intersection graph),
-    so each overlay only sees its own group; a group that is one path printed k times on
-    the same footprint (to 1e-4 mm: the usual stacked ribbon) needs no overlay at all.
+class GcodeWriter:
+    """The text of one print, line by line, with the tool position and print statistics.
+
+    Starts with the header of ``header`` (whose speeds, retraction and E mode the moves use);
+    z_speed_mm_s: speed of z moves; travels longer than retract_min_travel_mm retract and hop.
+    Statistics (``stats``): print and travel length (mm), extruded filament (mm),
+    retractions, estimated time (s).
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
 
-    m = len(beads)
-    a, b = shapely.STRtree(beads).query(beads, predicate="intersects")
-    _, comp = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(m, m)), directed=False)
-    order = np.argsort(comp, kind="stable")
-    bounds = np.flatnonzero(np.r_[True, comp[order][1:] != comp[order][:-1], True])
-    out = []
-    for lo, hi in zip(bounds[:-1], bounds[1:]):
-        idx = order[lo:hi]
-        if len(idx) == 1 or (len(np.unique(layer[idx])) == len(idx)
-                             and shapely.equals_exact(beads[idx[1:]], beads[idx[0]], tolerance=1e-4).all()):
-            out.append((beads[idx[0]], float(np.round(height[idx].sum(), 9))))
-        else:
-            out.extend(_overlay(beads[idx], layer[idx], height[idx], sliver))
-    return out
+    def __init__(self, header: GcodeHeader, z_speed_mm_s: float, retract_min_travel_mm: float):
+        self.h = header
+        self.rel = header.relative_e
+        self.z_speed_mm_s = z_speed_mm_s
+        self.retract_min_travel_mm = retract_min_travel_mm
+        self.lines: list[str] = header_lines(header)
+        self.e = 0.0                  # absolute E (filament mm)
+        self.xy = np.zeros(2)
+        self.z = 0.0
+        self.retracted = False
+        self.stats = dict(print_length_mm=0.0, travel_length_mm=0.0, extruded_filament_mm=0.0,
+                          n_retractions=0, estimated_time_s=0.0)
 
+    def _e_word(self, de):
+        self.e += de
+        return f"E{de:.5f}" if self.rel else f"E{self.e:.5f}"
 
-def _overlay(beads, layer, height, sliver):
-    """Overlay the per-layer unions of ``beads`` into connected pieces of constant
-    stacked thickness: list of (polygon, thickness)."""
-    pieces: dict[float, object] = {}
-    h9 = np.round(height, 9)
-    for lay, h in sorted(set(zip(layer.tolist(), h9.tolist()))):
-        sheet = shapely.union_all(beads[(layer == lay) & (h9 == h)])
-        new: dict[float, list] = {}
-        for t, g in pieces.items():
-            new.setdefault(round(t + h, 9), []).append(shapely.intersection(g, sheet))
-            new.setdefault(t, []).append(shapely.difference(g, sheet))
-        fresh = shapely.difference(sheet, shapely.union_all(list(pieces.values()))) if pieces else sheet
-        new.setdefault(round(h, 9), []).append(fresh)
-        pieces = {}
-        for t, gs in new.items():
-            parts = _polygons(shapely.union_all(gs), sliver)
-            if len(parts):
-                pieces[t] = shapely.union_all(parts)
-    return [(g, t) for t, g in sorted(pieces.items()) for g in _polygons(g, sliver)]
+    def retract(self):
+        if self.retracted or self.h.retract_length_mm == 0:
+            return
+        f = self.h.retract_speed_mm_s
+        self.lines.append(f"G1 {self._e_word(-self.h.retract_length_mm)} F{f * 60:.0f}")
+        self.retracted = True
+        self.stats["n_retractions"] += 1
+        self.stats["estimated_time_s"] += self.h.retract_length_mm / f
 
+    def unretract(self):
+        if not self.retracted:
+            return
+        f = self.h.retract_speed_mm_s
+        self.lines.append(f"G1 {self._e_word(self.h.retract_length_mm)} F{f * 60:.0f}")
+        self.retracted = False
+        self.stats["estimated_time_s"] += self.h.retract_length_mm / f
 
-def _polygons(geom, sliver):
-    """The polygons of ``geom`` that are not slivers (2 area / perimeter < sliver)."""
-    parts = np.asarray(shapely.get_parts(geom))
-    parts = parts[shapely.get_type_id(parts) == 3]
-    return parts[~_thin(parts, sliver)] if len(parts) else parts
+    def move_z(self, z):
+        if abs(z - self.z) > 1e-9:
+            self.lines.append(f"G1 Z{z:.3f} F{self.z_speed_mm_s * 60:.0f}")
+            self.stats["estimated_time_s"] += abs(z - self.z) / self.z_speed_mm_s
+            self.z = z
 
+    def travel(self, xy, z):
+        """Go to (xy, z) without extruding: retract and hop when the way is long."""
+        dist = float(np.hypot(*(xy - self.xy)))
+        if dist > self.retract_min_travel_mm or abs(z - self.z) > 1e-9:
+            self.retract()
+            self.move_z(max(z, self.z) + self.h.retract_lift_mm)
+        if dist > 0:
+            self.lines.append(f"G0 X{xy[0]:.3f} Y{xy[1]:.3f} F{self.h.travel_speed_mm_s * 60:.0f}")
+            self.stats["travel_length_mm"] += dist
+            self.stats["estimated_time_s"] += dist / self.h.travel_speed_mm_s
+            self.xy = xy.copy()
+        self.move_z(z)
+        self.unretract()
 
-def _elements(pieces, beads, run_line, run_path, side, name):
-    """One PrintedElement per piece, ordered by the first source line that prints it;
-    the label names the file and the paths that print it."""
-    polys = np.array([g for g, _ in pieces], dtype=object)
-    thick = [t for _, t in pieces]
-    pi_, bi = shapely.STRtree(beads).query(polys, predicate="intersects")
-    first_line = np.full(len(polys), np.iinfo(np.int64).max)
-    np.minimum.at(first_line, pi_, run_line[bi])
-    out = []
-    for k in np.argsort(first_line, kind="stable"):
-        paths = np.unique(run_path[bi[pi_ == k]])
-        shown = ", ".join(str(p) for p in paths[:6]) + (", ..." if len(paths) > 6 else "")
-        out.append(PrintedElement(geometry=polys[k], thickness_mm=float(thick[k]), side=side, kind="gcode",
-                                  label=f"{name} path{'s' if len(paths) > 1 else ''} {shown}"))
-    return out
+    def extrude(self, pts, e_per_mm):
+        """Print the polyline ``pts`` (k, 2), starting at the current position pts[0], with
+        ``e_per_mm`` filament mm per mm of path."""
+        seg = np.hypot(*np.diff(pts, axis=0).T)
+        de = seg * e_per_mm
+        e_abs = self.e + np.cumsum(de)
+        words = de if self.rel else e_abs
+        lines = [f"G1 X{x:.3f} Y{y:.3f} E{e:.5f}"
+                 for x, y, e in zip(pts[1:, 0].tolist(), pts[1:, 1].tolist(), words.tolist())]
+        lines[0] += f" F{self.h.print_speed_mm_s * 60:.0f}"
+        self.lines += lines
+        self.e = float(e_abs[-1])
+        length = float(seg.sum())
+        self.stats["print_length_mm"] += length
+        self.stats["extruded_filament_mm"] += float(de.sum())
+        self.stats["estimated_time_s"] += length / self.h.print_speed_mm_s
+        self.xy = pts[-1].copy()
+
+    def layer_change(self, z, height):
+        """Hints that a layer of ``height`` mm at ``z`` mm starts."""
+        self.lines += [";LAYER_CHANGE", f";Z:{z:.3f}", f";HEIGHT:{height:g}"]
+
+    def feature(self, kind, width, comment):
+        """Hints for the next extrusion: its ;TYPE: ``kind``, ;WIDTH: (mm) and a comment."""
+        self.lines += [f";TYPE:{kind}", f";WIDTH:{width:g}", f"; {comment}"]
+
+    def finish(self):
+        """Retract, lift 10 mm, heaters and fan off, motors off."""
+        self.retract()
+        self.move_z(self.z + 10.0)
+        self.lines += ["M104 S0", "M140 S0", "M107", "M84", "; end of selfshape print"]
+
+    def write(self, path):
+        """Write the lines to ``path`` atomically (a temporary file in the same folder, renamed)."""
+        path = os.fspath(path)
+        text = "\n".join(self.lines) + "\n"
+        folder = os.path.dirname(os.path.abspath(path))
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=".selfshape-", suffix=".gcode", dir=folder)
+        except OSError as e:
+            raise SelfshapeError(f"cannot write {path}: {e.strerror}") from None
+        try:
+            with os.fdopen(fd, "w") as f:
+                f.write(text)
+            os.replace(tmp, path)
+        except OSError as e:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise SelfshapeError(f"cannot write {path}: {e.strerror}") from None
