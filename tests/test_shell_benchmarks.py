@@ -153,3 +153,21 @@ def test_figures_runs_a_task_and_reports_it(tmp_path):
     assert json.loads((out / "summary.json").read_text())["tasks"]["strips"]["ok"]
     bad = _study("figures", "--only", "nope", "--out", str(out))
     assert bad.returncode == 2 and "unknown task" in bad.stderr
+
+
+def test_validation_page_is_the_render_of_its_committed_json(tmp_path):
+    """docs/validation.md is what studies/validation_page.py makes of docs/validation/json/ (the
+    page cannot drift from its numbers), it has a section for every study, and every picture it
+    shows is in docs/validation/."""
+    import re
+    page = tmp_path / "validation.md"
+    run = _study("validation_page", "--page", str(page), "--figures", str(tmp_path / "validation"))
+    assert run.returncode == 0, run.stderr
+    with open(os.path.join(ROOT, "docs", "validation.md")) as fh:
+        committed = fh.read()
+    assert page.read_text() == committed
+    assert "Not run" not in committed
+    pictures = re.findall(r"!\[[^]]*\]\(validation/([^)]+)\)", committed)
+    assert len(pictures) >= 18
+    for name in pictures:
+        assert os.path.getsize(os.path.join(ROOT, "docs", "validation", name)) > 1000, name
