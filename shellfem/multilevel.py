@@ -5,7 +5,7 @@ shape (which way the sheet rolls, how far), not resolving it; a mesh with ~2.5x 
 vertices finds the same global shape for a fraction of the cost. The finer mesh then starts
 from the coarser equilibrium interpolated at its vertices (both meshes cover the same
 printed-state domain and conform to the same printed boundaries) and converges in a few
-iterations. Measured on the 85 x 60 mm star benchmark (10,651 vertices; validation.bench_solver):
+iterations. Measured on the 85 x 60 mm star benchmark (10,651 vertices; studies/bench_solver.py):
 coarse levels of 1,770 and 4,331 vertices took the fine level from 89 to 16 Newton iterations,
 to the same equilibrium (same energy to the last digit).
 

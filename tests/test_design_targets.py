@@ -1,8 +1,10 @@
-"""validation/design_targets.py: the README table is rebuilt from report.json files alone."""
+"""studies/design_targets.py --table: the README table is rebuilt from report.json files alone."""
 import json
 import os
+import subprocess
+import sys
 
-from validation.design_targets import main
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def _report(dev=None, back=None, converged=None):
@@ -15,14 +17,17 @@ def _report(dev=None, back=None, converged=None):
     return r
 
 
-def test_table_only_rebuilds_from_reports(tmp_path, capsys):
+def test_table_only_rebuilds_from_reports(tmp_path):
     out, docs = tmp_path / "out", tmp_path / "docs"
     for name, rep in (("a", _report([2.5, 10.9], [8.2, 27.3], True)), ("b", _report(None, None, False)),
                       ("c", _report())):
         os.makedirs(out / name)
         (out / name / "report.json").write_text(json.dumps(rep))
-    main(["--table", "--out", str(out), "--docs", str(docs)])
-    assert json.loads(capsys.readouterr().out)["table"].endswith("table.md")
+    run = subprocess.run([sys.executable, os.path.join("studies", "design_targets.py"), "--table", "--out", str(out),
+                          "--docs", str(docs)], cwd=ROOT, capture_output=True, text=True,
+                         env={**os.environ, "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")])})
+    assert run.returncode == 0, run.stderr
+    assert json.loads(run.stdout)["table"].endswith("table.md")
     rows = (docs / "table.md").read_text().splitlines()
     assert "target to deployed % (mean / max)" in rows[0]
     assert rows[2].startswith("| a | 100 | 1.2 | 0 | 2.5 / 10.9 | 8.2 / 27.3 |")

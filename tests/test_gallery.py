@@ -1,8 +1,8 @@
-"""The gallery's shape measures (validation/gallery.py) on exact surfaces."""
+"""The gallery's shape measures (validation.measures) on exact surfaces, and its committed patterns."""
 import numpy as np
 
 from shellfem.sheet import Sheet
-from validation.gallery import centre_quadric
+from validation.measures import centre_quadric
 
 
 def test_centre_quadric_on_a_sphere_and_a_cylinder():
@@ -20,16 +20,16 @@ def test_centre_quadric_on_a_sphere_and_a_cylinder():
 
 
 def test_committed_gallery_patterns_are_what_the_script_simulates():
-    """examples/gallery/*.toml are written by validation.gallery; a stale copy (tube.toml carried
-    72.3 MPa until session 6 while the script simulated 3360 MPa) would mislead readers."""
+    """examples/gallery/*.toml are written by studies/gallery.py from validation.cases; a stale
+    copy (a pattern that is not the one the study simulates) would mislead readers."""
     import os
     import tomllib
 
     import tomli_w
 
-    from validation.gallery import CASES
+    from validation.cases import GALLERY_CASES
     root = os.path.join(os.path.dirname(__file__), "..", "examples", "gallery")
-    for name, make in CASES.items():
+    for name, make in GALLERY_CASES.items():
         with open(os.path.join(root, f"{name}.toml"), "rb") as f:
             committed = tomllib.load(f)
         assert committed == tomllib.loads(tomli_w.dumps(make())), name

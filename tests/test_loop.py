@@ -241,11 +241,17 @@ def test_cli_validate_and_predict(tmp_path):
 
 @pytest.mark.slow
 def test_strips_s1_loop(tmp_path):
-    """The lab-style file shipped with the project (validation/data/strips_S1.csv)."""
+    """The lab-style file shipped with the project (validation/data/strips_S1.csv): the base
+    model misses structure (held-out error several times the noise floor; measured 4.9 x), the
+    loop adds the back-face deposition and brings the held-out error near the noise floor
+    (measured 1.12 x)."""
     path = os.path.join(os.path.dirname(__file__), "..", "validation", "data", "strips_S1.csv")
     rep = loop.validate_file(path, tmp_path, seed=0)
     assert rep["error_after"] < rep["error_before"]
     assert rep["effects_added"]
+    assert rep["error_before"] > 3 * rep["noise_relative"]
+    assert rep["error_after"] < 1.5 * rep["noise_relative"]
+    assert "side_deposition" in rep["effects_added"]
 
 
 def test_three_undeclared_effects_at_once():

@@ -56,7 +56,7 @@ def _star_pattern(width, height, seed=0):
     import tomli_w
 
     from geometry.patterns import load_pattern
-    from validation.bench_solver import pattern
+    from validation.cases import star_benchmark as pattern
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "p.toml")
         with open(path, "wb") as f:

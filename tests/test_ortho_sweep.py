@@ -1,5 +1,7 @@
-"""validation.ortho_sweep: the seed's section 4.1 cases and the mode comparison."""
-from validation.ortho_sweep import case, markdown_table, summarise
+"""The orthotropic ribbon sweep (studies/ortho_sweep.py): the seed's section 4.1 cases
+(validation.cases.ortho_ribbons) and the mode comparison (validation.ribbon_modes)."""
+from validation.cases import ortho_ribbons as case
+from validation.ribbon_modes import markdown_table, summarise
 
 
 def test_case_is_the_gallery_ribbons_with_thickness_pitch_and_course():

@@ -172,7 +172,7 @@ def _small_star_sheet(width=20.0, height=15.0):
 
     from geometry.meshing import mesh_pattern
     from geometry.patterns import load_pattern
-    from validation.bench_solver import pattern
+    from validation.cases import star_benchmark as pattern
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "stars.toml")
         with open(path, "wb") as f:

@@ -102,10 +102,18 @@ def test_calibration_recovers_the_ratio_with_interval(tmp_path):
 
 
 def test_calibration_on_the_shipped_strips_file(tmp_path):
+    """strips_S1.csv calibrates to the modulus ratio the shipped curvature law was simulated
+    with (inverse/data/strips_S1_calibration.json): a change in the calibration shows here
+    before the law silently goes stale."""
     out = strips.calibrate_strips(S1, tmp_path)
     v, se = out["modulus_ratio"]
     lo, hi = out["confidence_intervals_95"]["modulus_ratio"]
     assert 0 < se < v and lo < v < hi
+    shipped = os.path.join(os.path.dirname(__file__), "..", "inverse", "data", "strips_S1_calibration.json")
+    with open(shipped) as fh:
+        law_calibration = json.load(fh)
+    assert [v, se] == pytest.approx(law_calibration["modulus_ratio"], rel=1e-9)
+    assert [lo, hi] == pytest.approx(law_calibration["confidence_intervals_95"]["modulus_ratio"], rel=1e-9)
     # the plastic set adds curvature, so fitting it explicitly needs a stiffer plastic
     assert out["modulus_ratio_rest_measured"][0] > v
     res = np.array(out["residuals"]["residual_per_mm"])

@@ -106,7 +106,7 @@ def test_missing_file(tmp_path):
 
 def test_simulation_patch_has_the_layout_stagger():
     from geometry.patterns import load_pattern
-    from validation.thickness_law_sim import MU1, RIBBON_LENGTH, patch_pattern
+    from validation.law_tables import MU1, RIBBON_LENGTH, patch_pattern
     raw = patch_pattern(0.6, 5.0, "back", 1.6, n_rows=4, n_motifs=3)
     pat = load_pattern(raw)
     W, H = 3 * MU1, 4 * 5.0
@@ -126,7 +126,7 @@ def test_simulation_patch_has_the_layout_stagger():
 def test_strip_table_is_the_coverage_blend():
     from shellfem.materials import Fabric, Plastic
     from shellfem.strip import strip_curvature
-    from validation.thickness_law_sim import strip_rows
+    from validation.law_tables import strip_rows
     fab, pla = Fabric(), Plastic()
     rows = strip_rows([0.4, 0.8], [1.5, 6.0], 1.6, fab, pla)
     assert len(rows) == 8
@@ -150,9 +150,9 @@ def test_strip_table_is_the_coverage_blend():
 
 @pytest.mark.slow
 def test_simulated_row_runs():
-    from validation.thickness_law_sim import simulate_row
+    from validation.law_tables import simulate_row
     r = simulate_row(0.6, 6.5, "front", 1.6, mesh_size=3.0, across=1.0, n_rows=4, n_motifs=2, max_iterations=100)
-    assert r["kappa_per_mm"] >= 0 and isinstance(r["converged"], bool)
+    assert r["converged"] is True and r["kappa_per_mm"] > 0    # a printed patch curls: |kappa| > 0
 
 
 def test_curvature_measurement_is_exact_on_a_rolled_sheet():
@@ -161,7 +161,7 @@ def test_curvature_measurement_is_exact_on_a_rolled_sheet():
     from geometry.target import grid_triangles
     from shellfem.model import ShellModel
     from shellfem.sheet import Sheet
-    from validation.thickness_law_sim import curvature_along_x
+    from validation.law_tables import curvature_along_x
     X, Y = np.meshgrid(np.linspace(0, 60, 31), np.linspace(0, 24, 13), indexing="ij")
     P = np.column_stack([X.ravel(), Y.ravel()])
     sheet = Sheet(P, grid_triangles(30, 12))
@@ -180,7 +180,7 @@ def test_curvature_measurement_is_exact_on_a_rolled_sheet():
 
 
 def test_shipped_default_law_is_the_simulated_table():
-    """The default law comes from forward simulation (validation.thickness_law_sim), says so,
+    """The default law comes from forward simulation (studies/thickness_law_sim.py, validation.law_tables), says so,
     is a full grid decreasing in thickness, and its back rows mirror the front rows."""
     import json
     import os
@@ -209,7 +209,7 @@ def test_law_from_previous_rows_writes_the_requested_subgrid(tmp_path):
     rows are listed in the provenance; --back mirror copies the front rows."""
     import json
 
-    from validation.thickness_law_sim import main
+    from validation.law_tables import main
     rows = []
     for t in (0.4, 0.8, 1.2):
         for mu in (4.0, 8.0):
@@ -235,7 +235,7 @@ def test_calibrated_plastic_is_named_in_the_provenance(tmp_path):
     the simulated law and the header says where it came from; a bad file is a one-line exit."""
     import json
 
-    from validation.thickness_law_sim import main, read_modulus_ratio
+    from validation.law_tables import main, read_modulus_ratio
     cal = tmp_path / "parameters.json"
     cal.write_text(json.dumps({"modulus_ratio": [1000.0, 20.0], "fit": {"data": "strips_X.csv"}}))
     assert read_modulus_ratio(str(cal)) == (1000.0, 20.0, "strips_X.csv")

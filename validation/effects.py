@@ -1,7 +1,7 @@
 """Catalogue of candidate effects the bilayer-strip base model may lack, and the
 composite model (base + chosen effects) that the validation loop fits.
 
-Base model (issue 4, loop step 1): the project's bilayer model
+Base model (step 1 of the validation loop, validation.loop): the project's bilayer model
 (:func:`validation.strips.strip_model`, narrow strip) with the plastic flat at rest,
 one parameter: the modulus ratio E_plastic / E_fabric.
 

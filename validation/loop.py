@@ -1,4 +1,4 @@
-"""The closed validation loop on bilayer-strip measurements (issue 4).
+"""The closed validation loop on bilayer-strip measurements.
 
 1. fit the base model (project's bilayer model, plastic flat at rest; one
    parameter, the modulus ratio);

@@ -1,6 +1,6 @@
 """Set-ups of the shell-engine verification cases (mm, N, MPa), shared by the tests
-(tests/test_shell_benchmarks.py) and the study scripts (validation/sze.py,
-validation/convergence.py).
+(tests/test_shell_benchmarks.py) and the studies (studies/sze.py, studies/natural_curvature.py,
+studies/convergence.py). Their reference answers are in validation.references.
 
 A clamp is a held row of elements: the positions of its vertices and the angles of its
 edges (including the edges on the clamped line) are fixed, so the mid-edge normals on
@@ -9,14 +9,19 @@ the clamped line stay those of the flat held row. Loads are dead loads
 """
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from shellfem.boundary import gauge_dofs, smooth_perturbation
-from shellfem.layers import QuadraticForm
+from shellfem.layers import QuadraticForm, sym_to_mat
 from shellfem.kinematics import build_topology
+from shellfem.materials import Fabric, Plastic
 from shellfem.model import ShellModel
 from shellfem.sheet import Sheet
 from shellfem.newton import newton
+from validation.references import SZE_B, SZE_E, SZE_END_MOMENT, SZE_END_SHEAR, SZE_H, SZE_SLIT, \
+    disk_ritz_curvatures, narrow_curvature
 
 # --------------------------------------------------------------------------- meshes
 
@@ -129,16 +134,6 @@ def load_path(models, q0: np.ndarray, free: np.ndarray, max_iterations: int = 20
 
 # --------------------------------------------------------------------------- Sze et al. (2004)
 
-SZE_E, SZE_H, SZE_B = 1.2e6, 0.1, 1.0           # cantilever strip of sections 3.1-3.2
-SZE_END_SHEAR = {"L": 10.0, "P_max": 4.0, "tip_u": 3.289, "tip_w": 6.700}
-SZE_END_MOMENT = {"L": 12.0, "M_max": 50 * np.pi / 3,
-                  "tip": {0.25: (4.361, 7.639), 0.5: (12.000, 7.639), 1.0: (12.000, 0.000)}}
-#: Sze, Liu & Lo (2004) sec. 3.3: slit annular plate, line force q (per unit length) on one
-#: slit edge, q_max = 0.8; w at the inner (A) and outer (B) corner of the loaded edge at q_max.
-SZE_SLIT = {"r_in": 6.0, "r_out": 10.0, "t": 0.03, "E": 21e6, "nu": 0.0, "q_max": 0.8,
-            "w_A": 13.891, "w_B": 17.528}
-
-
 def cantilever(L: float, nx: int, ny: int = 2, width: float = SZE_B):
     """Strip [0, L] x [0, width] with a clamped row of elements at x in [-L/nx, 0].
     Returns (sheet, free mask, tip vertex indices ordered by y)."""
@@ -250,30 +245,6 @@ def slit_annular_plate(n_r: int = 6, n_theta: int = 48, steps: int = 12, q_max: 
 # --------------------------------------------------------------------------- natural-curvature disk
 
 
-def disk_ritz_threshold(nu: float) -> float:
-    """kappa0 R^2 / h at which the spherical state of a free disk with isotropic natural
-    curvature kappa0 loses stability, in the uniform-curvature Ritz model (w = (k1 x^2 +
-    k2 y^2) / 2; stretching energy pi E h K^2 R^6 / 384 of a free disk of Gaussian curvature
-    K = k1 k2; as Masters & Salamon 1994, Freund 2000): 8 / (1 + nu)^(3/2); the spherical
-    curvature there is (1 + nu) / 2 kappa0."""
-    return 8.0 / (1.0 + nu) ** 1.5
-
-
-def disk_ritz_curvatures(kappa0_R2_over_h: float, nu: float) -> tuple[float, float]:
-    """Stable principal curvatures (k1 >= k2) / kappa0 of the uniform-curvature Ritz model:
-    minimise (u1-1)^2 + (u2-1)^2 + 2 nu (u1-1)(u2-1) + lam u1^2 u2^2,
-    lam = (1 - nu^2) (kappa0 R^2 / h)^2 / 16, from a slightly anisotropic start."""
-    from scipy.optimize import minimize
-    lam = (1 - nu * nu) * kappa0_R2_over_h ** 2 / 16
-
-    def f(u):
-        a, b = u[0] - 1, u[1] - 1
-        return a * a + b * b + 2 * nu * a * b + lam * (u[0] * u[1]) ** 2
-
-    u = minimize(f, [1.0, 0.9], method="BFGS", options={"gtol": 1e-12}).x
-    return float(max(u)), float(min(u))
-
-
 def quadric_curvatures(x: np.ndarray) -> np.ndarray:
     """Principal curvatures (1/mm, descending) at the centroid of a shallow point patch x
     (k, 3): least-squares fit w = c + a u + b v + (A u^2 + 2 B uv + C v^2) / 2 in the frame
@@ -325,8 +296,7 @@ def bilayer_roll(length: float, width: float, size: float, stretch: float = 1.05
     (1/mm, > 0) of the triangles in the middle third of the length (every y), the plate and
     narrow values of shellfem.strip and sqrt(R h) (R = 1 / plate curvature, h = total
     thickness). The interior approaches the plate value as the axis length grows
-    (validation/natural_curvature.py: deficit 6.7 % at 40 mm, 0.6 % at 120 mm)."""
-    from shellfem.materials import Fabric, Plastic
+    (studies/natural_curvature.py: deficit 6.7 % at 40 mm, 0.6 % at 120 mm)."""
     from shellfem.strip import strip_curvature
     fabric = fabric or Fabric(stretch=stretch)
     plastic = plastic or Plastic()
@@ -360,37 +330,83 @@ def bilayer_roll(length: float, width: float, size: float, stretch: float = 1.05
             "extent": (x.max(0) - x.min(0)).tolist()}
 
 
-# --------------------------------------------------------------------------- closed-form references
+# --------------------------------------------------------------------------- released bilayer sheets (mesh convergence)
+#
+# Every release starts from the same smooth guess on every mesh: the printed sheet wrapped on a
+# sphere of curvature 1/2 of the closed-form narrow-strip value, bending towards the fabric (-z).
+# A flat start can end in a second, stable state of higher energy, and a convergence study must
+# compare the same branch on every mesh.
 
 
-def elastica_end_moment(L: float, kappa):
-    """Tip (-u, w) (mm) of a clamped inextensible beam of length L bent by a tip moment to
-    uniform curvature kappa = M / EI (1/mm): circular arc."""
-    k = np.maximum(np.asarray(kappa, float), 1e-300)
-    return L - np.sin(k * L) / k, (1 - np.cos(k * L)) / k
+def cartesian_forms(sheet: Sheet, a: np.ndarray, b: np.ndarray):
+    """Edge-basis fundamental forms (m, 3) -> (m, 2, 2) matrices in printed x, y."""
+    P = sheet.points[sheet.triangles]
+    Ei = np.linalg.inv(np.stack([P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]], 2))
+    to_xy = lambda s: np.einsum("mji,mjk,mkl->mil", Ei, sym_to_mat(s), Ei)   # noqa: E731
+    return to_xy(a), to_xy(b)
 
 
-def elastica_end_shear(L: float, alpha) -> tuple[np.ndarray, np.ndarray]:
-    """Tip (-u, w) (mm) of a clamped inextensible elastica of length L under a transverse
-    dead tip load with alpha = P L^2 / EI (array, increasing from small values):
-    theta'' = -alpha cos(theta) on s in [0, 1], theta(0) = 0, theta'(1) = 0, solved with
-    scipy's collocation BVP solver, continued in alpha."""
-    from scipy.integrate import solve_bvp
-    s = np.linspace(0, 1, 101)
-    y = np.zeros((4, s.size))          # theta, theta', x, z (per unit length)
-    y[2] = s
-    u, w = [], []
-    for a in np.atleast_1d(np.asarray(alpha, float)):
-        def rhs(_, Y, a=a):
-            return np.vstack([Y[1], -a * np.cos(Y[0]), np.cos(Y[0]), np.sin(Y[0])])
+def triangle_areas(sheet: Sheet) -> np.ndarray:
+    P = sheet.points[sheet.triangles]
+    e1, e2 = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]
+    return 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
 
-        def bc(Y0, Y1):
-            return np.array([Y0[0], Y1[1], Y0[2], Y0[3]])
 
-        sol = solve_bvp(rhs, bc, s, y, tol=1e-8, max_nodes=100000)
-        if not sol.success:
-            raise RuntimeError(f"elastica at alpha = {a}: {sol.message}")
-        y = sol.sol(s)
-        u.append(L * (1 - y[2, -1]))
-        w.append(L * y[3, -1])
-    return np.array(u), np.array(w)
+def sphere_start(points: np.ndarray, kappa: float) -> np.ndarray:
+    """Printed points (n, 2) wrapped isometrically along x onto a sphere of curvature kappa
+    (1/mm) centred below the sheet's centre (-z): x -> longitude, y -> latitude."""
+    c = 0.5 * (points.min(0) + points.max(0))
+    R = 1.0 / kappa
+    psi, phi = (points[:, 0] - c[0]) / R, (points[:, 1] - c[1]) / R
+    return np.column_stack([R * np.cos(phi) * np.sin(psi), R * np.sin(phi), R * (np.cos(phi) * np.cos(psi) - 1)])
+
+
+def release(sheet: Sheet, fabric: Fabric, plastic: Plastic, kappa_start: float, seed: int = 0):
+    """Free equilibrium from sphere_start(kappa_start) + a seeded 0.1 % perturbation.
+    Returns (model, SolveResult); raises RuntimeError if not converged."""
+    M = ShellModel.from_materials(sheet, fabric, plastic, gravity=False)
+    q = M.initial_state()
+    x, _ = M.split(q)
+    size = float(np.linalg.norm(np.ptp(sheet.points, 0)))
+    x[:] = sphere_start(sheet.points, kappa_start)
+    x[:, 2] += smooth_perturbation(sheet.points, seed, 1e-3 * size)
+    free = np.ones(M.n_dofs, bool)
+    free[gauge_dofs(x, np.zeros(0, np.int64))] = False
+    r = newton(M, q, free, max_iterations=400)
+    if not r.converged:
+        raise RuntimeError(f"release of a {sheet.n_triangles}-triangle sheet: {r.reason}")
+    return M, r
+
+
+def strip_case(size: float, length: float = 40.0, width: float = 2.0, stretch: float = 1.05,
+               plastic_thickness: float = 0.3, seed: int = 0) -> dict:
+    """Released free bilayer strip on a Gmsh mesh of target edge ``size``: longitudinal
+    curvature (1/mm, > 0 when concave on the fabric side) area-averaged over the middle half."""
+    sh = gmsh_rectangle(length, width, size)
+    sh = Sheet(sh.points, sh.triangles, thickness_front=np.full(sh.n_triangles, plastic_thickness))
+    fabric, plastic = Fabric(stretch=stretch), Plastic()
+    t0 = time.perf_counter()
+    M, r = release(sh, fabric, plastic, 0.5 * narrow_curvature(fabric, plastic, plastic_thickness), seed)
+    A, B = cartesian_forms(sh, *M.fundamental_forms(r.q))
+    c = sh.points[sh.triangles].mean(1)
+    mid = np.abs(c[:, 0] - length / 2) < length / 4
+    w = triangle_areas(sh)[mid]
+    kx = -B[mid, 0, 0] / A[mid, 0, 0]
+    return {"size_mm": size, "n_triangles": sh.n_triangles, "curvature_per_mm": float(np.sum(w * kx) / w.sum()),
+            "newton_iterations": r.iterations, "seconds": round(time.perf_counter() - t0, 2)}
+
+
+def gradient_case(size: float, length: float = 40.0, width: float = 3.0, t0: float = 0.15, t1: float = 0.45,
+                  stretch: float = 1.05, seed: int = 0):
+    """Released free sheet with plastic thickness t0 + (t1 - t0) x / length (per triangle at
+    its centroid) on a Gmsh mesh of target edge ``size``. Returns (sheet, deployed positions, info)."""
+    sh = gmsh_rectangle(length, width, size)
+    cx = sh.points[sh.triangles].mean(1)[:, 0]
+    sh = Sheet(sh.points, sh.triangles, thickness_front=t0 + (t1 - t0) * cx / length)
+    tic = time.perf_counter()
+    fabric, plastic = Fabric(stretch=stretch), Plastic()
+    M, r = release(sh, fabric, plastic, 0.5 * narrow_curvature(fabric, plastic, 0.5 * (t0 + t1)), seed)
+    x = M.split(r.q)[0]
+    tip = x[np.argmax(sh.points[:, 0])] - x[np.argmin(sh.points[:, 0])]
+    return sh, x, {"size_mm": size, "n_triangles": sh.n_triangles, "end_to_end_mm": float(np.linalg.norm(tip)),
+                   "newton_iterations": r.iterations, "seconds": round(time.perf_counter() - tic, 2)}

@@ -198,7 +198,7 @@ def seed_linear_fit(rows):
 
 def calibrate_strips(csv_path, out_dir) -> dict:
     """Fit the plastic/fabric modulus ratio to a strips CSV with the base model
-    (plastic flat at rest: issue 4, loop step 1). Writes out_dir/parameters.json
+    (plastic flat at rest: step 1 of the validation loop). Writes out_dir/parameters.json
     (``modulus_ratio`` [value, standard error], its 95 % profile-likelihood
     interval, the fit residuals; for comparison the ratio with the measured rest
     curvatures and the seed's Eq. 3.17 linear regression) and

@@ -9,7 +9,7 @@ seconds per stage, the flattening (coarse + fine) against the 7 s target and the
 against 30 s, the Table 5.1 columns, and for comparison the fine flattening under the
 alternative stop rule ||d sigma||_2 / m < 1e-6 (stop="norm").
 
-    python -m validation.bench_design [--target saddle.obj] [--faces 100000]
+    python studies/bench_design.py [--target meshes/targets/saddle.obj] [--faces 100000]
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ import numpy as np
 
 from geometry.target import levels_for_faces, load_target
 
-TARGET = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "meshes", "targets", "saddle.obj")
+TARGET = os.path.join("meshes", "targets", "saddle.obj")     # relative to the repository root
 
 
 def main(argv=None):

@@ -17,10 +17,12 @@ Two sources, written as inverse/thickness_law.py CSV tables with a provenance he
   covered sheet rolls as a plate, isolated ribbons as narrow strips). A heuristic, labelled so.
 
 Prints ONE JSON line (rows written, dropped, timings). Lengths mm, curvature 1/mm.
+The command is studies/thickness_law_sim.py, which calls :func:`main` (kept here with the
+builders it drives, so that the law's options are tested with it):
 
-    python -m validation.thickness_law_sim --model strip
-    python -m validation.thickness_law_sim --model sim --thickness 0.4 0.8 --spacing 4 8 \
-        --sides front --mesh-size 3 --out /tmp/law.csv
+    python studies/thickness_law_sim.py --model strip
+    python studies/thickness_law_sim.py --model sim --thickness 0.4 0.8 --spacing 4 8 \
+        --sides front --mesh-size 3 --out out/law.csv
 """
 from __future__ import annotations
 
@@ -203,7 +205,7 @@ def main(argv=None):
     head = [f"selfshape curvature law kappa(thickness, transverse spacing, side) at fabric stretch {a.stretch:g}",
             "columns: thickness_mm (printed plastic, mm), spacing_mm (transverse ribbon spacing mu2, printed mm),",
             "  side (front|back), kappa_per_mm (|normal curvature| along the ribbons, 1/mm of deployed length)",
-            f"generated {stamp} by validation/thickness_law_sim.py --model {a.model}, git {git_hash()}",
+            f"generated {stamp} by studies/thickness_law_sim.py --model {a.model}, git {git_hash()}",
             f"fabric: E {fabric.young_modulus:g} MPa, nu {fabric.poisson:g}, thickness {fabric.thickness:g} mm, "
             f"k_B {fabric.bending_stiffness:g} N mm ({fabric.model}); plastic: E {plastic.young_modulus:g} MPa, "
             f"nu {plastic.poisson:g}, rest curvature {plastic.rest_curvature:g} /mm ({plastic_source})",

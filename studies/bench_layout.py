@@ -4,7 +4,7 @@ stripe field (theta, the ribbon rows) and of its isolines, the whole layout (two
 dashes, clipping, trimming, sides), ribbon counts, and the measured spacing between the
 centre-line rows (theta = 0 and pi isolines) over the target mu2 of Eq. 5.15.
 
-    python -m validation.bench_layout [--radius 100] [--faces 100000]
+    python studies/bench_layout.py [--radius 100] [--faces 100000]
 """
 from __future__ import annotations
 

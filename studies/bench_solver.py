@@ -1,9 +1,9 @@
 """Form-finding benchmark: a ~10,000-vertex sheet with a dense printed pattern to equilibrium.
 
 The seed's C++ solver took 17-40 minutes for 7,000-12,000 vertices (seed Table 3.1).
-Case: a uniform 3-pointed-star tiling (spacing 10 mm, arms 7 x 0.8 mm, 0.3 mm TPU on the
-front, E_plastic / E_fabric = 3.2e3 as the seed's chapter 3 calibrated for its star
-sheets) on an 85 x 60 mm fabric at s = 1.35, meshed with one triangle across each arm
+Case (validation.cases.star_benchmark): a uniform 3-pointed-star tiling (spacing 10 mm, arms
+7 x 0.8 mm, 0.3 mm TPU on the front, E_plastic / E_fabric = 3.2e3 as the seed's chapter 3
+calibrated for its star sheets) on an 85 x 60 mm fabric at s = 1.35, meshed with one triangle across each arm
 (``[mesh] across = 1``), free boundary: it rolls into a tube (seed Fig. 3.2).
 Solved as ``selfshape simulate`` solves it: nested iteration from coarser meshes of the same
 pattern (shellfem.multilevel; ``--coarse-levels 0`` for the single mesh). Prints ONE JSON line:
@@ -11,7 +11,7 @@ sizes, Newton iterations (summed over the levels, and per level), wall time (``t
 includes meshing every level), and the per-iteration split (assembly vs factorisation vs line
 search). Target: under 60 s on 2 cores.
 
-Run: python -m validation.bench_solver [--width 85 --height 60 --across 1] [--fabric-bending-stiffness K]
+Run: python studies/bench_solver.py [--width 85 --height 60 --across 1] [--fabric-bending-stiffness K]
      [--coarse-levels auto|N]
 """
 from __future__ import annotations
@@ -23,20 +23,7 @@ import time
 import numpy as np
 
 from shellfem.newton import DEFAULT_METRIC_FLOOR
-
-
-def pattern(width: float = 85.0, height: float = 60.0, across: float = 1.0,
-            fabric_bending_stiffness: float | None = None, seed: int = 0,
-            metric_floor: float = DEFAULT_METRIC_FLOOR) -> dict:
-    fabric = {"rectangle": [width, height], "stretch": 1.35, "thickness_mm": 0.8}
-    if fabric_bending_stiffness is not None:       # N mm; default: the fabric's measured k_B
-        fabric["bending_stiffness_nmm"] = float(fabric_bending_stiffness)
-    return {"fabric": fabric,
-            "plastic": {"young_modulus_mpa": 3.2e3 * 1.05, "poisson": 0.5},   # seed ch. 3: E1/E2 = 3.2e3
-            "stars": {"spacing_mm": 10.0, "arm_length": 0.7, "thickness_mm": 0.3, "arm_width_mm": 0.8,
-                      "side": "front"},
-            "mesh": {"size_mm": 2.0, "across": across},
-            "solver": {"seed": int(seed), "metric_floor": float(metric_floor)}}
+from validation.cases import star_benchmark
 
 
 def run(width: float = 85.0, height: float = 60.0, across: float = 1.0, max_iterations: int = 300,
@@ -54,7 +41,7 @@ def run(width: float = 85.0, height: float = 60.0, across: float = 1.0, max_iter
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "bench.toml")
         with open(path, "wb") as f:
-            tomli_w.dump(pattern(width, height, across, fabric_bending_stiffness, seed, metric_floor), f)
+            tomli_w.dump(star_benchmark(width, height, across, fabric_bending_stiffness, seed, metric_floor), f)
         pat = load_pattern(path)
     t0 = time.perf_counter()
     sheet = mesh_pattern(pat)

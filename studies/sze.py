@@ -10,7 +10,7 @@
   at q_max; structured polar meshes n_r x n_theta (quads split), first-order Richardson
   estimates of each consecutive pair of meshes.
 
-    python -m validation.sze [--quick] [--out out/validation] [--figures docs/validation]
+    python studies/sze.py [--quick] [--out out/validation] [--figures docs/validation]
 
 prints ONE JSON line, writes OUT/sze.json and FIGURES/sze_end_shear.png,
 sze_end_moment.png, sze_slit_plate.png.
@@ -25,6 +25,8 @@ import time
 import numpy as np
 
 from validation import shell_cases as sc
+from validation.references import SZE_B, SZE_E, SZE_END_MOMENT, SZE_END_SHEAR, SZE_H, SZE_SLIT, \
+    elastica_end_moment, elastica_end_shear
 
 SLIT_MESHES = ((4, 32), (6, 48), (8, 64), (10, 80))
 QUICK_SLIT_MESHES = ((4, 32), (6, 48))
@@ -39,36 +41,36 @@ def _timed(f, *args, **kw):
 
 def end_shear_study(nx: int = 40, steps: int = 8) -> dict:
     r = _timed(sc.end_shear, nx, steps)
-    L, P = sc.SZE_END_SHEAR["L"], sc.SZE_END_SHEAR["P_max"]
-    EI = sc.SZE_E * sc.SZE_B * sc.SZE_H ** 3 / 12
-    u_ref, w_ref = sc.elastica_end_shear(L, np.asarray(r["load_fraction"]) * P * L ** 2 / EI)
+    L, P = SZE_END_SHEAR["L"], SZE_END_SHEAR["P_max"]
+    EI = SZE_E * SZE_B * SZE_H ** 3 / 12
+    u_ref, w_ref = elastica_end_shear(L, np.asarray(r["load_fraction"]) * P * L ** 2 / EI)
     r["elastica_u"], r["elastica_w"] = u_ref.tolist(), w_ref.tolist()
     r["max_error_over_L"] = float(max(np.abs(np.subtract(r["tip_u"], u_ref)).max(),
                                       np.abs(np.subtract(r["tip_w"], w_ref)).max()) / L)
-    r["published_tip"] = [sc.SZE_END_SHEAR["tip_u"], sc.SZE_END_SHEAR["tip_w"]]
+    r["published_tip"] = [SZE_END_SHEAR["tip_u"], SZE_END_SHEAR["tip_w"]]
     f = np.linspace(0.02, 1.0, 50)
-    u, w = sc.elastica_end_shear(L, f * P * L ** 2 / EI)
+    u, w = elastica_end_shear(L, f * P * L ** 2 / EI)
     r["reference_curve"] = {"load_fraction": f.tolist(), "u": u.tolist(), "w": w.tolist()}
     return r
 
 
 def end_moment_study(nx: int = 48, steps: int = 16) -> dict:
     r = _timed(sc.end_moment, nx, steps)
-    L = sc.SZE_END_MOMENT["L"]
-    EI = sc.SZE_E * sc.SZE_B * sc.SZE_H ** 3 / 12
-    u_ref, w_ref = sc.elastica_end_moment(L, np.asarray(r["load_fraction"]) * sc.SZE_END_MOMENT["M_max"] / EI)
+    L = SZE_END_MOMENT["L"]
+    EI = SZE_E * SZE_B * SZE_H ** 3 / 12
+    u_ref, w_ref = elastica_end_moment(L, np.asarray(r["load_fraction"]) * SZE_END_MOMENT["M_max"] / EI)
     r["arc_u"], r["arc_w"] = u_ref.tolist(), w_ref.tolist()
     r["max_error_over_L"] = float(max(np.abs(np.subtract(r["tip_u"], u_ref)).max(),
                                       np.abs(np.subtract(r["tip_w"], w_ref)).max()) / L)
     f = np.linspace(0.01, 1.0, 100)
-    u, w = sc.elastica_end_moment(L, f * sc.SZE_END_MOMENT["M_max"] / EI)
+    u, w = elastica_end_moment(L, f * SZE_END_MOMENT["M_max"] / EI)
     r["reference_curve"] = {"load_fraction": f.tolist(), "u": u.tolist(), "w": w.tolist()}
     return r
 
 
 def slit_plate_study(meshes=SLIT_MESHES, steps: int = 8) -> dict:
     runs = [_timed(sc.slit_annular_plate, n_r, n_t, steps=steps) for n_r, n_t in meshes]
-    ref = sc.SZE_SLIT
+    ref = SZE_SLIT
     out = {"published": {"w_A": ref["w_A"], "w_B": ref["w_B"]}, "meshes": []}
     for (n_r, n_t), r in zip(meshes, runs):
         out["meshes"].append({"mesh": r["mesh"], "n_triangles": r["n_triangles"], "w_A": r["w_A"][-1],
@@ -115,9 +117,9 @@ def plot_slit(out: dict, path: str) -> str:
         ax.plot([0] + c["w_A"], [0] + c["q"], "--", color=f"C{i}", lw=1.1, marker=".", label=f"A, {mesh}")
         ax.plot([0] + c["w_B"], [0] + c["q"], "-", color=f"C{i}", lw=1.1, marker=".", label=f"B, {mesh}")
     p = out["published"]
-    ax.plot([p["w_A"], p["w_B"]], [sc.SZE_SLIT["q_max"]] * 2, "k*", ms=10, label="Sze et al. 2004 (q_max)")
+    ax.plot([p["w_A"], p["w_B"]], [SZE_SLIT["q_max"]] * 2, "k*", ms=10, label="Sze et al. 2004 (q_max)")
     for i, est in enumerate(out["richardson_first_order"]):
-        ax.plot([est["w_A"], est["w_B"]], [sc.SZE_SLIT["q_max"]] * 2, "x", color="r", alpha=0.4 + 0.6 * i / max(
+        ax.plot([est["w_A"], est["w_B"]], [SZE_SLIT["q_max"]] * 2, "x", color="r", alpha=0.4 + 0.6 * i / max(
             1, len(out["richardson_first_order"]) - 1), ms=8, label="1st-order Richardson, " + est["pair"])
     ax.legend(fontsize=7, loc="upper left")
     return save_figure(fig, path)

@@ -2,7 +2,8 @@
 
 Prints one JSON line per target: faces, seconds per stage (load, refine, curvature, field,
 tutte, slim, isometric, local_global), iterations, converged and the seed Table 5.1 columns.
-Usage: python validation/bench_flattening.py [target.obj ...] [--faces 100000] [--lam 0]
+Usage: python studies/bench_flattening.py [target.obj ...] [--faces 100000] [--lam 0] (default: every
+meshes/targets/*.obj)
 """
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ import numpy as np
 from geometry.flattening import flatten_surface
 from geometry.target import levels_for_faces, load_target, refine
 
-TARGETS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "meshes", "targets", "*.obj")
+TARGETS = os.path.join("meshes", "targets", "*.obj")     # relative to the repository root
 
 
 def bench(path: str, faces: int = 100_000, lam: float = 0.0, slim_iterations: int = 2) -> dict:

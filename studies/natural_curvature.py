@@ -12,7 +12,7 @@ of a wide bilayer sheet (mm, N, MPa).
   materials, pre-stretch 1.05): interior curvature against the plate value of
   shellfem.strip for axis lengths 40-120 mm (the deficit is a finite-length effect).
 
-    python -m validation.natural_curvature [--quick] [--out out/validation] [--figures docs/validation]
+    python studies/natural_curvature.py [--quick] [--out out/validation] [--figures docs/validation]
 
 prints ONE JSON line, writes OUT/natural_curvature.json and FIGURES/disk_bifurcation.png,
 FIGURES/bilayer_roll.png.
@@ -27,6 +27,7 @@ import time
 import numpy as np
 
 from validation import shell_cases as sc
+from validation.references import disk_ritz_curvatures, disk_ritz_threshold
 
 DISK_SWEEP = (1.0, 2.0, 3.0, 4.0, 4.5, 5.0, 5.25, 5.5, 5.75, 6.0, 6.5, 8.0, 10.0, 13.0, 16.0)
 QUICK_DISK_SWEEP = (2.0, 4.0, 5.0, 6.0, 8.0, 16.0)
@@ -39,7 +40,7 @@ def disk_study(sweep=DISK_SWEEP, nu: float = 0.3) -> dict:
     sph = [r["kappa0_R2_over_h"] for r in runs if r["ratio"] > 0.9]
     cyl = [r["kappa0_R2_over_h"] for r in runs if r["ratio"] <= 0.9]
     bracket = [max(sph) if sph else None, min(cyl) if cyl else None]
-    return {"nu": nu, "ritz_threshold": sc.disk_ritz_threshold(nu), "engine_threshold_bracket": bracket, "runs": runs}
+    return {"nu": nu, "ritz_threshold": disk_ritz_threshold(nu), "engine_threshold_bracket": bracket, "runs": runs}
 
 
 def roll_study(lengths=ROLL_LENGTHS, width: float = 30.0, size: float = 2.0) -> dict:
@@ -58,7 +59,7 @@ def plot_disk(d: dict, path: str) -> str:
     ax.plot(v, [r["k_max_over_kappa0"] for r in d["runs"]], "o", color="C0", label="engine, k_max")
     ax.plot(v, [r["k_min_over_kappa0"] for r in d["runs"]], "s", color="C1", label="engine, k_min")
     vv = np.linspace(0.2, v.max(), 200)
-    ritz = np.array([sc.disk_ritz_curvatures(x, d["nu"]) for x in vv])
+    ritz = np.array([disk_ritz_curvatures(x, d["nu"]) for x in vv])
     ax.plot(vv, ritz[:, 0], "-", color="C0", lw=1, label="Ritz (uniform curvature)")
     ax.plot(vv, ritz[:, 1], "-", color="C1", lw=1)
     ax.axvline(d["ritz_threshold"], color="grey", ls=":", lw=1)

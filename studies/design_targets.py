@@ -5,7 +5,7 @@ docs/design/TARGET_{target,flat,ribbons,simulated}.png pictures and docs/design/
 Markdown table with the seed's Table 5.1 columns and the simulated deviation. Prints ONE JSON
 line per target and a final summary line.
 
-    python -m validation.design_targets [--no-verify] [--mesh-size 2] [--across 1] [--verify-iterations N]
+    python studies/design_targets.py [--no-verify] [--mesh-size 2] [--across 1] [--verify-iterations N]
                                         [--law LAW.csv] [--out out/design] [--docs docs/design] [names...]
 """
 from __future__ import annotations
@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-TARGETS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "meshes", "targets", "*.obj")
+TARGETS = os.path.join("meshes", "targets", "*.obj")     # relative to the repository root
 
 
 def _plot_target(V, F, path, title):

@@ -6,35 +6,19 @@ stars: a ~300-star tiling (spacing 10 mm, arms 7 x 0.8 mm) on a 160 x 160 mm fab
 Both with 2 mm fabric size. Per case: element count, pattern load and mesh times (wall
 and CPU: on a shared machine wall time includes waiting for a core),
 vertices, triangles, min angle and the share of triangles with a min angle < 30 deg.
-Target: < 10 s per case. Run: python -m validation.bench_meshing
+Target: < 10 s per case. --quick: 80 ribbons on 100 x 100 mm and the tiling on 60 x 60 mm.
+Run: python studies/bench_meshing.py [--quick]
 """
 from __future__ import annotations
 
+import argparse
 import json
 import time
 
 from geometry.mesh_quality import mesh_quality
 from geometry.meshing import mesh_pattern
 from geometry.patterns import load_pattern
-
-
-def ribbons_pattern(rows: int = 80, per_row: int = 10, length: float = 15.0, width: float = 1.5,
-                    side: float = 200.0, size_mm: float = 2.0) -> dict:
-    ribbons = []
-    pitch_y, pitch_x = side / rows, side / per_row
-    for i in range(rows):
-        y = pitch_y * (i + 0.5)
-        x0 = 0.5 * (pitch_x - length) + (0.5 * pitch_x if i % 2 else 0.0)
-        for j in range(per_row):
-            x = x0 + j * pitch_x
-            ribbons.append({"path": [[x, y], [x + length, y]], "width_mm": width, "thickness_mm": 0.4})
-    return {"fabric": {"rectangle": [side, side]}, "ribbon": ribbons, "mesh": {"size_mm": size_mm}}
-
-
-def stars_pattern(side: float = 160.0, size_mm: float = 2.0) -> dict:
-    return {"fabric": {"rectangle": [side, side]},
-            "stars": {"spacing_mm": 10.0, "arm_length": 0.7, "thickness_mm": 0.3, "arm_width_mm": 0.8},
-            "mesh": {"size_mm": size_mm}}
+from validation.cases import staggered_ribbons, star_tiling
 
 
 def run_case(raw: dict) -> dict:
@@ -51,8 +35,15 @@ def run_case(raw: dict) -> dict:
             "edge_median_mm": round(q["edge_median_mm"], 3)}
 
 
-def main() -> dict:
-    out = {"ribbons_800": run_case(ribbons_pattern()), "stars_300": run_case(stars_pattern())}
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="two small cases")
+    a = ap.parse_args(argv)
+    if a.quick:
+        out = {"ribbons_80": run_case(staggered_ribbons(rows=16, per_row=5, side=100.0)),
+               "stars_quick": run_case(star_tiling(side=60.0))}
+    else:
+        out = {"ribbons_800": run_case(staggered_ribbons()), "stars_300": run_case(star_tiling())}
     print(json.dumps(out))
     return out
 

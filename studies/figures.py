@@ -1,25 +1,27 @@
-"""ONE command that regenerates every validation figure and number the README quotes.
+"""ONE command that regenerates every validation figure and number.
 
-    python -m validation.figures [--quick] [--only NAME[,NAME...]] [--out out/validation]
-                                 [--figures docs/validation] [--data validation/data]
+    python studies/figures.py [--quick] [--only NAME[,NAME...]] [--out out/validation]
+                              [--figures docs/validation] [--data validation/data]
 
-Tasks (in this order; NAME in brackets):
-  [convergence]        validation.convergence: mesh convergence on unstructured Gmsh meshes
-  [sze]                validation.sze: Sze et al. 2004 end shear, end moment, slit annular plate
-  [natural_curvature]  validation.natural_curvature: disk sphere->cylinder threshold, wide bilayer roll
+Run from the repository root. Tasks (in this order; NAME in brackets):
+  [convergence]        studies/convergence.py: mesh convergence on unstructured Gmsh meshes
+  [sze]                studies/sze.py: Sze et al. 2004 end shear, end moment, slit annular plate
+  [natural_curvature]  studies/natural_curvature.py: disk sphere->cylinder threshold, wide bilayer roll
   [fabric]             calibrate the fabric on DATA/fabric (validation.fabric.calibrate_fabric)
   [strips]             calibrate the modulus ratio on DATA/strips_S1.csv (validation.strips)
   [loop]               the closed loop on DATA/strips_S1.csv (validation.loop.validate_file)
-  [bench_meshing]      800 ribbons / ~300 stars meshing benchmark
-  [bench_flattening]   flattening of every target refined to ~100k faces
-  [bench_layout]       stripe fields + ribbon layout on a ~100k-face disk
-  [bench_design]       the whole inverse-design pipeline on the refined saddle
+  [bench_meshing]      studies/bench_meshing.py: 800 ribbons / ~300 stars meshing benchmark
+  [bench_flattening]   studies/bench_flattening.py: every target refined to ~100k faces, flattened
+  [bench_layout]       studies/bench_layout.py: stripe fields + ribbon layout on a ~100k-face disk
+  [bench_design]       studies/bench_design.py: the whole inverse-design pipeline on the refined saddle
 --quick runs the short variants (coarser meshes, shorter sweeps, ~20k-face benchmarks,
 smaller meshing cases). Figures go to FIGURES (PNG), outputs to OUT/<task>/ (JSON, logs;
 each task's own printed output is kept in OUT/<task>.log). Prints ONE summary JSON line
 with, per task: ok, seconds, the headline numbers, the figures; a task that fails is
 reported with its error and the others still run (exit status 1 if any failed).
 OUT/summary.json holds the latest result of every task (--only updates those tasks).
+Then `python studies/validation_page.py --runs out/validation` copies the studies' JSON to
+docs/validation/json/ and writes the validation page docs/validation.md from it.
 """
 from __future__ import annotations
 
@@ -36,7 +38,7 @@ import traceback
 
 TASKS = ("convergence", "sze", "natural_curvature", "fabric", "strips", "loop",
          "bench_meshing", "bench_flattening", "bench_layout", "bench_design")
-TARGETS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "meshes", "targets", "*.obj")
+TARGETS = os.path.join("meshes", "targets", "*.obj")     # relative to the repository root
 
 
 def _last_json(text: str):
@@ -67,10 +69,11 @@ def _args(quick, out, figs):
 
 
 # ------------------------------------------------------------------------- tasks
-# each: (quick, out_dir, fig_dir, data_dir) -> (headline dict, figures list)
+# each: (quick, out_dir, fig_dir, data_dir) -> (headline dict, figures list); the studies are the
+# scripts next to this one (studies/ is on sys.path when this file is run as a script)
 
 def task_convergence(quick, out, figs, data):
-    from validation import convergence
+    import convergence
     r = convergence.main(_args(quick, out, figs))
     s, g = r["strip"], r["thickness_gradient"]
     return {"strip_curvature_per_mm": [m["curvature_per_mm"] for m in s["meshes"]],
@@ -83,7 +86,7 @@ def task_convergence(quick, out, figs, data):
 
 
 def task_sze(quick, out, figs, data):
-    from validation import sze
+    import sze
     r = sze.main(_args(quick, out, figs))
     return {"end_shear_tip": r["end_shear"]["tip_final"],
             "end_shear_max_error_over_L": r["end_shear"]["max_error_over_L"],
@@ -96,7 +99,7 @@ def task_sze(quick, out, figs, data):
 
 
 def task_natural_curvature(quick, out, figs, data):
-    from validation import natural_curvature
+    import natural_curvature
     r = natural_curvature.main(_args(quick, out, figs))
     return {"disk_ritz_threshold": r["disk"]["ritz_threshold"],
             "disk_engine_threshold_bracket": r["disk"]["engine_threshold_bracket"],
@@ -131,18 +134,12 @@ def task_loop(quick, out, figs, data):
 
 
 def task_bench_meshing(quick, out, figs, data):
-    from validation import bench_meshing as bm
-    if quick:
-        r = {"ribbons_80": bm.run_case(bm.ribbons_pattern(rows=16, per_row=5, side=100.0)),
-             "stars_quick": bm.run_case(bm.stars_pattern(side=60.0))}
-        print(json.dumps(r))
-    else:
-        r = bm.main()
-    return r, []
+    import bench_meshing
+    return bench_meshing.main(["--quick"] if quick else []), []
 
 
 def task_bench_flattening(quick, out, figs, data):
-    from validation.bench_flattening import bench
+    from bench_flattening import bench
     faces = 20_000 if quick else 100_000
     paths = sorted(glob.glob(TARGETS))
     if quick:
@@ -166,12 +163,12 @@ def _run_main_capture(main, argv):
 
 
 def task_bench_layout(quick, out, figs, data):
-    from validation import bench_layout
+    import bench_layout
     return _run_main_capture(bench_layout.main, ["--faces", "20000"] if quick else []), []
 
 
 def task_bench_design(quick, out, figs, data):
-    from validation import bench_design
+    import bench_design
     return _run_main_capture(bench_design.main, (["--faces", "20000"] if quick else []) + ["--no-compare"]), []
 
 
@@ -206,12 +203,12 @@ def main(argv=None) -> dict:
     if unknown:
         ap.error(f"unknown task(s) {unknown}; choose from {', '.join(TASKS)}")
     t0 = time.perf_counter()
-    summary = {"command": "python -m validation.figures" + (" --quick" if a.quick else "")
+    summary = {"command": "python studies/figures.py" + (" --quick" if a.quick else "")
                + (f" --only {','.join(names)}" if a.only else ""), "tasks": {}}
     for n in names:
-        print(f"[validation.figures] {n} ...", file=sys.stderr, flush=True)
+        print(f"[figures] {n} ...", file=sys.stderr, flush=True)
         summary["tasks"][n] = run_task(n, a.quick, a.out, a.figures, a.data)
-        print(f"[validation.figures] {n}: {'ok' if summary['tasks'][n]['ok'] else 'FAILED'} "
+        print(f"[figures] {n}: {'ok' if summary['tasks'][n]['ok'] else 'FAILED'} "
               f"({summary['tasks'][n]['seconds']} s)", file=sys.stderr, flush=True)
     summary["seconds"] = round(time.perf_counter() - t0, 1)
     summary["all_ok"] = all(t["ok"] for t in summary["tasks"].values())

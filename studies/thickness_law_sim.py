@@ -1,0 +1,12 @@
+"""Build the curvature law kappa(thickness, transverse spacing, side) as a CSV table for
+inverse/thickness_law.py: by forward simulation of ribbon patches (--model sim) or from the
+coverage-blended strip model (--model strip). Options and output: validation.law_tables.
+
+    python studies/thickness_law_sim.py --model strip
+    python studies/thickness_law_sim.py --model sim --thickness 0.4 0.8 --spacing 4 8 \
+        --sides front --mesh-size 3 --out out/law.csv
+"""
+from validation.law_tables import main
+
+if __name__ == "__main__":
+    raise SystemExit(main())
