@@ -33,9 +33,8 @@ def main(argv=None):
     ap.add_argument("--no-compare", action="store_true", help="skip the stop='norm' comparison")
     a = ap.parse_args(argv)
     np.seterr(all="ignore")
-    import tomli_w
-
     from geometry.flattening import flatten
+    from geometry.patterns import write_pattern
     from inverse.design import design
     from inverse.plots import plot_pattern
     from inverse.report import report_dict
@@ -52,8 +51,7 @@ def main(argv=None):
     d = design(V0, F0, diagonal_mm=None, edge_mm=edge_mm)
     wd, cd = time.perf_counter(), time.process_time()
     with tempfile.TemporaryDirectory() as tmp:
-        with open(os.path.join(tmp, "pattern.toml"), "wb") as f:
-            tomli_w.dump(pattern_dict(d), f)
+        write_pattern(os.path.join(tmp, "pattern.toml"), pattern_dict(d))
         write_flat_vtu(d, os.path.join(tmp, "flat.vtu"))
         ribbons_to_gcode_files(d.ribbons, tmp)
         plot_pattern(d, os.path.join(tmp, "pattern.png"))

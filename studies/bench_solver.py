@@ -32,16 +32,13 @@ def run(width: float = 85.0, height: float = 60.0, across: float = 1.0, max_iter
     import os
     import tempfile
 
-    import tomli_w
-
     from geometry.meshing import coarse_meshes, mesh_pattern
-    from geometry.patterns import load_pattern
+    from geometry.patterns import load_pattern, write_pattern
     from forward.simulate import simulate_sheet
 
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "bench.toml")
-        with open(path, "wb") as f:
-            tomli_w.dump(star_benchmark(width, height, across, fabric_bending_stiffness, seed, metric_floor), f)
+        write_pattern(path, star_benchmark(width, height, across, fabric_bending_stiffness, seed, metric_floor))
         pat = load_pattern(path)
     t0 = time.perf_counter()
     sheet = mesh_pattern(pat)

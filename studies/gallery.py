@@ -32,9 +32,7 @@ from validation.measures import gallery_measure
 
 
 def run(names=None, out_root="out/gallery", docs="docs/gallery", examples="examples/gallery", max_iterations=400):
-    import tomli_w
-
-    from geometry.patterns import load_pattern
+    from geometry.patterns import load_pattern, write_pattern
     from forward.outputs import write_vtu
     from forward.simulate import simulate
     os.makedirs(examples, exist_ok=True)
@@ -43,8 +41,7 @@ def run(names=None, out_root="out/gallery", docs="docs/gallery", examples="examp
     for name in names or list(GALLERY_CASES):
         raw = GALLERY_CASES[name]()
         path = os.path.join(examples, f"{name}.toml")
-        with open(path, "wb") as f:
-            tomli_w.dump(raw, f)
+        write_pattern(path, raw)
         t0 = time.perf_counter()
         sim = simulate(load_pattern(path), max_iterations=max_iterations)
         row = {"pattern": path, "converged": bool(sim.result.converged), "newton_iterations": sim.result.iterations,
