@@ -44,6 +44,7 @@ import numpy as np
 
 from geometry.meshops import face_areas
 from inverse.plots import plot_pattern
+from inverse.record import Design
 from inverse.report import report_dict
 from inverse.separation import separate_ribbons, simplify_paths
 from inverse.to_pattern import pattern_dict
@@ -55,40 +56,6 @@ RIBBON_LENGTH_MM, RIBBON_WIDTH_MM = 15.0, 1.5
 #: Every file design_file may write (removed from the output directory before a new run writes).
 OUTPUTS = ("report.json", "pattern.toml", "flat.vtu", "front.gcode", "back.gcode", "pattern.png", "deployed.vtu",
            "verify.png")
-
-
-# ----------------------------------------------------------------------------- record
-@dataclass
-class Design:
-    """Everything the pipeline computed (mm). V, F: scaled and refined target; V_input, F_input:
-    the scaled input before refinement; curvature, field: geometry.curvature / fields records;
-    flat: geometry.flattening.FlatResult; kappa1 (m,): signed target normal curvature along the
-    ribbon direction (> 0: front); outline (k, 2): flattened boundary polygon; ribbons:
-    geometry.elements.Ribbon list with thickness_mm and side; thickness_info: clamp counts per
-    side; times: seconds per stage."""
-    V: np.ndarray
-    F: np.ndarray
-    V_input: np.ndarray
-    F_input: np.ndarray
-    curvature: object
-    field: object
-    flat: object
-    kappa1: np.ndarray
-    outline: np.ndarray
-    ribbons: list
-    stretch: float
-    bounds: tuple
-    refine_levels: int
-    layout_levels: int = 0
-    lam: float = 0.0
-    stop: str = "mean"
-    thickness_info: dict = field(default_factory=dict)
-    law_source: str = ""
-    law_plastic_mpa: float | None = None     # the plastic modulus the law holds for (MPa), if it says
-    times: dict = field(default_factory=dict)
-    cpu_times: dict = field(default_factory=dict)
-    coarse_iterations: int = 0
-    separation: dict = field(default_factory=dict)
 
 
 # ----------------------------------------------------------------------------- stages

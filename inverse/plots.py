@@ -2,12 +2,9 @@
 and verify.png (the simulated deployment against the target)."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
-if TYPE_CHECKING:
-    from inverse.design import Design
+from inverse.record import Design
 
 
 def plot_pattern(d: Design, path: str, title: str = ""):

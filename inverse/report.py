@@ -2,12 +2,9 @@
 thickness histogram and clamping, stretch bounds."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
-if TYPE_CHECKING:
-    from inverse.design import Design
+from inverse.record import Design
 
 
 def thickness_histogram(ribbons) -> dict:

@@ -3,12 +3,10 @@
 from __future__ import annotations
 
 import os
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from inverse.design import Design
+from inverse.record import Design
 
 
 def pattern_dict(d: Design, *, fabric=None, plastic=None, mesh_size_mm: float = 2.0,

@@ -5,14 +5,11 @@ from __future__ import annotations
 
 import os
 import time
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from inverse.record import Design
 from shellfem.errors import SelfshapeError
-
-if TYPE_CHECKING:
-    from inverse.design import Design
 
 
 def verify_design(d: Design, pattern, out_dir: str | None = None, written: list | None = None) -> dict:

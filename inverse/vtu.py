@@ -3,12 +3,9 @@ curvature, and deployed.vtu, the registered simulated deployment with its distan
 target (mm, 1/mm, % of the bounding-box diagonal)."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
-if TYPE_CHECKING:
-    from inverse.design import Design
+from inverse.record import Design
 
 
 def write_flat_vtu(d: Design, path: str):

@@ -1,0 +1,40 @@
+"""The record of a design: everything the inverse pipeline computed for one target (mm),
+read by the writers (pattern, report, VTU, pictures) and the verification."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Design:
+    """Everything the pipeline computed (mm). V, F: scaled and refined target; V_input, F_input:
+    the scaled input before refinement; curvature, field: geometry.curvature / fields records;
+    flat: geometry.flattening.FlatResult; kappa1 (m,): signed target normal curvature along the
+    ribbon direction (> 0: front); outline (k, 2): flattened boundary polygon; ribbons:
+    geometry.elements.Ribbon list with thickness_mm and side; thickness_info: clamp counts per
+    side; times: seconds per stage."""
+    V: np.ndarray
+    F: np.ndarray
+    V_input: np.ndarray
+    F_input: np.ndarray
+    curvature: object
+    field: object
+    flat: object
+    kappa1: np.ndarray
+    outline: np.ndarray
+    ribbons: list
+    stretch: float
+    bounds: tuple
+    refine_levels: int
+    layout_levels: int = 0
+    lam: float = 0.0
+    stop: str = "mean"
+    thickness_info: dict = field(default_factory=dict)
+    law_source: str = ""
+    law_plastic_mpa: float | None = None     # the plastic modulus the law holds for (MPa), if it says
+    times: dict = field(default_factory=dict)
+    cpu_times: dict = field(default_factory=dict)
+    coarse_iterations: int = 0
+    separation: dict = field(default_factory=dict)
