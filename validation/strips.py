@@ -17,12 +17,11 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 import os
 
 import numpy as np
 
-from shellfem.errors import SelfshapeError
+from shellfem.errors import SelfshapeError, check_number
 
 MEASURED = "curvature_per_mm"
 REST = "rest_curvature_per_mm"
@@ -38,17 +37,9 @@ FABRIC_POISSON = 0.3
 
 
 def _number(text, where, col, positive=False, at_least=None):
-    try:
-        v = float(text)
-    except (TypeError, ValueError):
-        raise SelfshapeError(f"{where}, column {col}: not a number: {text!r}") from None
-    if not math.isfinite(v):
-        raise SelfshapeError(f"{where}, column {col}: not finite: {text!r}")
-    if positive and v <= 0:
-        raise SelfshapeError(f"{where}, column {col}: must be > 0, got {v:g}")
-    if at_least is not None and v < at_least:
-        raise SelfshapeError(f"{where}, column {col}: must be >= {at_least:g}, got {v:g}")
-    return v
+    """The cell ``text`` of column ``col`` as a finite float (> 0 if ``positive``, >= ``at_least``),
+    else a SelfshapeError naming the row and the column."""
+    return check_number(f"{where}, column {col}:", text, lo=0.0 if positive else at_least, lo_open=positive)
 
 
 def read_strips(path, require_measured=True) -> dict:
