@@ -1,4 +1,4 @@
-"""Fabric calibration: readers, the orthotropic model, and recovery of known parameters
+"""Fabric calibration (validation.fabric and its readers, curves and law modules): readers, the orthotropic model, and recovery of known parameters
 from synthetic tensile / shear / cantilever tests. The shipped data are checked for
 sanity only (finite, positive, SE > 0), never for their particular numbers."""
 import json
@@ -9,7 +9,11 @@ import pytest
 
 from shellfem.errors import SelfshapeError
 from validation import elastica
+from shellfem.materials import orthotropic as ortho
 from validation import fabric as F
+from validation import fabric_curves as FC
+from validation import fabric_files as FF
+from validation import fabric_law as FL
 
 DATA = os.path.join(os.path.dirname(__file__), "..", "validation", "data", "fabric")
 META = {"fabric_thickness_mm": 0.8, "tensile_width_mm": 20.0, "tensile_gauge_length_mm": 60.0,
@@ -33,7 +37,7 @@ def _tensile_rows(stress_of_e, max_pct, rng, n=100, cycles=3, noise_n=0.003, fir
     rows, t = [], 0.0
     for c in range(1, cycles + 1):
         for branch, d in (("load", d_up), ("unload", d_up[::-1])):
-            e = F.green_strain(d, L)
+            e = FC.green_strain(d, L)
             S = stress_of_e(e)
             if branch == "load":
                 S = S + 0.3 * S.max() * np.sin(np.pi * d / d.max()) ** 0.7
@@ -52,14 +56,14 @@ def _synthetic_folder(tmp_path, rng, k_b=None):
     (folder / "meta.json").write_text(json.dumps(META))
     for pct in (45, 70):
         for deg in (0, 30, 45, 60, 90):
-            rows = _tensile_rows(lambda e: F.uniaxial_response(e, deg, TRUE, NU)[0], pct, rng, first_cycle_scale=0.9)
-            _write_csv(folder / f"tensile_{deg:02d}deg_{pct}pct.csv", list(F.TENSILE_COLUMNS), rows)
+            rows = _tensile_rows(lambda e: FL.uniaxial_response(e, deg, TRUE, NU)[0], pct, rng, first_cycle_scale=0.9)
+            _write_csv(folder / f"tensile_{deg:02d}deg_{pct}pct.csv", list(FF.TENSILE_COLUMNS), rows)
     side, h = META["shear_sample_side_mm"], META["fabric_thickness_mm"]
     for deg, cubic in ((0, 0.06), (90, 0.02)):  # orientation-dependent stiffening at large shear
         u = np.linspace(0, 14, 60)
         g = u / side
         load = (TRUE["a3"] * g + cubic * g ** 3) * side * h + 0.003 * rng.standard_normal(u.size)
-        _write_csv(folder / f"shear_{deg:02d}deg.csv", list(F.SHEAR_COLUMNS), zip(u, load))
+        _write_csv(folder / f"shear_{deg:02d}deg.csv", list(FF.SHEAR_COLUMNS), zip(u, load))
     k_b = k_b or {"0/front": 0.015, "0/back": 0.016, "90/front": 0.011, "90/back": 0.03}
     rows = []
     for key, k in k_b.items():
@@ -67,7 +71,7 @@ def _synthetic_folder(tmp_path, rng, k_b=None):
         for L in (20, 30, 40, 50, 60, 80, 100):
             hw = elastica.master_curve(1.9e-6 * L ** 3 / k) * (1 + 0.02 * rng.standard_normal())
             rows.append((o, face, L, "1.9e-06", f"{hw:.6f}"))
-    _write_csv(folder / "cantilever.csv", list(F.CANTILEVER_COLUMNS), rows)
+    _write_csv(folder / "cantilever.csv", list(FF.CANTILEVER_COLUMNS), rows)
     return str(folder), k_b
 
 
@@ -77,9 +81,9 @@ def test_stiffness_from_uniaxial_inverts_eq46():
     a1, a2, nu = 0.024161, 0.09089, 0.3
     A1 = (a1 - np.sqrt(a1 * a2) * nu ** 2) / (1 - nu ** 2)
     A2 = (a2 - np.sqrt(a1 * a2) * nu ** 2) / (1 - nu ** 2)
-    assert F.stiffness_from_uniaxial(A1, A2, nu) == pytest.approx((a1, a2), rel=1e-12)
+    assert FC.stiffness_from_uniaxial(A1, A2, nu) == pytest.approx((a1, a2), rel=1e-12)
     with pytest.raises(SelfshapeError):
-        F.stiffness_from_uniaxial(-0.01, 0.05, 0.3)
+        FC.stiffness_from_uniaxial(-0.01, 0.05, 0.3)
 
 
 def test_stress_is_the_gradient_of_the_energy_and_tangent_its_hessian():
@@ -98,12 +102,12 @@ def test_stress_is_the_gradient_of_the_energy_and_tangent_its_hessian():
         return out
 
     eps = np.array([0.6, -0.2, 0.3])
-    sig, K = F.orthotropic_stress(eps[None], p, NU)
+    sig, K = ortho.orthotropic_stress(eps[None], p, NU)
     h = 1e-6
     num = [(psi(eps + h * np.eye(3)[k]) - psi(eps - h * np.eye(3)[k])) / (2 * h) for k in range(3)]
     assert sig[0] == pytest.approx(num, rel=1e-6, abs=1e-10)
-    numK = [(F.orthotropic_stress((eps + h * np.eye(3)[k])[None], p, NU)[0][0]
-             - F.orthotropic_stress((eps - h * np.eye(3)[k])[None], p, NU)[0][0]) / (2 * h) for k in range(3)]
+    numK = [(ortho.orthotropic_stress((eps + h * np.eye(3)[k])[None], p, NU)[0][0]
+             - ortho.orthotropic_stress((eps - h * np.eye(3)[k])[None], p, NU)[0][0]) / (2 * h) for k in range(3)]
     assert K[0] == pytest.approx(np.array(numK).T, rel=1e-6, abs=1e-9)
 
 
@@ -111,11 +115,11 @@ def test_uniaxial_response_isotropic_is_angle_independent_and_exact():
     E_, nu = 0.1, 0.3
     iso = {"a1": E_, "a2": E_, "a3": E_ / (2 * (1 + nu)), "b1": 1e-12, "b2": 1e-12, "g1": 5.0, "g2": 5.0}
     e = np.linspace(0.0, 0.5, 11)
-    ref, free0 = F.uniaxial_response(e, 0.0, iso, nu)
+    ref, free0 = FL.uniaxial_response(e, 0.0, iso, nu)
     assert ref == pytest.approx(E_ * e, rel=1e-8, abs=1e-14)  # plane-stress uniaxial: sigma = E e
     assert free0[:, 0] == pytest.approx(-nu * e, rel=1e-8, abs=1e-14)
     for deg in (15.0, 45.0, 72.0):
-        s, free = F.uniaxial_response(e, deg, iso, nu)
+        s, free = FL.uniaxial_response(e, deg, iso, nu)
         assert s == pytest.approx(ref, rel=1e-8, abs=1e-14)
         assert free[:, 1] == pytest.approx(0.0, abs=1e-10)
 
@@ -125,7 +129,7 @@ def test_uniaxial_small_strain_slope_at_0_deg():
     k11 = p["a1"] / (1 - NU ** 2) + p["b1"] / p["g1"]
     k22 = p["a2"] / (1 - NU ** 2) + p["b2"] / p["g2"]
     k12 = np.sqrt(p["a1"] * p["a2"]) * NU / (1 - NU ** 2)
-    s, _ = F.uniaxial_response([1e-7], 0.0, p, NU)
+    s, _ = FL.uniaxial_response([1e-7], 0.0, p, NU)
     assert s[0] / 1e-7 == pytest.approx(k11 - k12 ** 2 / k22, rel=1e-5)
 
 
@@ -141,14 +145,14 @@ def test_barrier_curve_fit_recovers_parameters_with_honest_errors():
     rng = np.random.default_rng(3)
     e = np.linspace(0, 0.945, 240)
     A, b, g = 0.024, 0.03, 0.9626
-    S = F.barrier_curve(e, A, b, g) + 2e-4 * rng.standard_normal(e.size)
-    fit = F.fit_barrier_curve(e, S)
+    S = FC.barrier_curve(e, A, b, g) + 2e-4 * rng.standard_normal(e.size)
+    fit = FC.fit_barrier_curve(e, S)
     assert fit["A"] == pytest.approx(A, rel=0.02)
     assert fit["b"] == pytest.approx(b, rel=0.02)
     assert fit["g"] == pytest.approx(g, rel=1e-3)
     for v, true, se in zip((fit["A"], fit["b"], fit["g"]), (A, b, g), fit["se"]):
         assert 0 < se and abs(v - true) < 4 * se
-    tan, se = F.release_tangent(fit)
+    tan, se = FC.release_tangent(fit)
     assert tan == pytest.approx(A + b / (g - 0.945), rel=0.03) and se > 0
 
 
@@ -156,7 +160,7 @@ def test_shear_fit_recovers_initial_slope_under_cubic_stiffening():
     rng = np.random.default_rng(5)
     g = np.linspace(0, 0.35, 60)
     tau = 0.0634 * g + 0.06 * g ** 3 + 1e-4 * rng.standard_normal(g.size)
-    fit = F.fit_shear_modulus(g, tau)
+    fit = FC.fit_shear_modulus(g, tau)
     assert fit["odd_cubic"]["slope"] == pytest.approx(0.0634, rel=0.02)
     assert abs(fit["odd_cubic"]["slope"] - 0.0634) < 4 * fit["odd_cubic"]["se"]
     assert fit["linear"]["slope"] > 0.0634 * 1.04  # the straight line over the range is biased up
@@ -164,7 +168,7 @@ def test_shear_fit_recovers_initial_slope_under_cubic_stiffening():
 
 def test_stabilised_cycles_drop_preconditioning_and_drifting_cycles():
     rng = np.random.default_rng(11)
-    stress = lambda e: F.barrier_curve(e, 0.03, 0.02, 1.0)  # noqa: E731
+    stress = lambda e: FC.barrier_curve(e, 0.03, 0.02, 1.0)  # noqa: E731
     rows = _tensile_rows(stress, 70, rng, cycles=4)
     # make cycle 2 unloading 5 % stiffer than the (stable) cycles 3 and 4
     L, w, h = 60.0, 20.0, 0.8
@@ -175,10 +179,10 @@ def test_stabilised_cycles_drop_preconditioning_and_drifting_cycles():
         fixed.append(r)
     t = {"cycle": np.array([r[1] for r in fixed]), "branch": np.array([r[2] for r in fixed]),
          "extension_mm": np.array([float(r[3]) for r in fixed]), "load_N": np.array([float(r[4]) for r in fixed])}
-    cycles, why = F.stabilised_cycles(t, META)
+    cycles, why = FC.stabilised_cycles(t, META)
     assert cycles == [3, 4] and "preconditioning" in why
     t1 = {k: v[t["cycle"] == 1] for k, v in t.items()}
-    assert F.stabilised_cycles(t1, META)[0] == [1]
+    assert FC.stabilised_cycles(t1, META)[0] == [1]
 
 
 def test_calibration_recovers_known_parameters(tmp_path):
@@ -202,9 +206,9 @@ def test_calibration_recovers_known_parameters(tmp_path):
     # release modulus: orientation mean of the true model's slope at release
     L = META["tensile_gauge_length_mm"]
     for pct in ("45", "70"):
-        e_rel = F.green_strain(L * float(pct) / 100, L)
+        e_rel = FC.green_strain(L * float(pct) / 100, L)
         h = 1e-6
-        slopes = [(F.uniaxial_response([e_rel], d, TRUE, NU)[0][0] - F.uniaxial_response([e_rel - h], d, TRUE, NU)[0][0]) / h
+        slopes = [(FL.uniaxial_response([e_rel], d, TRUE, NU)[0][0] - FL.uniaxial_response([e_rel - h], d, TRUE, NU)[0][0]) / h
                   for d in (0.0, 30.0, 45.0, 60.0, 90.0)]
         assert res["release_modulus_mpa"][pct][0] == pytest.approx(np.mean(slopes), rel=0.05), pct
     assert all(c["cycles"] == [2, 3] for c in res["cycles_used"].values())
