@@ -25,8 +25,6 @@ prints ONE JSON line, writes OUT/convergence.json and FIGURES/convergence.png.
 """
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import time
 
@@ -36,6 +34,8 @@ from shellfem.materials import Fabric, Plastic
 from validation.measures import observed_order, rms_to_reference
 from validation.references import narrow_curvature
 from validation.shell_cases import gradient_case, strip_case
+
+from study_cli import study_arguments, write_result
 
 SIZES = (1.0, 0.7, 0.5, 0.35)          # mm, strip study
 SIZES_GRADIENT = (1.0, 0.7, 0.5, 0.35)  # mm, gradient study (last = reference)
@@ -109,19 +109,12 @@ def plot(out: dict, path: str) -> str:
 def main(argv=None) -> dict:
     from shellfem.memory import keep_freed_memory
     keep_freed_memory()
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="3 coarser meshes per study")
-    ap.add_argument("--out", default="out/validation")
-    ap.add_argument("--figures", default="docs/validation")
-    a = ap.parse_args(argv)
+    a = study_arguments(__doc__, "3 coarser meshes per study", argv)
     t0 = time.perf_counter()
     out = run(a.quick)
     out["figure"] = plot(out, os.path.join(a.figures, "convergence.png"))
     out["seconds"] = round(time.perf_counter() - t0, 1)
-    os.makedirs(a.out, exist_ok=True)
-    with open(os.path.join(a.out, "convergence.json"), "w") as fh:
-        json.dump(out, fh, indent=2)
-    print(json.dumps(out))
+    write_result(a.out, "convergence", out, out)
     return out
 
 

@@ -19,8 +19,6 @@ FIGURES/bilayer_roll.png.
 """
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import time
 
@@ -28,6 +26,8 @@ import numpy as np
 
 from validation import shell_cases as sc
 from validation.references import disk_ritz_curvatures, disk_ritz_threshold
+
+from study_cli import study_arguments, write_result
 
 DISK_SWEEP = (1.0, 2.0, 3.0, 4.0, 4.5, 5.0, 5.25, 5.5, 5.75, 6.0, 6.5, 8.0, 10.0, 13.0, 16.0)
 QUICK_DISK_SWEEP = (2.0, 4.0, 5.0, 6.0, 8.0, 16.0)
@@ -82,11 +82,7 @@ def plot_roll(d: dict, path: str) -> str:
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="shorter sweeps")
-    ap.add_argument("--out", default="out/validation")
-    ap.add_argument("--figures", default="docs/validation")
-    a = ap.parse_args(argv)
+    a = study_arguments(__doc__, "shorter sweeps", argv)
     t0 = time.perf_counter()
     disk = disk_study(QUICK_DISK_SWEEP if a.quick else DISK_SWEEP)
     roll = roll_study(QUICK_ROLL_LENGTHS if a.quick else ROLL_LENGTHS)
@@ -103,10 +99,7 @@ def main(argv=None) -> dict:
                     "k_interior": [r["k_max"] for r in roll["runs"]],
                     "deficit": [round(r["deficit"], 4) for r in roll["runs"]]},
            "figures": figs, "seconds": round(time.perf_counter() - t0, 1)}
-    os.makedirs(a.out, exist_ok=True)
-    with open(os.path.join(a.out, "natural_curvature.json"), "w") as fh:
-        json.dump({**out, "disk_runs": disk["runs"], "roll_runs": roll["runs"]}, fh, indent=2)
-    print(json.dumps(out))
+    write_result(a.out, "natural_curvature", {**out, "disk_runs": disk["runs"], "roll_runs": roll["runs"]}, out)
     return out
 
 

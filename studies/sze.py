@@ -17,8 +17,6 @@ sze_end_moment.png, sze_slit_plate.png.
 """
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import time
 
@@ -27,6 +25,8 @@ import numpy as np
 from validation import shell_cases as sc
 from validation.references import SZE_B, SZE_E, SZE_END_MOMENT, SZE_END_SHEAR, SZE_H, SZE_SLIT, \
     elastica_end_moment, elastica_end_shear
+
+from study_cli import study_arguments, write_result
 
 SLIT_MESHES = ((4, 32), (6, 48), (8, 64), (10, 80))
 QUICK_SLIT_MESHES = ((4, 32), (6, 48))
@@ -126,11 +126,7 @@ def plot_slit(out: dict, path: str) -> str:
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="two slit-plate meshes only")
-    ap.add_argument("--out", default="out/validation")
-    ap.add_argument("--figures", default="docs/validation")
-    a = ap.parse_args(argv)
+    a = study_arguments(__doc__, "two slit-plate meshes only", argv)
     t0 = time.perf_counter()
     shear, moment = end_shear_study(), end_moment_study()
     slit = slit_plate_study(QUICK_SLIT_MESHES if a.quick else SLIT_MESHES)
@@ -148,10 +144,7 @@ def main(argv=None) -> dict:
            "slit_plate": {k: slit[k] for k in ("published", "meshes", "richardson_first_order")},
            "figures": figs, "seconds": round(time.perf_counter() - t0, 1)}
     out["end_shear"]["tip_final"] = [shear["tip_u"][-1], shear["tip_w"][-1]]
-    os.makedirs(a.out, exist_ok=True)
-    with open(os.path.join(a.out, "sze.json"), "w") as fh:
-        json.dump({**out, "slit_plate_curves": slit["curves"]}, fh, indent=2)
-    print(json.dumps(out))
+    write_result(a.out, "sze", {**out, "slit_plate_curves": slit["curves"]}, out)
     return out
 
 
