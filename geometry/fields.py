@@ -25,6 +25,22 @@ mass matrix; the guidance has magnitude ||k1| - |k2|| (not |k1 - k2|) so it vani
 the maximum-|k| direction is ambiguous (umbilics and symmetric saddles). If the guidance is
 zero everywhere (plane, exact sphere) the smoothest field (smallest eigenvector) is returned.
 Deterministic: no random start vectors.
+
+Definiteness (every target of the class). The system is positive definite only for
+lambda < lambda_min(A, M). On a doubly curved target lambda_min > 0 (the holonomy forbids a
+parallel field) and the seed's lambda = 0 is solved as it is, as lambda - 1e-10 s
+(s = mean A_ii / mean M, 1/mm^2). On a developable target (cylinder, cone, and targets that
+are so in part) a parallel line field exists and lambda_min = 0; a mesh whose boundary
+triangles are obtuse has negative cotangent weights there, which with the holonomy of the
+discrete transport make A indefinite (lambda_min < 0, measured -1e-4 to -1e-8 1/mm^2 on
+cylinder vaults), so lambda = 0 lies above the spectrum: the factorisation failed (large
+meshes, CHOLMOD's LL^T) or the LDL^T of small meshes solved the indefinite system and turned
+the field by 90 degrees. Then (and only then: a positive definite system is solved as before)
+the negative weights are set to 0, which makes A positive semi-definite by construction
+(``LineField.clamped``), and lambda is lowered to just below lambda_min where it is not below
+it already (`geometry.meshops.definite_factor`; ``LineField.sigma`` is the value solved
+with): the limit lambda -> lambda_min of the method, the smoothest field with its phase set
+by the guidance, on a cylinder the circumferential direction everywhere.
 """
 from __future__ import annotations
 
@@ -34,8 +50,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from geometry.curvature import Curvature, principal_curvature
-from geometry.meshops import (cotan_weights, face_frames, face_normals, factorize, lumped_mass, rotation_between,
-                              smallest_eigenvector, tangent_frames, unique_edges, vertex_normals)
+from geometry.meshops import (NotPositiveDefiniteError, cotan_weights, definite_factor, face_areas, face_frames,
+                              face_normals, factorize, lumped_mass, rotation_between, smallest_eigenvector,
+                              tangent_frames, unique_edges, vertex_normals)
 from shellfem.errors import SelfshapeError
 
 
@@ -48,13 +65,19 @@ def transport_angles(E: np.ndarray, VN: np.ndarray, e1: np.ndarray, e2: np.ndarr
     return np.arctan2(np.einsum("ij,ij->i", t, e2[j]), np.einsum("ij,ij->i", t, e1[j]))
 
 
-def connection_laplacian(V: np.ndarray, F: np.ndarray, n_sym: int = 2, VN=None, frames=None):
-    """Hermitian connection Laplacian A (n, n) for n_sym-direction fields (cotangent weights)."""
+def connection_laplacian(V: np.ndarray, F: np.ndarray, n_sym: int = 2, VN=None, frames=None,
+                         clamp_negative: bool = False):
+    """Hermitian connection Laplacian A (n, n) for n_sym-direction fields (cotangent weights).
+
+    clamp_negative: set negative edge weights (obtuse opposite angles) to 0, which makes A
+    positive semi-definite whatever the transport (a sum of w_ij |psi_j - r_ij psi_i|^2 >= 0)."""
     if VN is None:
         VN = vertex_normals(V, F)
     e1, e2 = tangent_frames(VN) if frames is None else frames
     E, he2e, _ = unique_edges(F)
     w = np.bincount(he2e, weights=cotan_weights(V, F), minlength=len(E))
+    if clamp_negative:
+        w = np.maximum(w, 0.0)
     r = np.exp(1j * n_sym * transport_angles(E, VN, e1, e2))
     i, j = E[:, 0], E[:, 1]
     nv = len(V)
@@ -65,6 +88,30 @@ def connection_laplacian(V: np.ndarray, F: np.ndarray, n_sym: int = 2, VN=None, 
     return sp.csc_matrix((vals, (rows, cols)), shape=(nv, nv))
 
 
+def _field_mesh(V, F):
+    """V (n, 3) float and F (m, 3) int64 arrays for the field solves; SelfshapeError (one line)
+    where the operators would be undefined: non-finite coordinates, indices outside 0..n-1,
+    zero-area faces (infinite cotangent weights), vertices in no face (zero mass)."""
+    V = np.ascontiguousarray(V, dtype=float)
+    F = np.ascontiguousarray(F, dtype=np.int64)
+    if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
+        raise SelfshapeError(f"field: need vertices (n, 3) and triangles (m, 3), got {V.shape} and {F.shape}")
+    if not np.isfinite(V).all():
+        raise SelfshapeError(f"field: vertex {int(np.flatnonzero(~np.isfinite(V).all(axis=1))[0])} "
+                             f"has a non-finite coordinate")
+    if F.min() < 0 or F.max() >= len(V):
+        raise SelfshapeError(f"field: a face references a vertex index outside 0..{len(V) - 1}")
+    area = face_areas(V, F)
+    if not (area > 0).all():
+        raise SelfshapeError(f"field: face {int(np.flatnonzero(~(area > 0))[0])} has zero area, "
+                             f"{int(np.sum(~(area > 0)))} such faces")
+    used = np.zeros(len(V), dtype=bool)
+    used[F.ravel()] = True
+    if not used.all():
+        raise SelfshapeError(f"field: vertex {int(np.flatnonzero(~used)[0])} belongs to no face")
+    return V, F
+
+
 # ----------------------------------------------------------------------------- fields
 @dataclass
 class LineField:
@@ -73,6 +120,9 @@ class LineField:
     vertex_psi: np.ndarray     # (n,) complex, psi = |psi| exp(2 i phi) in the vertex frames
     t: float                   # the paper's alignment parameter t = 1/(1+||psi||_M) (nan if smoothest)
     smoothest: bool            # True when the guidance was zero and the smoothest field was used
+    sigma: float = float("nan")  # 1/mm^2, the factor's A - sigma M: lam - 1e-10 s (smoothest: -1e-8 s),
+    #                              or just below lambda_min(A, M) when that is lower (module doc)
+    clamped: bool = False      # True when A - sigma M was indefinite and A's negative weights were set to 0
 
 
 def curvature_guidance(curv: Curvature, frames, n_sym: int = 2) -> np.ndarray:
@@ -83,12 +133,31 @@ def curvature_guidance(curv: Curvature, frames, n_sym: int = 2) -> np.ndarray:
     return mag * np.exp(1j * n_sym * phi)
 
 
-def _smoothest_psi(A, M):
+def _definite_system(V, F, n_sym, VN, frames, A, M, sigma, margin):
+    """A positive definite factor of A - s M for the alignment and smoothest-field solves.
+
+    A as built and s = sigma when A - sigma M is positive definite; otherwise A with its
+    negative weights set to 0 and s = min(sigma, lambda_min - margin) (see the module doc).
+    Returns (solve, s, the A factorised, clamped)."""
+    try:
+        return factorize(A + sp.diags(-sigma * M), check_definite=True), float(sigma), A, False
+    except NotPositiveDefiniteError:
+        pass
+    A_clamped = connection_laplacian(V, F, n_sym, VN, frames, clamp_negative=True)
+    solve, s = definite_factor(A_clamped, M, sigma, margin)
+    return solve, s, A_clamped, bool((A_clamped != A).nnz)
+
+
+def _smoothest_field(V, F, n_sym, VN, frames, A, M) -> LineField:
     """The smoothest field: smallest generalised eigenvector of (A, diag(M)) by single-vector
-    inverse iteration from the deterministic all-ones start, up to 200 iterations, until the
-    vector changes by less than 1e-10 up to a global phase."""
-    return smallest_eigenvector(A, M, np.ones(A.shape[0], dtype=complex), rtol=1e-10, max_iter=200,
-                                stop="vector")[0]
+    inverse iteration (a factor of A + 1e-8 s M, s = mean A_ii / mean M, or the fallback of
+    `_definite_system`) from the deterministic all-ones start, up to 200 iterations, until
+    the vector changes by less than 1e-10 up to a global phase."""
+    scale = float(np.abs(A.diagonal()).mean()) / float(M.mean())
+    solve, sigma, A, clamped = _definite_system(V, F, n_sym, VN, frames, A, M, -(1e-8 * scale), 1e-8 * scale)
+    psi = smallest_eigenvector(A, M, np.ones(A.shape[0], dtype=complex), rtol=1e-10, max_iter=200,
+                               stop="vector", sigma=sigma, solve=solve)[0]
+    return LineField(vertex_to_face(V, F, psi, VN, frames, n_sym), psi, float("nan"), True, sigma, clamped)
 
 
 def vertex_to_face(V, F, psi, VN, frames, n_sym: int = 2) -> np.ndarray:
@@ -112,10 +181,14 @@ def curvature_line_field(V: np.ndarray, F: np.ndarray, lam: float = 0.0,
     lam: the seed's lambda (1/mm^2 for meshes in mm), <= 0; 0 is the default smoothing,
     lam < 0 smooths less. Returns per-face unit tangent vectors (m, 3) in a LineField.
     """
-    if not (np.isfinite(lam) and lam <= 0):
-        raise SelfshapeError(f"field lambda: must be <= 0 (0 = default smoothing, < 0 = less), got {lam}")
-    V = np.ascontiguousarray(V, dtype=float)
-    F = np.ascontiguousarray(F, dtype=np.int64)
+    try:
+        ok = bool(np.isfinite(float(lam)) and float(lam) <= 0)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise SelfshapeError(f"field lambda: must be <= 0 (0 = default smoothing, < 0 = less), got {lam!r}")
+    lam = float(lam)
+    V, F = _field_mesh(V, F)
     curv = principal_curvature(V, F) if curvature is None else curvature
     VN = curv.vertex_normals
     frames = tangent_frames(VN)
@@ -125,23 +198,21 @@ def curvature_line_field(V: np.ndarray, F: np.ndarray, lam: float = 0.0,
     qnorm = np.sqrt(np.vdot(q, M * q).real)
     kscale = float(np.sqrt(np.sum(M * (curv.vertex_k1 ** 2 + curv.vertex_k2 ** 2)) / M.sum()))
     if not qnorm > 1e-9 * max(kscale, 1e-300) * np.sqrt(M.sum()):
-        psi = _smoothest_psi(A, M)
-        return LineField(vertex_to_face(V, F, psi, VN, frames, n_sym), psi, float("nan"), True)
+        return _smoothest_field(V, F, n_sym, VN, frames, A, M)
     qhat = q / qnorm
     shift = 1e-10 * float(np.abs(A.diagonal()).mean()) / float(M.mean())  # keeps A PD on flat disks
-    psi = factorize(A + sp.diags((shift - lam) * M))(M * qhat)
+    solve, sigma, _, clamped = _definite_system(V, F, n_sym, VN, frames, A, M, lam - shift, shift)
+    psi = solve(M * qhat)
     t = 1.0 / (1.0 + np.sqrt(np.vdot(psi, M * psi).real))
-    return LineField(vertex_to_face(V, F, psi, VN, frames, n_sym), psi, float(t), False)
+    return LineField(vertex_to_face(V, F, psi, VN, frames, n_sym), psi, float(t), False, sigma, clamped)
 
 
 def smoothest_line_field(V: np.ndarray, F: np.ndarray, n_sym: int = 2) -> LineField:
     """The smoothest unit line field (smallest eigenvector of the connection Laplacian)."""
-    V = np.ascontiguousarray(V, dtype=float)
-    F = np.ascontiguousarray(F, dtype=np.int64)
+    V, F = _field_mesh(V, F)
     VN = vertex_normals(V, F)
     frames = tangent_frames(VN)
-    psi = _smoothest_psi(connection_laplacian(V, F, n_sym, VN, frames), lumped_mass(V, F))
-    return LineField(vertex_to_face(V, F, psi, VN, frames, n_sym), psi, float("nan"), True)
+    return _smoothest_field(V, F, n_sym, VN, frames, connection_laplacian(V, F, n_sym, VN, frames), lumped_mass(V, F))
 
 
 def line_field_roughness(V: np.ndarray, F: np.ndarray, D: np.ndarray) -> np.ndarray:

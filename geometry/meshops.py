@@ -194,12 +194,16 @@ def remove_unreferenced(V: np.ndarray, F: np.ndarray):
 
 
 # ----------------------------------------------------------------------------- sparse solves
-def factorize(A: sp.spmatrix, ordering: str = "default"):
+def factorize(A: sp.spmatrix, ordering: str = "default", check_definite: bool = False):
     """Factor a sparse Hermitian positive definite matrix once; returns solve(b).
 
     CHOLMOD (scikit-sparse) with fill-reducing ``ordering`` ("default": CHOLMOD's choice,
     "amd", ...) when installed, else SuperLU. Raises NotPositiveDefiniteError when CHOLMOD
-    finds the matrix is not positive definite.
+    finds the matrix is not positive definite. CHOLMOD stops at a non-positive pivot only in
+    its supernodal LL^T; on small matrices it picks a simplicial LDL^T that factors indefinite
+    matrices too. ``check_definite`` makes the answer the same at every size: it also refuses
+    an LDL^T with a non-positive D (and, with SuperLU, factors with diagonal pivots only, so
+    that the pivots are D, and refuses a non-positive or zero one).
     """
     A = sp.csc_matrix(A)
     try:
@@ -207,34 +211,57 @@ def factorize(A: sp.spmatrix, ordering: str = "default"):
     except ImportError:  # pragma: no cover - optional dependency
         from scipy.sparse.linalg import splu
 
-        lu = splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+        if not check_definite:
+            lu = splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+            return lu.solve
+        try:
+            lu = splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        except RuntimeError as err:                    # an exactly zero pivot
+            raise NotPositiveDefiniteError("matrix is not positive definite") from err
+        d = lu.U.diagonal().real
+        if not (np.array_equal(lu.perm_r, lu.perm_c) and np.all(d > 0)):
+            raise NotPositiveDefiniteError("matrix is not positive definite")
         return lu.solve
     try:
-        return cholesky(A, ordering_method=ordering)
+        factor = cholesky(A, ordering_method=ordering)
     except CholmodNotPositiveDefiniteError as err:
         raise NotPositiveDefiniteError("matrix is not positive definite") from err
+    if check_definite and not np.all(factor.D().real > 0):   # NaN pivots fail too
+        raise NotPositiveDefiniteError("matrix is not positive definite")
+    return factor
 
 
 def smallest_eigenvector(A: sp.spmatrix, mass: np.ndarray, start: np.ndarray, *, rtol: float,
-                         max_iter: int, stop: str = "eigenvalue", ordering: str = "default"):
+                         max_iter: int, stop: str = "eigenvalue", ordering: str = "default",
+                         sigma: float | None = None, solve=None):
     """Smallest eigenpair of A x = lambda M x, M = diag(mass), by inverse power iteration.
 
-    A: sparse Hermitian positive semi-definite (n, n), real or complex; mass (n,) > 0.
-    One sparse Cholesky factor of A + 1e-8 s M (s = mean |A_ii| / mean M_i keeps a singular A
-    factorable without moving its spectrum visibly) serves every iteration.
+    A: sparse Hermitian (n, n), real or complex; mass (n,) > 0.
+    sigma None: A is positive semi-definite; one sparse Cholesky factor of A + 1e-8 s M
+    (s = mean |A_ii| / mean M_i keeps a singular A factorable without moving its spectrum
+    visibly) serves every iteration, and the eigenvalue is reported >= 0. sigma a number
+    (units of lambda): A may be indefinite, sigma lies strictly below its smallest
+    eigenvalue (see `definite_factor`) and the factor is of A - sigma M (``solve``: that
+    factor when the caller has it already, else factorised with a definiteness check).
     start: (n,) one start vector, or (n, k) a start block: with k > 1 each iteration ends
     with a Rayleigh-Ritz step on the block (subspace iteration), which converges at
-    lambda_1 / lambda_(k+1) where single-vector iteration crawls at lambda_1 / lambda_2 ~ 1
-    for clustered low modes.
+    (lambda_1 - sigma) / (lambda_(k+1) - sigma) where single-vector iteration crawls at
+    (lambda_1 - sigma) / (lambda_2 - sigma) ~ 1 for clustered low modes.
     stop: "eigenvalue" stops when the smallest Ritz value changes by less than
-    rtol * lambda + 1e-12 s; "vector" when 1 - |<x_old, M x_new>| < rtol (the M-unit vector
+    rtol * |lambda| + 1e-12 s; "vector" when 1 - |<x_old, M x_new>| < rtol (the M-unit vector
     no longer changes up to a global phase).
     Returns (x (n,) M-normalised, lambda, iterations used).
     """
     if stop not in ("eigenvalue", "vector"):
         raise ValueError(f"stop must be 'eigenvalue' or 'vector', got {stop!r}")
     scale = float(np.abs(A.diagonal()).mean()) / float(mass.mean())
-    solve = factorize(A + sp.diags(1e-8 * scale * mass), ordering)
+    if sigma is None:
+        solve = factorize(A + sp.diags(1e-8 * scale * mass), ordering)
+        floor = 0.0
+    else:
+        if solve is None:
+            solve = factorize(A + sp.diags(-sigma * mass), ordering, check_definite=True)
+        floor = -np.inf
     X = np.asarray(start)
     X = X[:, None] if X.ndim == 1 else X
     if stop == "vector":                               # the first comparison needs an M-unit start
@@ -254,11 +281,11 @@ def smallest_eigenvector(A: sp.spmatrix, mass: np.ndarray, start: np.ndarray, *,
                 YH = Y.conj().T if np.iscomplexobj(Y) else Y.T
                 ritz, Q = np.linalg.eigh(YH @ (A @ Y))
             Y = Y @ Q
-            lam = max(float(ritz[0]), 0.0)
+            lam = max(float(ritz[0]), floor)
         else:
-            lam = max(float(np.vdot(Y[:, 0], A @ Y[:, 0]).real), 0.0)
+            lam = max(float(np.vdot(Y[:, 0], A @ Y[:, 0]).real), floor)
         if stop == "eigenvalue":
-            done = abs(lam_prev - lam) <= rtol * lam + 1e-12 * scale
+            done = abs(lam_prev - lam) <= rtol * abs(lam) + 1e-12 * scale
         else:
             done = 1.0 - abs(np.vdot(X[:, 0], mass * Y[:, 0])) < rtol
         X = Y
@@ -269,6 +296,62 @@ def smallest_eigenvector(A: sp.spmatrix, mass: np.ndarray, start: np.ndarray, *,
     if block:                                          # the Ritz vector is M-unit up to round-off
         x = x / np.sqrt(np.vdot(x, mass * x).real)
     return x, lam, it
+
+
+def definite_factor(A: sp.spmatrix, mass: np.ndarray, sigma: float, margin: float, ordering: str = "default"):
+    """A positive definite factor of A - s M (M = diag(mass)) with s as close to ``sigma`` as
+    the spectrum allows; returns (solve, s).
+
+    s = sigma when A - sigma M is positive definite (lambda_min(A, M) > sigma), else
+    s = lambda_min - ``margin`` (margin > 0, units of lambda): strictly below the smallest
+    eigenvalue, so that the smallest eigenvector dominates the solution of (A - s M) x = b
+    instead of making the factorisation fail. lambda_min comes from block inverse iteration
+    with a factor below the spectrum, found by stepping down from sigma by margin x 10^k
+    (at most to the Gershgorin bound min_i (A_ii - sum_j |A_ij|) / M_i, below which A - s M
+    is diagonally dominant). If the Rayleigh quotient is not yet accurate to the margin, the
+    margin grows x 10 per refused factor. SelfshapeError if A - s M cannot be factored even
+    below the Gershgorin bound (non-finite entries).
+    """
+    A = sp.csc_matrix(A)
+    if not (np.all(np.isfinite(A.data)) and np.all(np.isfinite(mass)) and np.all(mass > 0)):
+        raise SelfshapeError("sparse solve: the matrix or the mass has non-finite or non-positive entries "
+                             "(degenerate faces?)")
+
+    def attempt(s):
+        try:
+            return factorize(A + sp.diags(-s * mass), ordering, check_definite=True)
+        except NotPositiveDefiniteError:
+            return None
+
+    solve = attempt(sigma)
+    if solve is not None:
+        return solve, float(sigma)
+    off = np.asarray(abs(A).sum(axis=1)).ravel() - np.abs(A.diagonal())    # sum_j!=i |A_ij|
+    gersh = float(np.min((A.diagonal().real - off) / mass))
+    step = margin
+    while True:                                        # a shift strictly below the spectrum
+        lo = sigma - step
+        if lo <= gersh:
+            lo = gersh - margin - abs(gersh) * 1e-8
+        solve_lo = attempt(lo)
+        if solve_lo is not None:
+            break
+        if lo < gersh:
+            raise SelfshapeError("sparse solve: no shift makes the matrix positive definite")
+        step *= 10.0
+    n = A.shape[0]
+    ramp = np.arange(n) / max(n - 1, 1)
+    start = np.exp(1j * np.pi * np.outer(ramp, np.arange(min(4, n))))   # deterministic start block
+    _, lam_min, _ = smallest_eigenvector(A, mass, start, rtol=1e-12, max_iter=100, stop="eigenvalue",
+                                         ordering=ordering, sigma=lo, solve=solve_lo)
+    m = margin
+    while lam_min - m > lo:
+        s = min(sigma, lam_min - m)
+        solve = attempt(s)
+        if solve is not None:
+            return solve, float(s)
+        m *= 10.0
+    return solve_lo, float(lo)
 
 
 def _m_norms2(X: np.ndarray, mass: np.ndarray) -> np.ndarray:

@@ -7,10 +7,12 @@ import scipy.sparse as sp
 from scipy.linalg import eigh
 
 from geometry.meshops import (NotPositiveDefiniteError, boundary_loop_count, corner_cotangents, cotan_weights,
-                              face_areas, face_frames, face_normals, factorize, halfedges, lumped_mass, mesh_edges,
+                              definite_factor, face_areas, face_frames, face_normals, factorize, halfedges,
+                              lumped_mass, mesh_edges,
                               remove_unreferenced, rotation_between, signed_areas, smallest_eigenvector,
                               tangent_frames, triangle_angles, unique_edges, vertex_normals)
 from geometry.target import grid_triangles, plane_patch, sphere_cap
+from shellfem.errors import SelfshapeError
 
 
 def right_triangle():
@@ -166,3 +168,39 @@ def test_factorize_refuses_a_singular_matrix():
     pytest.importorskip("sksparse.cholmod", reason="optional CHOLMOD; the SuperLU fallback does not test definiteness")
     with pytest.raises(NotPositiveDefiniteError, match="not positive definite"):
         factorize(sp.diags([1.0, 0.0, 2.0, 3.0]))               # a zero pivot
+
+
+def test_check_definite_refuses_an_indefinite_matrix_at_any_size():
+    pytest.importorskip("sksparse.cholmod", reason="optional CHOLMOD")
+    A = sp.diags([1.0, -1.0, 2.0, 3.0])
+    factorize(A)                                  # CHOLMOD's simplicial LDL^T factors it
+    with pytest.raises(NotPositiveDefiniteError, match="not positive definite"):
+        factorize(A, check_definite=True)
+    np.testing.assert_allclose(factorize(A + 2 * sp.eye(4), check_definite=True)(np.ones(4)), [1 / 3, 1, 1 / 4, 1 / 5])
+
+
+@pytest.mark.parametrize("potential", [0.0, -0.05, -3.0])
+def test_definite_factor_steps_just_below_the_smallest_eigenvalue(potential):
+    """A singular (potential 0) or indefinite Hermitian A: s = lambda_min - margin, and the factor
+    solves A - s M; a positive definite A keeps sigma."""
+    n = 120
+    i = np.arange(n - 1)
+    diag = (np.bincount(i, minlength=n) + np.bincount(i + 1, minlength=n)
+            + potential * np.exp(-((np.arange(n) - n / 2) / 5.0) ** 2)).astype(complex)
+    off = -np.exp(0.3j) * np.ones(n - 1) if potential == -3.0 else -np.ones(n - 1, dtype=complex)
+    A = sp.csc_matrix((np.r_[diag, off, np.conj(off)], (np.r_[np.arange(n), i + 1, i], np.r_[np.arange(n), i, i + 1])),
+                      shape=(n, n))
+    mass = np.linspace(1.0, 2.0, n)
+    lam_min = eigh(A.toarray(), np.diag(mass), eigvals_only=True)[0]
+    solve, s = definite_factor(A, mass, 0.0, 1e-8)
+    assert lam_min - s == pytest.approx(1e-8, rel=1e-3)          # measured 1.000e-8 each
+    b = np.arange(n, dtype=complex)
+    np.testing.assert_allclose((A - s * sp.diags(mass)) @ solve(b), b, rtol=1e-6, atol=1e-6 * np.abs(b).max())
+    solve, s = definite_factor(A, mass, lam_min - 0.1, 1e-8)     # below the spectrum already
+    assert s == lam_min - 0.1
+
+
+def test_definite_factor_refuses_non_finite_entries():
+    A = sp.csc_matrix(np.diag([1.0, np.nan, 2.0]))
+    with pytest.raises(SelfshapeError, match="non-finite"):
+        definite_factor(A, np.ones(3), 0.0, 1e-8)
