@@ -21,7 +21,7 @@ fi
 $PY -m pip install -q --upgrade pip >/dev/null 2>&1 || true
 # scikit-sparse 0.4.16 (CHOLMOD) builds against Debian's libsuitesparse-dev; 0.5 does not build
 $PY -m pip install -q "scikit-sparse==0.4.16" 2>&1 | grep -v -i warning || true
-$PY -m pip install -q -e ".[test]" 2>&1 | grep -v -i warning || true
+$PY -m pip install -q -c scripts/constraints.txt -e ".[test]" 2>&1 | grep -v -i warning || true
 $PY -c "import shellfem, geometry, gmsh, skfem, pyvista; print('selfshape installed')"
 $PY -c "import sksparse.cholmod" 2>/dev/null && echo "CHOLMOD available" || echo "CHOLMOD not available"
 $PY -c "from shellfem.linalg import default_backend; print('sparse Cholesky used by the solver:', default_backend())"

@@ -58,9 +58,27 @@ def layer_quadratic(abar, bbar, E, nu, z0, z1, area=None):
     """Q (m,6,6), rest state zbar (m,6) of one layer: W = 1/2 (z - zbar)^T Q (z - zbar)."""
     m = len(abar)
     E, z0, z1 = (np.broadcast_to(np.asarray(v, float), (m,)) for v in (E, z0, z1))
+    m0, m1, m2 = z1 - z0, (z1 ** 2 - z0 ** 2) / 2, (z1 ** 3 - z0 ** 3) / 3
+    return _moment_quadratic(abar, bbar, E, nu, m0, m1, m2, area)
+
+
+def layer_quadratic_derivative(abar, bbar, E, nu, z0, z1, dz0, dz1, area=None):
+    """dQ/dp (m,6,6) and zbar (m,6) of one layer whose bounds move with a parameter p at rates
+    dz0/dp, dz1/dp (mm per unit of p; e.g. a front plastic layer [hf/2, hf/2 + t] has
+    dz0/dt = 0, dz1/dt = 1). Q is linear in the moments m_k = (z1^(k+1) - z0^(k+1)) / (k+1),
+    so dQ/dp is the same expression with dm_k = z1^k dz1 - z0^k dz0, and
+    dW/dp = 1/2 (z - zbar)^T dQ/dp (z - zbar) exactly (zbar does not depend on p)."""
+    m = len(abar)
+    E, z0, z1, dz0, dz1 = (np.broadcast_to(np.asarray(v, float), (m,)) for v in (E, z0, z1, dz0, dz1))
+    dm0, dm1, dm2 = dz1 - dz0, z1 * dz1 - z0 * dz0, z1 ** 2 * dz1 - z0 ** 2 * dz0
+    return _moment_quadratic(abar, bbar, E, nu, dm0, dm1, dm2, area)
+
+
+def _moment_quadratic(abar, bbar, E, nu, m0, m1, m2, area):
+    """Q (m,6,6) = E A [[m0/4 K, -m1/2 K], [-m1/2 K, m2 K]] and zbar = (abar, bbar)."""
+    m = len(abar)
     K = elastic_norm_matrix(abar, nu)
     A = rest_area(abar) if area is None else area
-    m0, m1, m2 = z1 - z0, (z1 ** 2 - z0 ** 2) / 2, (z1 ** 3 - z0 ** 3) / 3
     w = (A * E)[:, None, None]
     Q = np.zeros((m, 6, 6))
     Q[:, :3, :3] = w * (m0 / 4)[:, None, None] * K

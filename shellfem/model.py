@@ -86,19 +86,11 @@ class ShellModel:
         printed = (tf > 0) | (tb > 0)
         bare = ~printed
         quad = QuadraticForm(m)
-        kap = plastic.rest_curvature
         if printed.any():
             quad.add(*layer_quadratic(abar_fab, np.zeros((m, 3)), fabric.young_modulus, fabric.poisson,
                                          -hf / 2, hf / 2), mask=printed)
-            front = tf > 0
-            if front.any():
-                # front plastic bends the sheet towards -z (centre of curvature on the fabric side): b < 0
-                quad.add(*layer_quadratic(abar_print, -kap * abar_print, plastic.young_modulus, plastic.poisson,
-                                             hf / 2, hf / 2 + tf), mask=front)
-            back = tb > 0
-            if back.any():
-                quad.add(*layer_quadratic(abar_print, kap * abar_print, plastic.young_modulus, plastic.poisson,
-                                             -hf / 2 - tb, -hf / 2), mask=back)
+            for mask, bbar, z0, z1, _, _ in plastic_layers(sheet, fabric, plastic, abar_print):
+                quad.add(*layer_quadratic(abar_print, bbar, plastic.young_modulus, plastic.poisson, z0, z1), mask=mask)
         membrane = None
         if bare.any():
             if fabric.bending_stiffness > 0:
@@ -299,6 +291,24 @@ class EdgeAngleProblem:
         idx = np.arange(3)
         Hpsi[:, idx, idx] += b_psipsi * gi                # face_sign^2 = 1 on the diagonal
         return E, grad, Hpsi
+
+
+def plastic_layers(sheet: Sheet, fabric: Fabric, plastic: Plastic, abar_print: np.ndarray):
+    """The printed plastic layers of the seed's model, front then back, where present: tuples
+    (mask (m,), rest curvature bbar (m, 3), z0 (m,), z1 (m,), dz0/dt, dz1/dt) with the layer
+    between z0 and z1 (mm about the fabric's mid-surface) and the rates at which its bounds
+    move with the layer's thickness t (for shellfem.sensitivity). Front plastic ([hf/2,
+    hf/2 + t]) bends the sheet towards -z (centre of curvature on the fabric side: b < 0),
+    back plastic ([-hf/2 - t, -hf/2]) towards +z; both carry the plastic set as rest
+    curvature."""
+    hf, kap = fabric.thickness, plastic.rest_curvature
+    tf, tb = sheet.thickness_front, sheet.thickness_back
+    out = []
+    if (tf > 0).any():
+        out.append((tf > 0, -kap * abar_print, np.full(len(tf), hf / 2), hf / 2 + tf, 0.0, 1.0))
+    if (tb > 0).any():
+        out.append((tb > 0, kap * abar_print, -hf / 2 - tb, np.full(len(tb), -hf / 2), -1.0, 0.0))
+    return out
 
 
 def nodal_loads(sheet: Sheet, load_per_area: float) -> np.ndarray:

@@ -71,6 +71,6 @@ def test_design_cap():
     out = run_example("design_cap.py")
     assert out["ribbons"].split() == ["8", "front", "8", "back", "0"]
     assert out["thickness_mm"] == "0.4"
-    assert float(out["k1_deviation_deg"]) == pytest.approx(3.197, abs=6e-4)
+    assert float(out["k1_deviation_deg"]) == pytest.approx(3.2, abs=0.01)   # libigl 2.5 / 2.6: 3.197 / 3.201
     assert int(out["pattern_elements"]) == 8
     assert {"pattern.toml", "front.gcode", "flat.vtu", "report.json", "pattern.png"} <= set(out["files"].split())

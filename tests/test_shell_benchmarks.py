@@ -148,7 +148,7 @@ def test_figures_runs_a_task_and_reports_it(tmp_path):
     ratio, se = line["tasks"]["strips"]["results"]["modulus_ratio"]
     assert 0 < se < ratio
     with open(os.path.join(ROOT, "inverse", "data", "strips_S1_calibration.json")) as fh:
-        assert [ratio, se] == pytest.approx(json.load(fh)["modulus_ratio"], rel=1e-9)
+        assert [ratio, se] == pytest.approx(json.load(fh)["modulus_ratio"], rel=1e-6)   # scipy versions differ at 4e-7
     assert (figs / "strips_strips_fit.png").stat().st_size > 0
     assert json.loads((out / "summary.json").read_text())["tasks"]["strips"]["ok"]
     bad = _study("figures", "--only", "nope", "--out", str(out))

@@ -112,8 +112,8 @@ def test_calibration_on_the_shipped_strips_file(tmp_path):
     shipped = os.path.join(os.path.dirname(__file__), "..", "inverse", "data", "strips_S1_calibration.json")
     with open(shipped) as fh:
         law_calibration = json.load(fh)
-    assert [v, se] == pytest.approx(law_calibration["modulus_ratio"], rel=1e-9)
-    assert [lo, hi] == pytest.approx(law_calibration["confidence_intervals_95"]["modulus_ratio"], rel=1e-9)
+    assert [v, se] == pytest.approx(law_calibration["modulus_ratio"], rel=1e-6)   # scipy versions differ at 4e-7
+    assert [lo, hi] == pytest.approx(law_calibration["confidence_intervals_95"]["modulus_ratio"], rel=1e-6)
     # the plastic set adds curvature, so fitting it explicitly needs a stiffer plastic
     assert out["modulus_ratio_rest_measured"][0] > v
     res = np.array(out["residuals"]["residual_per_mm"])

@@ -1,0 +1,276 @@
+"""Refinement with the shell in the loop: per-ribbon plastic thicknesses (mm) chosen so that
+the simulated equilibrium of the printed sheet matches target positions (mm).
+
+Objective (mm^2), over the sheet's vertices x_i(p) at equilibrium for thicknesses p:
+
+    J(p) = min over rigid motions (R, c) of  sum_i w_i |R x_i + c - T_i|^2 / sum_i w_i
+           + smoothness * mean over neighbouring parameter pairs (p_r - p_s)^2
+
+with w_i the vertex areas of the printed sheet and T_i the target position of vertex i (the
+flattening's correspondence). Outer iterations are Gauss-Newton steps in a trust region
+(Levenberg-Marquardt damping, bounds on p): the Jacobian dx/dp = -H^-1 dg/dp comes from the
+factorised Hessian at the equilibrium and the analytic dg/dp (shellfem.sensitivity), one
+back-substitution per parameter; the rigid motion is linearised alongside. Each trial
+re-solves the equilibrium warm-started from the current one moved by the linear prediction,
+so the iteration follows one equilibrium branch: the one the first solve found (started
+from the target itself, the state nearest it).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from inverse.registration import kabsch
+from shellfem.errors import SelfshapeError
+
+
+@dataclass(frozen=True)
+class RefineOptions:
+    """Choices of the refinement (mm). bounds: printable thickness range [lo, hi] (mm).
+    max_outer: cap on
+    outer (Gauss-Newton) iterations. ftol: stop when an accepted step lowers J by less than
+    this fraction. newton_iterations: cap of each equilibrium solve. damping: initial
+    Levenberg-Marquardt weight relative to the Gauss-Newton matrix's mean diagonal."""
+    bounds: tuple = (0.1, 1.6)
+    max_outer: int = 12
+    ftol: float = 1e-3
+    newton_iterations: int = 400
+    damping: float = 1e-3
+    verbose: bool = False
+
+
+@dataclass
+class RefineResult:
+    """thickness (P,) mm; q: the equilibrium there; objective (mm^2); rms_mm: the aligned RMS
+    distance to the targets; history: per outer iteration dict(iteration, objective, rms_mm,
+    accepted, damping, newton_iterations, seconds); converged: the last equilibrium solve
+    converged (the refinement itself stops at ftol or max_outer, reason says which)."""
+    thickness: np.ndarray
+    q: np.ndarray
+    objective: float
+    rms_mm: float
+    history: list = field(default_factory=list)
+    reason: str = ""
+    converged: bool = True
+
+
+def vertex_areas(sheet) -> np.ndarray:
+    """Lumped (one third of each triangle) printed-state area per vertex, mm^2."""
+    P = sheet.points[sheet.triangles]
+    e1, e2 = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]
+    a = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    return np.bincount(sheet.triangles.ravel(), weights=np.repeat(a / 3.0, 3), minlength=sheet.n_vertices)
+
+
+def neighbour_pairs(sheet, parameter: np.ndarray, n_parameters: int) -> np.ndarray:
+    """(k, 2) pairs of parameters whose printed areas are natural neighbours: the edges of the
+    Delaunay triangulation of their area-weighted centroids (printed-state mm)."""
+    if n_parameters < 2:
+        return np.zeros((0, 2), np.int64)
+    P = sheet.points[sheet.triangles].mean(1)
+    e1 = sheet.points[sheet.triangles[:, 1]] - sheet.points[sheet.triangles[:, 0]]
+    e2 = sheet.points[sheet.triangles[:, 2]] - sheet.points[sheet.triangles[:, 0]]
+    a = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    sel = parameter >= 0
+    w = np.bincount(parameter[sel], weights=a[sel], minlength=n_parameters)
+    c = np.stack([np.bincount(parameter[sel], weights=a[sel] * P[sel, k], minlength=n_parameters) for k in (0, 1)], 1)
+    c = c / np.maximum(w, 1e-300)[:, None]
+    if n_parameters < 4:
+        i, j = np.triu_indices(n_parameters, 1)
+        return np.column_stack([i, j])
+    from scipy.spatial import Delaunay
+    try:
+        tri = Delaunay(c)
+    except Exception:                   # collinear centroids: neighbours along the line
+        order = np.argsort(c[:, 0] + 1e-3 * c[:, 1])
+        return np.column_stack([order[:-1], order[1:]])
+    s = tri.simplices
+    e = np.sort(np.concatenate([s[:, [0, 1]], s[:, [1, 2]], s[:, [2, 0]]]), axis=1)
+    return np.unique(e, axis=0)
+
+
+class ThicknessProblem:
+    """The sheet, its materials and the triangle -> parameter map, evaluated at thicknesses p:
+    models, equilibria and the aligned residual (mm). targets (n, 3): the target position of
+    each sheet vertex (mm); free: the DOFs the equilibrium solves over (the rigid-motion
+    gauge held); smoothness: weight of the mean squared thickness difference of neighbouring
+    parameters (mm^2 of mean squared deviation per mm^2 of thickness difference); pairs: the
+    neighbours (default :func:`neighbour_pairs`)."""
+
+    def __init__(self, sheet, fabric, plastic, parameter, targets, free, *, smoothness=0.05, pairs=None):
+        from shellfem.sensitivity import face_parameter_map
+        self.sheet, self.fabric, self.plastic = sheet, fabric, plastic
+        self.parameter, self.P = face_parameter_map(sheet, parameter)
+        self.front = sheet.thickness_front > 0
+        self.targets = np.asarray(targets, float)
+        if self.targets.shape != (sheet.n_vertices, 3) or not np.all(np.isfinite(self.targets)):
+            raise SelfshapeError(f"refine: targets must be finite, one (x, y, z) per sheet vertex "
+                                 f"({sheet.n_vertices}), got shape {self.targets.shape}")
+        self.free = free
+        w = vertex_areas(sheet)
+        self.w = w / w.sum()
+        self.pairs = neighbour_pairs(sheet, self.parameter, self.P) if pairs is None else np.asarray(pairs)
+        self.smoothness = float(smoothness)
+        self.gradient_reference = None
+        self.rtol = 1e-10
+
+    def sheet_at(self, p):
+        from shellfem.sheet import Sheet
+        t = np.where(self.parameter >= 0, np.asarray(p, float)[np.maximum(self.parameter, 0)], 0.0)
+        sh = self.sheet
+        tf = np.where(self.parameter >= 0, np.where(self.front, t, 0.0), sh.thickness_front)
+        tb = np.where(self.parameter >= 0, np.where(self.front, 0.0, t), sh.thickness_back)
+        return Sheet(sh.points, sh.triangles, region=sh.region, thickness_front=tf, thickness_back=tb)
+
+    def model_at(self, p):
+        from shellfem.model import ShellModel
+        return ShellModel.from_materials(self.sheet_at(p), self.fabric, self.plastic)
+
+    def solve(self, model, q0, max_iterations):
+        """Equilibrium from q0; the gradient tolerance is relative to the force scale of the
+        released flat sheet (not to the warm start's small residual, which would ask for
+        round-off-level gradients in the soft valleys of these sheets)."""
+        from shellfem.newton import newton
+        if self.gradient_reference is None:
+            self.gradient_reference = float(np.linalg.norm(model.gradient(model.initial_state())[self.free]))
+        return newton(model, q0, self.free, max_iterations=max_iterations, gradient_reference=self.gradient_reference,
+                      rtol=self.rtol)
+
+    def residual(self, x):
+        """(rotation R, translation c, weighted residual rows (3n,), mean squared distance mm^2)."""
+        R, c = kabsch(x, self.targets, self.w)
+        d = x @ R.T + c - self.targets
+        return R, c, (np.sqrt(self.w)[:, None] * d).ravel(), float(np.einsum("i,ij,ij->", self.w, d, d))
+
+    def regulariser(self, p):
+        if len(self.pairs) == 0 or self.smoothness <= 0:
+            return np.zeros(0), sp.csr_matrix((0, self.P))
+        k = len(self.pairs)
+        s = np.sqrt(self.smoothness / k)
+        rows = np.repeat(np.arange(k), 2)
+        L = sp.csr_matrix((np.tile([s, -s], k), (rows, self.pairs.ravel())), shape=(k, self.P))
+        return L @ p, L
+
+    def objective(self, x, p):
+        _, _, _, msd = self.residual(x)
+        r, _ = self.regulariser(p)
+        return msd + float(r @ r), msd
+
+
+def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions = RefineOptions(),
+                     callback=None) -> RefineResult:
+    """Gauss-Newton refinement of the thicknesses from p0 (P,) with the equilibrium solve
+    started from q0 (see the module doc). ``callback(iteration, p, q, model)`` is called at
+    each accepted iterate (for measurements), its dict merged into the history entry.
+    Raises SelfshapeError if the first equilibrium cannot be found (nothing to refine)."""
+    from scipy.optimize import lsq_linear
+
+    from shellfem.linalg import NotPositiveDefinite
+    from shellfem.sensitivity import equilibrium_factor, equilibrium_jacobian, thickness_form, thickness_gradient
+
+    lo, hi = (float(b) for b in options.bounds)
+    p = np.clip(np.asarray(p0, float), lo, hi)
+    P, n = problem.P, problem.sheet.n_vertices
+    t0 = time.perf_counter()
+    model = problem.model_at(p)
+    res = problem.solve(model, q0, options.newton_iterations)
+    if not res.converged:
+        raise SelfshapeError(f"refine: no equilibrium near the start ({res.reason}; {res.iterations} iterations)")
+    q = res.q
+    J, msd = problem.objective(model.split(q)[0], p)
+    history = [dict(iteration=0, objective=J, rms_mm=float(np.sqrt(msd)), accepted=True, damping=None,
+                    newton_iterations=int(res.iterations), seconds=round(time.perf_counter() - t0, 2))]
+    if callback is not None:
+        history[-1].update(callback(0, p, q, model) or {})
+    if options.verbose:
+        print(f"refine 0: J {J:.4e} mm^2, rms {np.sqrt(msd):.4f} mm, {res.iterations} Newton iterations", flush=True)
+    mu = None
+    reason = f"reached max_outer = {options.max_outer}"
+    free = problem.free
+    it = 0
+    while it < options.max_outer:
+        it += 1
+        t_it = time.perf_counter()
+        x = model.split(q)[0]
+        R, c, r, msd = problem.residual(x)
+        rr, L = problem.regulariser(p)
+        form = thickness_form(model, problem.fabric, problem.plastic)
+        _, G = thickness_gradient(model, form, q, problem.parameter, P)
+        try:
+            solve = equilibrium_factor(model, q, free)
+        except NotPositiveDefinite:
+            reason = "the equilibrium is not stable (Hessian not positive definite): no sensitivity"
+            break
+        S = equilibrium_jacobian(solve, G, free)               # (n_free, P)
+        dq = np.zeros((model.n_dofs, P))
+        dq[free] = S
+        dx = dq[:3 * n].reshape(n, 3, P)
+        sw = np.sqrt(problem.w)[:, None, None]
+        A_p = (sw * np.einsum("ij,njp->nip", R, dx)).reshape(3 * n, P)
+        y = x @ R.T + c
+        yc = y - problem.w @ y
+        # rigid motions at the aligned state: small rotations about the weighted centroid, translations
+        skew = np.zeros((n, 3, 3))
+        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = yc[:, 2], -yc[:, 1], yc[:, 0]
+        skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = -yc[:, 2], yc[:, 1], -yc[:, 0]
+        A_r = np.concatenate([sw * skew, sw * np.broadcast_to(np.eye(3), (n, 3, 3))], 2).reshape(3 * n, 6)
+        # the objective re-aligns rigidly: to first order its residual moves by the part of
+        # A_p orthogonal to the rigid motions (variable projection; a linearised rotation kept
+        # as a variable would be an affine map and promise reductions no rigid motion gives)
+        A = A_p - A_r @ np.linalg.lstsq(A_r, A_p, rcond=None)[0]
+        M = np.concatenate([A, L.toarray()], 0)
+        b = -np.concatenate([r, rr])
+        g_scale = float(np.mean(np.sum(A ** 2, 0))) + 1e-300
+        if mu is None:
+            mu = options.damping * g_scale
+        accepted = False
+        while True:
+            sol = lsq_linear(np.concatenate([M, np.sqrt(mu) * np.eye(P)], 0), np.concatenate([b, np.zeros(P)]),
+                             bounds=(lo - p, hi - p), method="bvls")
+            step = sol.x
+            pred_lin = M @ step - b
+            predicted = float(pred_lin @ pred_lin)        # the Gauss-Newton model's J at the step
+            if np.max(np.abs(step)) < 1e-6:
+                reason = "the step vanished (a stationary point within the bounds)"
+                break
+            p_try = np.clip(p + step, lo, hi)
+            model_try = problem.model_at(p_try)
+            q_guess = q + dq @ (p_try - p)
+            res = problem.solve(model_try, q_guess, options.newton_iterations)
+            if not res.converged or not np.isfinite(res.energy):
+                res = problem.solve(model_try, q, options.newton_iterations)
+            if res.converged:
+                J_try, msd_try = problem.objective(model_try.split(res.q)[0], p_try)
+                rho = (J - J_try) / max(J - predicted, 1e-300)
+            else:
+                J_try, rho = np.inf, -np.inf
+            if options.verbose:
+                print(f"  trial: J {J_try:.4e} (predicted {predicted:.4e}), rho {rho:.3f}, mu {mu:.2e}, "
+                      f"{res.iterations} Newton iterations{'' if res.converged else ' (' + res.reason + ')'}", flush=True)
+            if rho > 0.1:
+                accepted = True
+                mu = mu / 3 if rho > 0.75 else mu
+                break
+            mu *= 8
+            if mu > 1e8 * g_scale:
+                reason = "the trust region collapsed: no trial step lowered the objective"
+                break
+        if not accepted:
+            history.append(dict(iteration=it, objective=J, rms_mm=float(np.sqrt(msd)), accepted=False,
+                                damping=float(mu), newton_iterations=0, seconds=round(time.perf_counter() - t_it, 2)))
+            break
+        decrease = (J - J_try) / max(J, 1e-300)
+        p, q, model, J, msd = p_try, res.q, model_try, J_try, msd_try
+        history.append(dict(iteration=it, objective=J, rms_mm=float(np.sqrt(msd)), accepted=True, damping=float(mu),
+                            newton_iterations=int(res.iterations), seconds=round(time.perf_counter() - t_it, 2)))
+        if callback is not None:
+            history[-1].update(callback(it, p, q, model) or {})
+        if options.verbose:
+            print(f"refine {it}: J {J:.4e} mm^2, rms {np.sqrt(msd):.4f} mm", flush=True)
+        if decrease < options.ftol:
+            reason = f"relative decrease {decrease:.2e} < ftol {options.ftol:g}"
+            break
+    return RefineResult(thickness=p, q=q, objective=J, rms_mm=float(np.sqrt(msd)), history=history, reason=reason)
