@@ -32,12 +32,15 @@ class RefineOptions:
     """Choices of the refinement (mm). bounds: printable thickness range [lo, hi] (mm).
     max_outer: cap on
     outer (Gauss-Newton) iterations. ftol: stop when an accepted step lowers J by less than
-    this fraction. newton_iterations: cap of each equilibrium solve. damping: initial
+    this fraction. newton_iterations: cap of each equilibrium solve; start_iterations: cap of
+    the first one (from the caller's start, e.g. the target itself), which the caller may retry
+    from another start. damping: initial
     Levenberg-Marquardt weight relative to the Gauss-Newton matrix's mean diagonal."""
     bounds: tuple = (0.1, 1.6)
     max_outer: int = 12
     ftol: float = 1e-3
     newton_iterations: int = 400
+    start_iterations: int = 150
     damping: float = 1e-3
     verbose: bool = False
 
@@ -176,7 +179,7 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
     P, n = problem.P, problem.sheet.n_vertices
     t0 = time.perf_counter()
     model = problem.model_at(p)
-    res = problem.solve(model, q0, options.newton_iterations)
+    res = problem.solve(model, q0, options.start_iterations)
     if not res.converged:
         raise SelfshapeError(f"refine: no equilibrium near the start ({res.reason}; {res.iterations} iterations)")
     q = res.q

@@ -12,13 +12,15 @@ from inverse.record import Design
 from shellfem.errors import SelfshapeError
 
 
-def verify_design(d: Design, pattern, out_dir: str | None = None, written: list | None = None) -> dict:
+def verify_design(d: Design, pattern, out_dir: str | None = None, written: list | None = None,
+                  sims: list | None = None) -> dict:
     """Simulate ``pattern`` (the geometry.patterns.Pattern of the design d), register the deployed
     surface to the target and return the report entries: verify_converged, verify_reason,
     Newton iterations, deviation_pct_bbox [mean, max] (deployed -> target),
     deviation_target_to_deployed_pct_bbox [mean, max], deviation_p99_pct_bbox. A simulation
     that fails or does not converge reports no deviation. With ``out_dir``, deployed.vtu and
-    verify.png are written there and their paths appended to ``written``."""
+    verify.png are written there and their paths appended to ``written``; the Simulation is
+    appended to ``sims`` if given (the refinement starts from it)."""
     import igl
 
     from forward.simulate import simulate
@@ -33,6 +35,8 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
         return {"verify_converged": False, "verify_reason": f"simulation failed: {e}", "deviation_pct_bbox": None,
                 "verify_note": "the simulation could not run; no deviation reported",
                 "verify_simulation_s": round(time.perf_counter() - t0, 2)}
+    if sims is not None:
+        sims.append(sim)
     s = sim.summary()
     out = {"verify_converged": bool(s["converged"]), "verify_reason": s["reason"],
            "verify_newton_iterations": s["newton_iterations"], "verify_n_triangles": s["n_triangles"],

@@ -49,8 +49,23 @@ def _cmd_design(a):
     from inverse.printer import load_printer
     printer = load_printer(a.printer) if a.printer else None
     r = design_file(a.target, a.output, verify=a.verify, diagonal_mm=a.diagonal, stretch=a.stretch,
-                    thickness_law=a.law, lam=a.lam, printer=printer, verify_iterations=a.verify_iterations)
+                    thickness_law=a.law, lam=a.lam, printer=printer, verify_iterations=a.verify_iterations,
+                    refine=a.refine, mesh_size_mm=a.mesh_size, mesh_across=a.mesh_across, verbose=a.verbose)
     print(f"design written to {a.output} in {r['time_s']:.1f} s")
+    if r.get("deviation_pct_bbox"):
+        dev, back = r["deviation_pct_bbox"], r["deviation_target_to_deployed_pct_bbox"]
+        print(f"deployed -> target {dev[0]:.2f} / {dev[1]:.2f} %, target -> deployed {back[0]:.2f} / {back[1]:.2f} % "
+              f"(mean / max, % of the bounding-box diagonal)")
+    elif "verify_converged" in r:
+        print(f"verification: {r.get('verify_note', r.get('verify_reason'))}")
+    ref = r.get("refine")
+    if ref is not None:
+        if ref.get("ok"):
+            o = ref and r.get("open_loop", {}).get("deviation_pct_bbox")
+            print(f"refined in {ref['outer_iterations']} outer iterations, {ref['seconds']:.0f} s ({ref['reason']})"
+                  + (f"; open loop was {o[0]:.2f} / {o[1]:.2f} %" if o else ""))
+        else:
+            print(f"refinement failed, open-loop design kept: {ref['reason']}")
 
 
 def _cmd_calibrate(a):
@@ -105,6 +120,12 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--verify", action="store_true", help="simulate the design and report its deviation")
     d.add_argument("--verify-iterations", type=int, default=None,
                    help="Newton iteration cap of --verify, also written to pattern.toml [solver] (default 300)")
+    d.add_argument("--refine", action="store_true",
+                   help="refine the ribbon thicknesses with the shell in the loop (implies --verify)")
+    d.add_argument("--mesh-size", type=float, default=2.0, help="pattern.toml [mesh] size_mm of the verification, mm")
+    d.add_argument("--mesh-across", type=float, default=None,
+                   help="pattern.toml [mesh] across: triangle rows across a ribbon (default 2)")
+    d.add_argument("-v", "--verbose", action="store_true")
     d.add_argument("--diagonal", type=float, default=110.0, help="scale the target to this bounding-box diagonal, mm")
     d.add_argument("--stretch", type=float, default=1.6, help="fabric pre-stretch s")
     d.add_argument("--law", default=None, help="curvature-law CSV (default: the shipped inverse/data table)")

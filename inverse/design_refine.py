@@ -1,0 +1,120 @@
+"""`selfshape design --refine`: the open-loop design's ribbon thicknesses refined with the shell
+in the loop (inverse.refine) so that the simulated sheet lands on the target (mm).
+
+The simulation mesh of the design's pattern (the verification's), each printed region one
+parameter (the design keeps ribbons apart, so a region is a ribbon); target positions of the
+mesh vertices through the flattening's correspondence (inverse.registration.flat_to_target).
+The equilibrium is sought nearest the target: the first solve starts from the target itself
+(edge angles 0), falling back to the verification's released state if that does not converge.
+The refined thicknesses are rounded to layer multiples of the printer and the rounded design
+is what is written and reported; whether release from flat reaches the same state is checked
+by the verification of the rounded pattern.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from shellfem.errors import SelfshapeError
+
+
+def deviations(d, X, triangles, targets):
+    """Both one-way closest-point deviations (% of the target's bounding-box diagonal) of the
+    sheet X (n, 3) after rigid registration (Kabsch on ``targets``, then ICP, as the
+    verification): {"deviation_pct_bbox": [mean, max] deployed -> target,
+    "deviation_target_to_deployed_pct_bbox": [mean, max]}."""
+    import igl
+
+    from inverse.registration import register
+
+    diag = float(np.linalg.norm(d.V_input.max(0) - d.V_input.min(0)))
+    Xr, dist, _ = register(X, d.V_input, d.F_input, targets)
+    back = np.sqrt(igl.point_mesh_squared_distance(d.V_input, Xr, np.ascontiguousarray(triangles, dtype=np.int64))[0])
+    pct, back = 100.0 * dist / diag, 100.0 * back / diag
+    return {"deviation_pct_bbox": [float(pct.mean()), float(pct.max())],
+            "deviation_target_to_deployed_pct_bbox": [float(back.mean()), float(back.max())]}
+
+
+def region_ribbons(pattern, sheet) -> tuple[np.ndarray, list]:
+    """(parameter per triangle (m,), ribbon indices of each parameter): one parameter per
+    printed region of the mesh (geometry.arrangement.region_elements)."""
+    from geometry.arrangement import region_elements
+
+    groups = region_elements(pattern)
+    param = np.where(sheet.region > 0, sheet.region - 1, -1).astype(np.int64)
+    if param.max(initial=-1) >= len(groups):
+        raise SelfshapeError("refine: the mesh has more printed regions than the pattern")
+    return param, groups
+
+
+def rounded(p, layer_mm: float, bounds) -> np.ndarray:
+    """Thicknesses rounded to the nearest multiple of the layer height inside the bounds (mm)."""
+    lo, hi = bounds
+    k_lo, k_hi = int(np.ceil(lo / layer_mm - 1e-9)), int(np.floor(hi / layer_mm + 1e-9))
+    return np.clip(np.round(np.asarray(p) / layer_mm), max(k_lo, 1), k_hi) * layer_mm
+
+
+def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.05, verbose: bool = False) -> dict:
+    """Refine the thicknesses of the design ``d`` (whose pattern is ``pattern`` and whose
+    verification simulation is ``sim``, forward.simulate.Simulation). Sets the ribbons'
+    thickness_mm to the rounded refined values and returns the report block "refine":
+    per outer iteration objective, RMS distance (mm), deviations both ways (%), seconds;
+    continuous and rounded thicknesses; the rounded design's deviations at the equilibrium
+    nearest the target; the reason the iteration stopped. Raises SelfshapeError if no
+    equilibrium near the target can be found (the caller keeps the open-loop design)."""
+    from inverse.refine import RefineOptions, ThicknessProblem, refine_thickness
+    from inverse.registration import flat_to_target
+    from shellfem.boundary import gauge_dofs
+
+    t0 = time.perf_counter()
+    opts = options or RefineOptions(bounds=(printer.layer_height_mm, 1.6), verbose=verbose)
+    sheet = sim.sheet
+    param, groups = region_ribbons(pattern, sheet)
+    if not groups:
+        raise SelfshapeError("refine: the design has no printed region to refine")
+    p0 = np.array([d.ribbons[g[0]].thickness_mm for g in groups])
+    T = flat_to_target(sheet.points, d.flat.uv, d.F, d.V)
+    free = np.ones(sim.model.n_dofs, bool)
+    free[gauge_dofs(T, np.zeros(0, np.int64))] = False
+    prob = ThicknessProblem(sheet, pattern.fabric, pattern.plastic, param, T, free, smoothness=smoothness)
+    q_target = np.concatenate([T.ravel(), np.zeros(sim.model.n_edges)])
+
+    def measure(it, p, q, model):
+        return deviations(d, model.split(q)[0], sheet.triangles, T)
+
+    start = "target"
+    try:
+        res = refine_thickness(prob, p0, q_target, opts, callback=measure)
+    except SelfshapeError:
+        if not sim.result.converged:
+            raise
+        start = "released state (the solve from the target did not converge)"
+        q_rel = sim.result.q.copy()
+        # the released state in the target's frame, so that the gauge holds a rigid motion of it
+        from inverse.registration import kabsch
+        x = sim.model.split(q_rel)[0]
+        R, c = kabsch(x, T, prob.w)
+        q_rel[:x.size] = (x @ R.T + c).ravel()
+        res = refine_thickness(prob, p0, q_rel, opts, callback=measure)
+    p_round = rounded(res.thickness, printer.layer_height_mm, opts.bounds)
+    model_r = prob.model_at(p_round)
+    rr = prob.solve(model_r, res.q, opts.newton_iterations)
+    block = {
+        "start": start, "outer_iterations": len(res.history) - 1, "reason": res.reason,
+        "smoothness": smoothness, "bounds_mm": list(opts.bounds), "layer_height_mm": printer.layer_height_mm,
+        "n_parameters": len(groups), "iterations": res.history,
+        "thickness_start_mm": p0.round(4).tolist(), "thickness_continuous_mm": res.thickness.round(4).tolist(),
+        "thickness_rounded_mm": p_round.round(4).tolist(),
+        "continuous": {"rms_mm": res.rms_mm, **res.history[-1]},
+    }
+    if rr.converged:
+        block["rounded"] = {"rms_mm": float(np.sqrt(prob.objective(model_r.split(rr.q)[0], p_round)[1])),
+                            **deviations(d, model_r.split(rr.q)[0], sheet.triangles, T)}
+    else:
+        block["rounded"] = {"converged": False, "reason": rr.reason}
+    for g, t in zip(groups, p_round):
+        for i in g:
+            d.ribbons[i].thickness_mm = float(round(t, 6))
+    block["seconds"] = round(time.perf_counter() - t0, 2)
+    return block

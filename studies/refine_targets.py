@@ -1,0 +1,80 @@
+"""Open-loop and refined designs of the targets in meshes/targets at 110 mm (issue 18's benchmark).
+
+For each TARGET.obj: `inverse.design.design_file(..., refine=True)` -> OUT/TARGET/ (pattern.toml,
+G-code, pictures, deployed.vtu, report.json). Prints ONE JSON line per target: open-loop and
+refined deviations (both directions, mean and max, % of the bounding-box diagonal), outer
+iterations, the reason the refinement stopped, whether release from flat reaches the refined
+state, seconds per stage; and a final summary line. Long: minutes to tens of minutes per
+target on 2 cores; not part of the test run.
+
+    python studies/refine_targets.py [--mesh-size 3] [--across 1] [--max-outer 12]
+                                     [--verify-iterations 3000] [--out out/refine] [names...]
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import time
+
+TARGETS = os.path.join("meshes", "targets", "*.obj")     # relative to the repository root
+
+
+def run_target(path, out_dir, args) -> dict:
+    from inverse.design import design_file
+    from inverse.printer import Printer
+    from inverse.refine import RefineOptions
+
+    printer = Printer(layer_height_mm=args.layer)
+    opts = RefineOptions(bounds=(args.layer, args.max_thickness), max_outer=args.max_outer)
+    t0 = time.perf_counter()
+    rep = design_file(path, out_dir, refine=True, mesh_size_mm=args.mesh_size, mesh_across=args.across,
+                      verify_iterations=args.verify_iterations, refine_options=opts, printer=printer,
+                      verbose=args.verbose)
+    ref, ol = rep.get("refine", {}), rep.get("open_loop", {})
+    return {
+        "target": os.path.splitext(os.path.basename(path))[0],
+        "open_loop": {"deployed_to_target_pct": ol.get("deviation_pct_bbox", rep.get("deviation_pct_bbox")),
+                      "target_to_deployed_pct": ol.get("deviation_target_to_deployed_pct_bbox",
+                                                       rep.get("deviation_target_to_deployed_pct_bbox"))},
+        "refined": {"deployed_to_target_pct": rep.get("deviation_pct_bbox"),
+                    "target_to_deployed_pct": rep.get("deviation_target_to_deployed_pct_bbox"),
+                    "nearest_target": ref.get("rounded")} if ref.get("ok") else None,
+        "refine_ok": bool(ref.get("ok")), "refine_reason": ref.get("reason"),
+        "outer_iterations": ref.get("outer_iterations"), "start": ref.get("start"),
+        "release_reaches_refined_state": ref.get("release_reaches_refined_state"),
+        "feasibility": ref.get("feasibility"), "n_triangles": rep.get("verify_n_triangles"),
+        "thickness_rounded_mm": ref.get("thickness_rounded_mm"),
+        "out_of_bounds_pct": rep.get("sigma_out_of_bounds_pct"), "stages_s": rep.get("stages_s"),
+        "total_s": round(time.perf_counter() - t0, 1),
+    }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("names", nargs="*", help="target names (default: all)")
+    ap.add_argument("--out", default="out/refine")
+    ap.add_argument("--mesh-size", type=float, default=3.0, help="[mesh] size_mm of the simulation (mm)")
+    ap.add_argument("--across", type=float, default=1.0, help="[mesh] across: triangle rows across a ribbon")
+    ap.add_argument("--verify-iterations", type=int, default=3000, help="Newton cap of the release from flat")
+    ap.add_argument("--max-outer", type=int, default=12, help="outer (Gauss-Newton) iterations")
+    ap.add_argument("--layer", type=float, default=0.2, help="printer layer height (mm)")
+    ap.add_argument("--max-thickness", type=float, default=1.6, help="thickest printable ribbon (mm)")
+    ap.add_argument("-v", "--verbose", action="store_true")
+    args = ap.parse_args(argv)
+    paths = sorted(glob.glob(TARGETS))
+    if args.names:
+        paths = [p for p in paths if os.path.splitext(os.path.basename(p))[0] in args.names]
+    rows = []
+    for p in paths:
+        name = os.path.splitext(os.path.basename(p))[0]
+        row = run_target(p, os.path.join(args.out, name), args)
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    print(json.dumps({"summary": {r["target"]: {"open": r["open_loop"], "refined": r["refined"]} for r in rows}}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
