@@ -63,7 +63,7 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     continuous and rounded thicknesses; the rounded design's deviations at the equilibrium
     nearest the target; the reason the iteration stopped. Raises SelfshapeError if no
     equilibrium near the target can be found (the caller keeps the open-loop design)."""
-    from inverse.refine import RefineOptions, ThicknessProblem, refine_thickness
+    from inverse.refine import RefineOptions, ThicknessProblem, linear_rounding, refine_thickness
     from inverse.registration import flat_to_target
     from shellfem.boundary import gauge_dofs
 
@@ -97,7 +97,11 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
         R, c = kabsch(x, T, prob.w)
         q_rel[:x.size] = (x @ R.T + c).ravel()
         res = refine_thickness(prob, p0, q_rel, opts, callback=measure)
-    p_round = rounded(res.thickness, printer.layer_height_mm, opts.bounds)
+    h = printer.layer_height_mm
+    p_round = rounded(res.thickness, h, opts.bounds)
+    if res.model is not None:         # floor or ceil per ribbon, as the Gauss-Newton model prefers
+        lo = np.minimum(rounded(res.thickness - 0.5 * h, h, opts.bounds), p_round)
+        p_round = np.clip(linear_rounding(res.model, res.thickness, lo, h), lo, rounded(np.full(len(lo), 1e9), h, opts.bounds))
     model_r = prob.model_at(p_round)
     rr = prob.solve(model_r, res.q, opts.newton_iterations)
     block = {

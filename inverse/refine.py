@@ -58,6 +58,27 @@ class RefineResult:
     history: list = field(default_factory=list)
     reason: str = ""
     converged: bool = True
+    model: tuple | None = None     # (p_lin, M, b): the last Gauss-Newton model |M (p - p_lin) - b|^2 of J
+
+
+def linear_rounding(model, p, candidates_lo, step, sweeps: int = 20) -> np.ndarray:
+    """Round thicknesses p (P,) to the grid candidates_lo + {0, step} choosing, per parameter,
+    the side that the Gauss-Newton model (p_lin, M, b) of J predicts lower: coordinate descent
+    from the nearest rounding (a few sweeps of P one-column updates; mm)."""
+    p_lin, M, b = model
+    lo = np.asarray(candidates_lo, float)
+    choice = np.where(np.asarray(p) - lo > 0.5 * step, step, 0.0)
+    res = M @ (lo + choice - p_lin) - b
+    for _ in range(sweeps):
+        changed = False
+        for j in range(len(lo)):
+            delta = (step - choice[j]) - choice[j]          # flip to the other side
+            new = res + delta * M[:, j]
+            if new @ new < res @ res - 1e-15:
+                res, choice[j], changed = new, choice[j] + delta, True
+        if not changed:
+            break
+    return lo + choice
 
 
 def vertex_areas(sheet) -> np.ndarray:
@@ -192,6 +213,7 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
         print(f"refine 0: J {J:.4e} mm^2, rms {np.sqrt(msd):.4f} mm, {res.iterations} Newton iterations", flush=True)
     mu = None
     reason = f"reached max_outer = {options.max_outer}"
+    last_model = None
     free = problem.free
     it = 0
     while it < options.max_outer:
@@ -226,6 +248,7 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
         A = A_p - A_r @ np.linalg.lstsq(A_r, A_p, rcond=None)[0]
         M = np.concatenate([A, L.toarray()], 0)
         b = -np.concatenate([r, rr])
+        last_model = (p.copy(), M, b)
         g_scale = float(np.mean(np.sum(A ** 2, 0))) + 1e-300
         if mu is None:
             mu = options.damping * g_scale
@@ -276,4 +299,5 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
         if decrease < options.ftol:
             reason = f"relative decrease {decrease:.2e} < ftol {options.ftol:g}"
             break
-    return RefineResult(thickness=p, q=q, objective=J, rms_mm=float(np.sqrt(msd)), history=history, reason=reason)
+    return RefineResult(thickness=p, q=q, objective=J, rms_mm=float(np.sqrt(msd)), history=history, reason=reason,
+                        model=last_model)

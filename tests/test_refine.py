@@ -86,3 +86,19 @@ def test_smoothness_pulls_neighbours_together():
     r, L = prob.regulariser(TRUE)
     assert float(r @ r) == pytest.approx(np.mean([(TRUE[a] - TRUE[b]) ** 2 for a, b in prob.pairs]), rel=1e-12)
     assert L.shape == (len(prob.pairs), 9)
+
+
+def test_linear_rounding_picks_the_side_the_model_prefers():
+    """Two parameters whose effects cancel: rounding each to its nearest layer leaves a residual
+    that rounding one of them the other way removes."""
+    from inverse.refine import linear_rounding
+    M = np.array([[1.0, 1.0], [0.0, 1e-3]])
+    p_lin = np.array([0.0, 0.0])
+    b = np.array([0.0, 0.0])
+    p = np.array([0.31, -0.29])                     # nearest layers 0.4 and -0.2 do not cancel
+    lo = np.array([0.2, -0.4])
+    nearest = np.array([0.4, -0.2])
+    t = linear_rounding((p_lin, M, b), p, lo, 0.2)
+    J = lambda x: float(np.sum((M @ (x - p_lin) - b) ** 2))     # noqa: E731
+    assert J(t) < J(nearest) - 1e-3
+    assert set(np.round(t, 9)) <= {0.2, 0.4, -0.4, -0.2}
