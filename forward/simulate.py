@@ -60,13 +60,17 @@ class Simulation:
         }
 
 
-def _level_setup(sheet: Sheet, fabric, plastic, supports, seed: int, tol_support: float | None):
-    """(model, perturbed flat start, held DOFs, their values, gauge DOFs, free mask) of one mesh."""
+def _level_setup(sheet: Sheet, fabric, plastic, supports, seed: int, tol_support: float | None, start=None):
+    """(model, perturbed flat start, held DOFs, their values, gauge DOFs, free mask) of one mesh;
+    ``start``: (n_vertices, 3) start positions instead of the perturbed flat state."""
     model = ShellModel.from_materials(sheet, fabric, plastic)
     q = model.initial_state()
     x, _ = model.split(q)
-    size = float(np.linalg.norm(sheet.points.max(0) - sheet.points.min(0)))
-    x[:, 2] += smooth_perturbation(sheet.points, seed, 0.01 * size)
+    if start is not None:
+        x[:] = np.asarray(start, dtype=float).reshape(x.shape)
+    else:
+        size = float(np.linalg.norm(sheet.points.max(0) - sheet.points.min(0)))
+        x[:, 2] += smooth_perturbation(sheet.points, seed, 0.01 * size)
     edge = np.linalg.norm(sheet.points[sheet.triangles[:, 1]] - sheet.points[sheet.triangles[:, 0]], axis=1)
     tol = tol_support if tol_support is not None else 2.0 * float(edge.max())
     fixed, values = support_constraints(sheet, model.topo, supports, fabric, tol)
@@ -126,7 +130,7 @@ def _release(sheet, model, q, fixed, values, free, fabric, plastic, steps, newto
 
 def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0, max_iterations: int = 300,
                    release_steps: int = 1, tol_support: float | None = None, verbose: bool = False,
-                   rtol: float = 1e-8, metric_floor: float | None = None, coarse=()) -> Simulation:
+                   rtol: float = 1e-8, metric_floor: float | None = None, coarse=(), start=None) -> Simulation:
     """Released equilibrium of a meshed sheet (printed-state mm) with the given materials.
 
     The start is the flat printed state with a smooth out-of-plane perturbation of 1 % of
@@ -144,7 +148,13 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
     start if that interpolation has no finite energy, or if the previous level stopped for
     another reason than its iteration cap). Only the given sheet's solve decides
     ``converged``; iterations and timings are summed over the levels and
-    ``timings["levels"]`` lists each level's vertices, iterations and seconds."""
+    ``timings["levels"]`` lists each level's vertices, iterations and seconds.
+
+    ``start``: (n_vertices, 3) positions of the given sheet to start from instead of the
+    perturbed flat state (a chosen branch of a multistable sheet, e.g. a slight roll); only
+    without ``coarse``."""
+    if start is not None and len(coarse):
+        raise SelfshapeError("simulate_sheet: a start state is for a single mesh (no coarse levels)")
     t0 = time.perf_counter()
     sheets = list(coarse) + [sheet]
     steps = max(1, int(release_steps))
@@ -155,7 +165,8 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
     for j, sh in enumerate(sheets):
         t_level = time.perf_counter()
         last = j == len(sheets) - 1
-        model, q, fixed, values, gauge, free = _level_setup(sh, fabric, plastic, supports, seed, tol_support)
+        model, q, fixed, values, gauge, free = _level_setup(sh, fabric, plastic, supports, seed, tol_support,
+                                                            start=start if last else None)
         opts = dict(max_iterations=max_iterations, verbose=verbose, metric_floor=metric_floor,
                     rtol=rtol if last else COARSE_RTOL)
         guess = None

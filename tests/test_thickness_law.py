@@ -179,6 +179,40 @@ def test_curvature_measurement_is_exact_on_a_rolled_sheet():
         == pytest.approx(0.0, abs=1e-9)
 
 
+def test_curvature_state_and_rolled_start():
+    """curvature_state: normal curvature along and across the ribbons and the principal
+    direction on exactly rolled sheets; rolled_start rolls the printed patch isometrically."""
+    from types import SimpleNamespace
+
+    from geometry.target import grid_triangles
+    from shellfem.model import ShellModel
+    from shellfem.sheet import Sheet
+    from validation.law_tables import curvature_state, rolled_start
+    X, Y = np.meshgrid(np.linspace(0, 60, 31), np.linspace(0, 24, 13), indexing="ij")
+    P = np.column_stack([X.ravel(), Y.ravel()])
+    sheet = Sheet(P, grid_triangles(30, 12))
+    model = ShellModel.homogeneous(sheet, 1.0, 0.3, 0.5)
+
+    def state(pos):
+        q = np.concatenate([pos.ravel(), np.zeros(model.n_dofs - pos.size)])
+        return curvature_state(SimpleNamespace(sheet=sheet, model=model, result=SimpleNamespace(q=q)),
+                               (15, 6, 45, 18))
+    R = 20.0
+    for direction, angle in (("along", 0.0), ("across", 90.0)):
+        pos = rolled_start(P, 1 / R, seed=0, direction=direction)
+        pos[:, 2] -= rolled_start(P, 0.0, seed=0)[:, 2]               # without the 1 % perturbation
+        e = sheet.triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+        l0 = np.linalg.norm(P[e[:, 0]] - P[e[:, 1]], axis=1)
+        l3 = np.linalg.norm(pos[e[:, 0]] - pos[e[:, 1]], axis=1)
+        assert np.allclose(l3, l0, rtol=2e-3)                            # isometric up to chord error
+        s = state(pos)
+        along, across = (s["kappa_along_signed"], s["kappa_across_signed"])
+        big, small = (along, across) if direction == "along" else (across, along)
+        assert abs(big) == pytest.approx(1 / R, rel=0.01) and abs(small) < 1e-6
+        assert abs(s["k1_per_mm"]) == pytest.approx(1 / R, rel=0.01) and s["k1_angle_deg"] == pytest.approx(angle, abs=1)
+        assert abs(s["gaussian_per_mm2"]) < 1e-6
+
+
 def test_shipped_default_law_is_the_simulated_table():
     """The default law comes from forward simulation (studies/thickness_law_sim.py, validation.law_tables), says so,
     is a full grid decreasing in thickness, and its back rows mirror the front rows."""
@@ -196,12 +230,16 @@ def test_shipped_default_law_is_the_simulated_table():
     f, b = law.table("front"), law.table("back")
     assert np.all(np.diff(f.kappa, axis=0) < 0)
     assert np.array_equal(f.kappa, b.kappa)
-    with open(os.path.join(os.path.dirname(DEFAULT_LAW), "thickness_law_s1.6_sim_rows.json")) as fh:
+    # the table's rows (issue 18: 3-row rows where they agree with 112.5 mm patches, the
+    # 112.5 mm rows elsewhere, each bending along the ribbons) are kept with the study's runs
+    with open(os.path.join(os.path.dirname(DEFAULT_LAW), "thickness_law_s1.6_large_patch_rows.json")) as fh:
         rows = {(r["thickness_mm"], r["spacing_mm"]): r for r in json.load(fh)["rows"] if r["side"] == "front"}
     for i, tk in enumerate(f.thickness):
         for j, mu in enumerate(f.spacing):
             r = rows[(float(tk), float(mu))]
             assert r["converged"] and f.kappa[i, j] == pytest.approx(r["kappa_per_mm"], rel=1e-5)
+            if "k1_angle_deg" in r:                      # measured on a large patch: bends along the ribbons
+                assert r["k1_angle_deg"] < 30 and r["patch_mm"][0] >= 112
 
 
 def test_law_from_previous_rows_writes_the_requested_subgrid(tmp_path):
