@@ -17,8 +17,8 @@ import os
 import time
 
 import numpy as np
+from study_cli import target_paths
 
-TARGETS = os.path.join("meshes", "targets", "*.obj")     # relative to the repository root
 
 
 def _plot_target(V, F, path, title):
@@ -121,9 +121,7 @@ def main(argv=None):
     from inverse.design import design_file
 
     os.makedirs(a.docs, exist_ok=True)
-    paths = sorted(glob.glob(TARGETS))
-    if a.names:
-        paths = [p for p in paths if os.path.splitext(os.path.basename(p))[0] in a.names]
+    paths = target_paths(a.names)
     rows = []
     for path in paths:
         name = os.path.splitext(os.path.basename(path))[0]

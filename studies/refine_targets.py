@@ -13,12 +13,12 @@ target on 2 cores; not part of the test run.
 from __future__ import annotations
 
 import argparse
-import glob
 import json
 import os
 import time
 
-TARGETS = os.path.join("meshes", "targets", "*.obj")     # relative to the repository root
+from study_cli import target_paths
+
 
 
 def run_target(path, out_dir, args) -> dict:
@@ -63,9 +63,7 @@ def main(argv=None) -> int:
     ap.add_argument("--max-thickness", type=float, default=1.6, help="thickest printable ribbon (mm)")
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args(argv)
-    paths = sorted(glob.glob(TARGETS))
-    if args.names:
-        paths = [p for p in paths if os.path.splitext(os.path.basename(p))[0] in args.names]
+    paths = target_paths(args.names)
     rows = []
     for p in paths:
         name = os.path.splitext(os.path.basename(p))[0]

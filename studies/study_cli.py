@@ -25,3 +25,14 @@ def write_result(out_dir: str, name: str, record: dict, summary: dict) -> None:
     with open(os.path.join(out_dir, f"{name}.json"), "w") as fh:
         json.dump(record, fh, indent=2)
     print(json.dumps(summary))
+
+
+TARGETS = os.path.join("meshes", "targets", "*.obj")     # relative to the repository root
+
+
+def target_paths(names=()) -> list:
+    """The shipped target meshes (meshes/targets/*.obj), sorted, restricted to ``names`` (file
+    stems) if given."""
+    import glob
+    paths = sorted(glob.glob(TARGETS))
+    return [p for p in paths if not names or os.path.splitext(os.path.basename(p))[0] in names]
