@@ -230,6 +230,8 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
             reason = "the equilibrium is not stable (Hessian not positive definite): no sensitivity"
             break
         S = equilibrium_jacobian(solve, G, free)               # (n_free, P)
+        t_sens = time.perf_counter() - t_it
+        t_solves, trials = 0.0, 0
         dq = np.zeros((model.n_dofs, P))
         dq[free] = S
         dx = dq[:3 * n].reshape(n, 3, P)
@@ -253,21 +255,29 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
         if mu is None:
             mu = options.damping * g_scale
         accepted = False
+        # |M s - b|^2 = |R s - Q^T b|^2 + |b|^2 - |Q^T b|^2 (thin QR): the bounded steps are
+        # solved on the P x P factor instead of the (3n + pairs) x P matrix
+        Qm, Rm = np.linalg.qr(M, mode="reduced")
+        Qb = Qm.T @ b
+        rest = max(float(b @ b) - float(Qb @ Qb), 0.0)
         while True:
-            sol = lsq_linear(np.concatenate([M, np.sqrt(mu) * np.eye(P)], 0), np.concatenate([b, np.zeros(P)]),
+            sol = lsq_linear(np.concatenate([Rm, np.sqrt(mu) * np.eye(P)], 0), np.concatenate([Qb, np.zeros(P)]),
                              bounds=(lo - p, hi - p), method="bvls")
             step = sol.x
-            pred_lin = M @ step - b
-            predicted = float(pred_lin @ pred_lin)        # the Gauss-Newton model's J at the step
+            pred_lin = Rm @ step - Qb
+            predicted = float(pred_lin @ pred_lin) + rest   # the Gauss-Newton model's J at the step
             if np.max(np.abs(step)) < 1e-6:
                 reason = "the step vanished (a stationary point within the bounds)"
                 break
             p_try = np.clip(p + step, lo, hi)
             model_try = problem.model_at(p_try)
             q_guess = q + dq @ (p_try - p)
+            t_s = time.perf_counter()
+            trials += 1
             res = problem.solve(model_try, q_guess, options.newton_iterations)
             if not res.converged or not np.isfinite(res.energy):
                 res = problem.solve(model_try, q, options.newton_iterations)
+            t_solves += time.perf_counter() - t_s
             if res.converged:
                 J_try, msd_try = problem.objective(model_try.split(res.q)[0], p_try)
                 rho = (J - J_try) / max(J - predicted, 1e-300)
@@ -291,7 +301,8 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
         decrease = (J - J_try) / max(J, 1e-300)
         p, q, model, J, msd = p_try, res.q, model_try, J_try, msd_try
         history.append(dict(iteration=it, objective=J, rms_mm=float(np.sqrt(msd)), accepted=True, damping=float(mu),
-                            newton_iterations=int(res.iterations), seconds=round(time.perf_counter() - t_it, 2)))
+                            newton_iterations=int(res.iterations), trials=trials, sensitivity_s=round(t_sens, 2),
+                            solves_s=round(t_solves, 2), seconds=round(time.perf_counter() - t_it, 2)))
         if callback is not None:
             history[-1].update(callback(it, p, q, model) or {})
         if options.verbose:

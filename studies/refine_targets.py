@@ -27,7 +27,7 @@ def run_target(path, out_dir, args) -> dict:
     from inverse.refine import RefineOptions
 
     printer = Printer(layer_height_mm=args.layer)
-    opts = RefineOptions(bounds=(args.layer, args.max_thickness), max_outer=args.max_outer)
+    opts = RefineOptions(bounds=(args.layer, args.max_thickness), max_outer=args.max_outer, verbose=args.verbose)
     t0 = time.perf_counter()
     rep = design_file(path, out_dir, refine=True, mesh_size_mm=args.mesh_size, mesh_across=args.across,
                       verify_iterations=args.verify_iterations, refine_options=opts, printer=printer,
