@@ -61,3 +61,21 @@ def printed_fraction(printed, region, points, radius: float, window: str = "disk
     a_pr = shapely.area(shapely.intersection(fab, printed))
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(a_fab > 0, a_pr / np.where(a_fab > 0, a_fab, 1.0), np.nan)
+
+
+def printed_over_asked(d) -> float:
+    """Printed area of a design's ribbons (inside its outline) over the printed area Eq. 5.15 asks
+    for on its flat mesh (asked coverage at the stretches clamped into the bounds, integrated
+    over the flat faces): 1 when the layout prints what the flattening's bounds assume, less
+    where clipping, trimming, separation or the dash placement thin the pattern."""
+    import shapely
+
+    b = d.bounds
+    s1 = np.clip(d.flat.sigma1, b[0], b[1])
+    s2 = np.clip(d.flat.sigma2, b[2], b[3])
+    tri = d.flat.uv[d.F]
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    asked = float(np.sum(area * asked_coverage(s1, s2, d.stretch)))
+    printed = float(shapely.intersection(ribbon_union(d.ribbons), shapely.Polygon(d.outline)).area)
+    return printed / asked if asked > 0 else float("nan")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from inverse.coverage import printed_over_asked
 from inverse.record import Design
 
 
@@ -40,6 +41,7 @@ def report_dict(d: Design) -> dict:
         "ribbon_length_mm": {"total": float(np.sum(lengths)), "mean": float(np.mean(lengths))},
         "thickness_histogram": thickness_histogram(d.ribbons),
         "ribbons_separated": d.separation,
+        "printed_over_asked_area": round(printed_over_asked(d), 4),
         "thickness_clamped": d.thickness_info, "thickness_law": d.law_source,
         "plastic_young_modulus_mpa": d.law_plastic_mpa,
     }

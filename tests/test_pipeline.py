@@ -198,6 +198,8 @@ def test_written_ribbons_are_separated_and_inside(written):
     # centre lines of this cylinder's layout that reach within w/2 + gap of the outline are
     # clipped (20 with libigl 2.5, 33 with 2.6, whose curvature fit moves the stripes slightly);
     # none of them comes within the gap of another ribbon, none gets too short
+    # the printed area against what Eq. 5.15 asks the flattening for (inverse.coverage)
+    assert 0.6 < rep["printed_over_asked_area"] <= 1.05
     sep = rep["ribbons_separated"]
     assert 10 <= sep["clipped"] <= 40 and sep["trimmed"] == 0 and sep["dropped"] == 0
 
