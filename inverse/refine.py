@@ -34,13 +34,15 @@ class RefineOptions:
     outer (Gauss-Newton) iterations. ftol: stop when an accepted step lowers J by less than
     this fraction. newton_iterations: cap of each equilibrium solve; start_iterations: cap of
     the first one (from the caller's start, e.g. the target itself), which the caller may retry
-    from another start. damping: initial
+    from another start. max_step: largest thickness change of one outer iteration (mm): the
+    warm-started solves stay short and the Gauss-Newton model valid. damping: initial
     Levenberg-Marquardt weight relative to the Gauss-Newton matrix's mean diagonal."""
     bounds: tuple = (0.1, 1.6)
     max_outer: int = 12
     ftol: float = 1e-3
     newton_iterations: int = 400
     start_iterations: int = 150
+    max_step: float = 0.2
     damping: float = 1e-3
     verbose: bool = False
 
@@ -262,7 +264,8 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
         rest = max(float(b @ b) - float(Qb @ Qb), 0.0)
         while True:
             sol = lsq_linear(np.concatenate([Rm, np.sqrt(mu) * np.eye(P)], 0), np.concatenate([Qb, np.zeros(P)]),
-                             bounds=(lo - p, hi - p), method="bvls")
+                             bounds=(np.maximum(lo - p, -options.max_step), np.minimum(hi - p, options.max_step)),
+                             method="bvls")
             step = sol.x
             pred_lin = Rm @ step - Qb
             predicted = float(pred_lin @ pred_lin) + rest   # the Gauss-Newton model's J at the step
