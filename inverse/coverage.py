@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from geometry.meshops import signed_areas
 from inverse.spacing import ribbon_spacing
 from shellfem.errors import SelfshapeError
 
@@ -73,9 +74,7 @@ def printed_over_asked(d) -> float:
     b = d.bounds
     s1 = np.clip(d.flat.sigma1, b[0], b[1])
     s2 = np.clip(d.flat.sigma2, b[2], b[3])
-    tri = d.flat.uv[d.F]
-    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    area = np.abs(signed_areas(d.flat.uv, d.F))
     asked = float(np.sum(area * asked_coverage(s1, s2, d.stretch)))
     printed = float(shapely.intersection(ribbon_union(d.ribbons), shapely.Polygon(d.outline)).area)
     return printed / asked if asked > 0 else float("nan")

@@ -21,17 +21,12 @@ from shellfem.errors import SelfshapeError
 
 def deviations(d, X, triangles, targets):
     """Both one-way closest-point deviations (% of the target's bounding-box diagonal) of the
-    sheet X (n, 3) after rigid registration (Kabsch on ``targets``, then ICP, as the
-    verification): {"deviation_pct_bbox": [mean, max] deployed -> target,
+    sheet X (n, 3), registered as the verification does (inverse.verify.deviation_both_ways):
+    {"deviation_pct_bbox": [mean, max] deployed -> target,
     "deviation_target_to_deployed_pct_bbox": [mean, max]}."""
-    import igl
+    from inverse.verify import deviation_both_ways
 
-    from inverse.registration import register
-
-    diag = float(np.linalg.norm(d.V_input.max(0) - d.V_input.min(0)))
-    Xr, dist, _ = register(X, d.V_input, d.F_input, targets)
-    back = np.sqrt(igl.point_mesh_squared_distance(d.V_input, Xr, np.ascontiguousarray(triangles, dtype=np.int64))[0])
-    pct, back = 100.0 * dist / diag, 100.0 * back / diag
+    _, pct, back, _ = deviation_both_ways(d, X, triangles, targets)
     return {"deviation_pct_bbox": [float(pct.mean()), float(pct.max())],
             "deviation_target_to_deployed_pct_bbox": [float(back.mean()), float(back.max())]}
 
@@ -101,7 +96,8 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     p_round = rounded(res.thickness, h, opts.bounds)
     if res.model is not None:         # floor or ceil per ribbon, as the Gauss-Newton model prefers
         lo = np.minimum(rounded(res.thickness - 0.5 * h, h, opts.bounds), p_round)
-        p_round = np.clip(linear_rounding(res.model, res.thickness, lo, h), lo, rounded(np.full(len(lo), 1e9), h, opts.bounds))
+        top = rounded([opts.bounds[1]], h, opts.bounds)[0]           # the thickest printable layer count
+        p_round = np.clip(linear_rounding(res.model, res.thickness, lo, h), lo, top)
     model_r = prob.model_at(p_round)
     rr = prob.solve(model_r, res.q, opts.newton_iterations)
     block = {

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from geometry.meshops import signed_areas
 from inverse.registration import kabsch
 from shellfem.errors import SelfshapeError
 
@@ -85,9 +86,7 @@ def linear_rounding(model, p, candidates_lo, step, sweeps: int = 20) -> np.ndarr
 
 def vertex_areas(sheet) -> np.ndarray:
     """Lumped (one third of each triangle) printed-state area per vertex, mm^2."""
-    P = sheet.points[sheet.triangles]
-    e1, e2 = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]
-    a = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    a = np.abs(signed_areas(sheet.points, sheet.triangles))
     return np.bincount(sheet.triangles.ravel(), weights=np.repeat(a / 3.0, 3), minlength=sheet.n_vertices)
 
 
@@ -97,9 +96,7 @@ def neighbour_pairs(sheet, parameter: np.ndarray, n_parameters: int) -> np.ndarr
     if n_parameters < 2:
         return np.zeros((0, 2), np.int64)
     P = sheet.points[sheet.triangles].mean(1)
-    e1 = sheet.points[sheet.triangles[:, 1]] - sheet.points[sheet.triangles[:, 0]]
-    e2 = sheet.points[sheet.triangles[:, 2]] - sheet.points[sheet.triangles[:, 0]]
-    a = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    a = np.abs(signed_areas(sheet.points, sheet.triangles))
     sel = parameter >= 0
     w = np.bincount(parameter[sel], weights=a[sel], minlength=n_parameters)
     c = np.stack([np.bincount(parameter[sel], weights=a[sel] * P[sel, k], minlength=n_parameters) for k in (0, 1)], 1)

@@ -12,6 +12,21 @@ from inverse.record import Design
 from shellfem.errors import SelfshapeError
 
 
+def deviation_both_ways(d: Design, X: np.ndarray, triangles: np.ndarray, Y0: np.ndarray | None = None):
+    """A deployed sheet X (n, 3) with ``triangles`` registered rigidly to the target of design d
+    (Kabsch on the correspondences Y0, then ICP: inverse.registration.register) and its
+    closest-point distances both ways in % of the target's bounding-box diagonal: (registered X,
+    deployed -> target (n,), target -> deployed (one per target vertex), ICP iterations)."""
+    import igl
+
+    from inverse.registration import register
+
+    diag = float(np.linalg.norm(d.V_input.max(0) - d.V_input.min(0)))
+    Xr, dist, icp_it = register(X, d.V_input, d.F_input, Y0)
+    back = np.sqrt(igl.point_mesh_squared_distance(d.V_input, Xr, np.ascontiguousarray(triangles, dtype=np.int64))[0])
+    return Xr, 100.0 * dist / diag, 100.0 * back / diag, icp_it
+
+
 def verify_design(d: Design, pattern, out_dir: str | None = None, written: list | None = None,
                   sims: list | None = None) -> dict:
     """Simulate ``pattern`` (the geometry.patterns.Pattern of the design d), register the deployed
@@ -21,11 +36,9 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
     that fails or does not converge reports no deviation. With ``out_dir``, deployed.vtu and
     verify.png are written there and their paths appended to ``written``; the Simulation is
     appended to ``sims`` if given (the refinement starts from it)."""
-    import igl
-
     from forward.simulate import simulate
     from inverse.plots import plot_verify
-    from inverse.registration import flat_to_target, register
+    from inverse.registration import flat_to_target
     from inverse.vtu import write_deployed_vtu
 
     t0 = time.perf_counter()
@@ -45,17 +58,12 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
         out["deviation_pct_bbox"] = None
         out["verify_note"] = f"simulation did not converge ({s['reason']}); no deviation reported"
         return out
-    X = sim.positions
-    diag = float(np.linalg.norm(d.V_input.max(0) - d.V_input.min(0)))
     Y0 = flat_to_target(sim.sheet.points, d.flat.uv, d.F, d.V)
-    Xr, dist, icp_it = register(X, d.V_input, d.F_input, Y0)
-    pct = 100.0 * dist / diag
-    back = 100.0 * np.sqrt(igl.point_mesh_squared_distance(d.V_input, Xr, np.ascontiguousarray(
-        sim.sheet.triangles, dtype=np.int64))[0]) / diag
+    Xr, pct, back, icp_it = deviation_both_ways(d, sim.positions, sim.sheet.triangles, Y0)
     out.update({"deviation_pct_bbox": [float(pct.mean()), float(pct.max())],
                 "deviation_target_to_deployed_pct_bbox": [float(back.mean()), float(back.max())],
                 "deviation_p99_pct_bbox": float(np.percentile(pct, 99)), "icp_iterations": int(icp_it),
-                "bbox_diagonal_mm": diag})
+                "bbox_diagonal_mm": float(np.linalg.norm(d.V_input.max(0) - d.V_input.min(0)))})
     if out_dir is not None:
         written = [] if written is None else written
         p = os.path.join(out_dir, "deployed.vtu")
