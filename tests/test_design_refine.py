@@ -68,3 +68,11 @@ def test_refine_a_small_cap_lands_closer_than_the_open_loop(tmp_path):
     np.testing.assert_allclose(t / 0.2, np.round(t / 0.2), atol=1e-9)
     pat = load_pattern(tmp_path / "out" / "pattern.toml")
     assert sorted({e.thickness_mm for e in pat.elements}) == sorted(set(np.round(t, 6).tolist()))
+
+
+@pytest.mark.parametrize("kw,what", [({"mesh_size_mm": -1.0}, "--mesh-size"), ({"mesh_across": 0.0}, "--mesh-across")])
+def test_bad_mesh_options_are_refused_before_anything_is_written(tmp_path, kw, what):
+    V, F = cylinder_patch(n_arc=8, n_len=6)
+    with pytest.raises(SelfshapeError, match=what):
+        design_file(write_obj(tmp_path / "c.obj", V, F), tmp_path / "out", refine=True, **kw)
+    assert not (tmp_path / "out").exists()
