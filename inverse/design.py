@@ -170,7 +170,8 @@ class DesignOptions:
     stretch: fabric pre-stretch s (> 1). diagonal_mm: scale the target to this bounding-box
     diagonal (None: V is already in mm). printer: inverse.printer.Printer (its layer height
     rounds the thickness; None: the default printer). lam: the seed's line-field lambda
-    (<= 0, 1/mm^2). thickness_law: a ThicknessLaw, a CSV path or None (the shipped law).
+    (<= 0, 1/mm^2). thickness_law: a ThicknessLaw, a CSV path or None (the shipped law made at
+    ``stretch``; a law stating another stretch is refused).
     edge_mm: Loop-refine until the mean edge is below it (None: no refinement), while the
     face count stays <= max_faces. bounds: (s1min, s1max, s2min, s2max), default
     stretch_bounds(stretch, ribbon_length, ribbon_width). ribbon_length, ribbon_width: the
@@ -209,7 +210,7 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     from geometry.target import check_disk, normalize, refine
     from inverse.layout import ribbon_layout
     from inverse.printer import Printer
-    from inverse.thickness_law import ThicknessLaw, load_thickness_law
+    from inverse.thickness_law import ThicknessLaw, check_law_stretch, law_for_stretch, load_thickness_law
 
     o = replace(options or DesignOptions(), **overrides)
     stretch, printer, thickness_law, bounds = o.stretch, o.printer, o.thickness_law, o.bounds
@@ -226,7 +227,11 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     if not (isinstance(stretch, (int, float)) and math.isfinite(stretch) and stretch > 1.0):
         raise SelfshapeError(f"design: fabric stretch must be a number > 1, got {stretch!r}")
     printer = Printer() if printer is None else printer
-    law = thickness_law if isinstance(thickness_law, ThicknessLaw) else load_thickness_law(thickness_law)
+    if isinstance(thickness_law, ThicknessLaw):
+        law = thickness_law
+    else:
+        law = law_for_stretch(stretch) if thickness_law is None else load_thickness_law(thickness_law)
+    check_law_stretch(law, stretch)
     bounds = stretch_bounds(stretch, ribbon_length, ribbon_width) if bounds is None else tuple(bounds)
     V0, F0 = check_disk(V, F, where=where)
     V0 = normalize(V0, o.diagonal_mm)

@@ -15,7 +15,11 @@ is strictly monotone in thickness, in the same direction for all spacings of a s
 bilinear interpolant is monotone in thickness at any spacing and can be inverted).
 One comment line may state the plastic the law holds for, ``# plastic_young_modulus_mpa = E``
 (MPa): `selfshape design` then writes that modulus into pattern.toml's [plastic], so that the
-pattern simulates with the material its thicknesses were chosen for.
+pattern simulates with the material its thicknesses were chosen for. Another may state the
+fabric pre-stretch it was made at, ``# fabric_stretch = s``: a law's curvatures hold only at
+that stretch (the misfit scales the curvature), so `design` refuses a law made at another
+stretch than the one it designs for. The shipped laws are ``inverse/data/thickness_law_s<s>.csv``
+(`shipped_laws`); `law_for_stretch` picks the one for a stretch.
 
 Interpolation is bilinear in (thickness, spacing); spacings outside the table are clamped to
 its range (counted). The inverse returns thicknesses rounded to multiples of the printer's
@@ -27,6 +31,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -36,8 +41,11 @@ from shellfem.errors import SelfshapeError, check_number
 COLUMNS = ("thickness_mm", "spacing_mm", "side", "kappa_per_mm")
 SIDES = ("front", "back")
 PLASTIC_KEY = "plastic_young_modulus_mpa"
-#: The law shipped with the project (see the file's provenance header).
-DEFAULT_LAW = os.path.join(os.path.dirname(__file__), "data", "thickness_law_s1.6.csv")
+STRETCH_KEY = "fabric_stretch"
+DATA_DIR = os.path.join(os.path.dirname(__file__), "data")
+#: The law shipped with the project for the default stretch 1.6 (see the file's provenance header).
+DEFAULT_LAW = os.path.join(DATA_DIR, "thickness_law_s1.6.csv")
+_SHIPPED = re.compile(r"^thickness_law_s(\d+(?:\.\d+)?)\.csv$")
 
 
 @dataclass
@@ -52,11 +60,13 @@ class SideTable:
 @dataclass
 class ThicknessLaw:
     """A loaded law: per side a SideTable; provenance = the comment lines; source = file;
-    plastic_young_modulus_mpa: the plastic the law holds for (MPa), None if not stated."""
+    plastic_young_modulus_mpa: the plastic the law holds for (MPa), None if not stated;
+    stretch: the fabric pre-stretch it was made at, None if not stated."""
     sides: dict
     provenance: list = field(default_factory=list)
     source: str = "<table>"
     plastic_young_modulus_mpa: float | None = None
+    stretch: float | None = None
 
     def table(self, side: str) -> SideTable:
         if side not in self.sides:
@@ -103,14 +113,18 @@ def parse_thickness_law(text: str, source: str = "<table>") -> ThicknessLaw:
     sides = {s: _grid(rows_, s, source) for s, rows_ in data.items() if rows_}
     if not sides:
         raise SelfshapeError(f"{source}: no data rows")
-    modulus = None
+    modulus = stretch = None
     for ln in provenance:
         key, eq, value = ln.partition("=")
         if eq and key.strip() == PLASTIC_KEY:
             modulus = _float(value.strip(), f"{source}: {PLASTIC_KEY}")
             if not modulus > 0:
                 raise SelfshapeError(f"{source}: {PLASTIC_KEY} must be > 0, got {modulus:g}")
-    return ThicknessLaw(sides, provenance, source, modulus)
+        if eq and key.strip() == STRETCH_KEY:
+            stretch = _float(value.strip(), f"{source}: {STRETCH_KEY}")
+            if not 1.0 < stretch < 10.0:
+                raise SelfshapeError(f"{source}: {STRETCH_KEY} must be in (1, 10), got {stretch:g}")
+    return ThicknessLaw(sides, provenance, source, modulus, stretch)
 
 
 def _grid(rows, side, source) -> SideTable:
@@ -156,6 +170,37 @@ def load_thickness_law(path=None) -> ThicknessLaw:
     except UnicodeDecodeError:
         raise SelfshapeError(f"{path}: not a UTF-8 text file") from None
     return parse_thickness_law(text, path)
+
+
+def shipped_laws() -> dict:
+    """{fabric stretch: path} of the laws shipped in ``inverse/data`` (thickness_law_s<s>.csv)."""
+    out = {}
+    for name in sorted(os.listdir(DATA_DIR)):
+        m = _SHIPPED.match(name)
+        if m:
+            out[float(m.group(1))] = os.path.join(DATA_DIR, name)
+    return out
+
+
+def law_for_stretch(stretch: float) -> ThicknessLaw:
+    """The shipped law made at fabric stretch ``stretch`` (to 1e-6); a one-line error naming the
+    stretches that are shipped otherwise."""
+    laws = shipped_laws()
+    for s, path in laws.items():
+        if abs(s - float(stretch)) <= 1e-6:
+            return load_thickness_law(path)
+    have = ", ".join(f"{s:g}" for s in laws)
+    raise SelfshapeError(f"no shipped thickness law for fabric stretch {float(stretch):g} (shipped: {have}); "
+                         f"pass --law FILE made at that stretch (studies/thickness_law_sim.py --stretch "
+                         f"{float(stretch):g}) or use a shipped stretch")
+
+
+def check_law_stretch(law: ThicknessLaw, stretch: float) -> None:
+    """Refuse a law that states a fabric stretch other than ``stretch`` (one line naming both)."""
+    if law.stretch is not None and abs(law.stretch - float(stretch)) > 1e-6:
+        raise SelfshapeError(f"{law.source}: the law was made at fabric stretch {law.stretch:g}, the design asks "
+                             f"for {float(stretch):g}: its curvatures do not hold there (pass a law made at "
+                             f"{float(stretch):g}, or --stretch {law.stretch:g})")
 
 
 def format_thickness_law(rows, provenance_lines) -> str:
