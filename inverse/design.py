@@ -210,7 +210,8 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     from geometry.target import check_disk, normalize, refine
     from inverse.layout import ribbon_layout
     from inverse.printer import Printer
-    from inverse.thickness_law import ThicknessLaw, check_law_stretch, law_for_stretch, load_thickness_law
+    from inverse.thickness_law import (ThicknessLaw, check_law_stretch, curvature_reach, law_for_stretch,
+                                       load_thickness_law, reach_warning)
 
     o = replace(options or DesignOptions(), **overrides)
     stretch, printer, thickness_law, bounds = o.stretch, o.printer, o.thickness_law, o.bounds
@@ -281,12 +282,18 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
         raise SelfshapeError(f"{where}: no ribbon is left after keeping them {gap_mm:g} mm apart")
     lap("layout")
     tinfo = assign_thickness(ribbons, law, printer.layer_height_mm)
+    reach = curvature_reach(law, [r.meta["kappa_mean_abs"] for r in ribbons], [r.meta["mu2"] for r in ribbons],
+                            [r.side for r in ribbons],
+                            [float(np.linalg.norm(np.diff(r.path, axis=0), axis=1).sum()) for r in ribbons],
+                            printer.layer_height_mm, diagonal_mm=float(np.linalg.norm(np.ptp(V0, axis=0))),
+                            min_diagonal_mm=4.0 * ribbon_length)
+    reach["warning"] = reach_warning(reach)
     lap("thickness")
     return Design(V=Vf, F=Ff, V_input=V0, F_input=F0, curvature=curv, field=lf, flat=flat, kappa1=kappa1,
                   outline=outline, ribbons=ribbons, stretch=float(stretch), bounds=tuple(bounds),
                   refine_levels=levels, layout_levels=lay_levels, lam=float(o.lam), stop=stop, thickness_info=tinfo,
                   law_source=law.source, law_plastic_mpa=law.plastic_young_modulus_mpa,
-                  times=times, cpu_times=cpu, separation=sep,
+                  times=times, cpu_times=cpu, separation=sep, curvature_reach=reach,
                   coarse_iterations=coarse.iterations if coarse is not None else 0)
 
 

@@ -296,3 +296,76 @@ def thickness_for_curvature(law: ThicknessLaw, kappa, spacing_mm, side: str, lay
             "spacing_clamped": int(sclamp.sum()), "printable_range_mm": [lo, hi],
             "layer_height_mm": float(layer_height_mm)}
     return t.reshape(k.shape), info
+
+
+def curvature_reach(law: ThicknessLaw, kappa, spacing_mm, side, length_mm, layer_height_mm: float,
+                    diagonal_mm: float | None = None, min_diagonal_mm: float = 0.0) -> dict:
+    """How much of the curvature a design asks for the law can give, per side (1/mm, mm).
+
+    kappa, spacing_mm, side, length_mm: per ribbon, the asked |curvature| along it, its spacing
+    mu2, its side and its length (the weight). For each side: the length-weighted 10/50/90 %
+    quantiles of the asked curvature, the law's printable range [kappa at the thickest, at the
+    thinnest printable layer multiple] at the side's median spacing, and the fractions of ribbon
+    length asking for less than the law's lowest (curls too much) or more than its highest
+    curvature. The asked curvature of a target scales as 1 / size, so with ``diagonal_mm`` (the
+    target's bounding-box diagonal) ``diagonal_in_range_mm`` is the range of diagonals at which
+    the median asked curvature of every side lies inside the law's range, cut below at
+    ``min_diagonal_mm`` (a pattern needs room for several ribbon periods for the law's
+    parallel-ribbon behaviour to hold); None if no such size."""
+    kappa, spacing_mm, length_mm = (np.asarray(v, float) for v in (kappa, spacing_mm, length_mm))
+    side = np.asarray(side)
+    out, lo_d, hi_d = {}, 0.0, np.inf
+    for s in SIDES:
+        m = side == s
+        if not m.any() or s not in law.sides:
+            continue
+        k, w = np.abs(kappa[m]), length_mm[m]
+        order = np.argsort(k)
+        cw = np.cumsum(w[order]) / w.sum()
+        q = {f"p{int(p * 100)}": float(k[order][min(np.searchsorted(cw, p), len(k) - 1)]) for p in (0.1, 0.5, 0.9)}
+        mu_med = float(np.median(spacing_mm[m]))
+        tab = law.table(s)
+        t_lo, t_hi = printable_range(tab, layer_height_mm)
+        k_ends = curvature(law, [t_lo, t_hi], [mu_med, mu_med], s)
+        k_min, k_max = float(k_ends.min()), float(k_ends.max())
+        below = float(w[k < k_min].sum() / w.sum())
+        above = float(w[k > k_max].sum() / w.sum())
+        out[s] = {"asked_per_mm": q, "law_range_per_mm": [k_min, k_max], "at_spacing_mm": mu_med,
+                  "printable_thickness_mm": [t_lo, t_hi], "length_below_range": round(below, 4),
+                  "length_above_range": round(above, 4)}
+        if diagonal_mm is not None and q["p50"] > 0:
+            lo_d = max(lo_d, diagonal_mm * q["p50"] / k_max)
+            hi_d = min(hi_d, diagonal_mm * q["p50"] / k_min) if k_min > 0 else hi_d
+    if diagonal_mm is not None and out:
+        out["diagonal_mm"] = float(diagonal_mm)
+        lo_d = max(lo_d, float(min_diagonal_mm))
+        out["diagonal_in_range_mm"] = [float(lo_d), float(hi_d)] if lo_d <= hi_d and np.isfinite(hi_d) else None
+    return out
+
+
+def reach_warning(reach: dict, threshold: float = 0.5) -> str | None:
+    """One sentence when more than ``threshold`` of a side's ribbon length asks for curvature
+    outside the law's range (the deployed shape then curls more, or less, than the target), with
+    the size at which it would not; None otherwise."""
+    parts = []
+    for s in SIDES:
+        r = reach.get(s)
+        if not r:
+            continue
+        lo, hi = r["law_range_per_mm"]
+        if r["length_below_range"] > threshold:
+            parts.append(f"{s}: {100 * r['length_below_range']:.0f} % of the ribbon length asks for less curvature "
+                         f"(median {r['asked_per_mm']['p50']:.3g} 1/mm) than the law's lowest {lo:.3g} 1/mm, "
+                         f"so it will curl more than the target")
+        elif r["length_above_range"] > threshold:
+            parts.append(f"{s}: {100 * r['length_above_range']:.0f} % of the ribbon length asks for more curvature "
+                         f"(median {r['asked_per_mm']['p50']:.3g} 1/mm) than the law's highest {hi:.3g} 1/mm")
+    if not parts:
+        return None
+    rng = reach.get("diagonal_in_range_mm")
+    if rng:
+        hint = f"; at a diagonal of {rng[0]:.0f}-{rng[1]:.0f} mm (--diagonal) it would be in range"
+    else:
+        hint = ("; no size of this target is in range with these ribbons: a law that reaches it is needed "
+                "(another --stretch, or --law for a softer plastic)")
+    return "; ".join(parts) + hint

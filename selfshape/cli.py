@@ -52,6 +52,9 @@ def _cmd_design(a):
                     thickness_law=a.law, lam=a.lam, printer=printer, verify_iterations=a.verify_iterations,
                     refine=a.refine, mesh_size_mm=a.mesh_size, mesh_across=a.mesh_across, verbose=a.verbose)
     print(f"design written to {a.output} in {r['time_s']:.1f} s")
+    warning = (r.get("curvature_reach") or {}).get("warning")
+    if warning:
+        print(f"warning: {warning}")
     if r.get("deviation_pct_bbox"):
         dev, back = r["deviation_pct_bbox"], r["deviation_target_to_deployed_pct_bbox"]
         print(f"deployed -> target {dev[0]:.2f} / {dev[1]:.2f} %, target -> deployed {back[0]:.2f} / {back[1]:.2f} % "
