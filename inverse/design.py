@@ -167,7 +167,7 @@ def coarsen_for_layout(F0, levels: int, coarse_levels: int, uv, area, dir1, sigm
 class DesignOptions:
     """The choices of an inverse design (mm, 1/mm).
 
-    stretch: fabric pre-stretch s (> 1). diagonal_mm: scale the target to this bounding-box
+    stretch: fabric pre-stretch s (> 1; "auto" in `design_file`: `choose_stretch`). diagonal_mm: scale the target to this bounding-box
     diagonal (None: V is already in mm). printer: inverse.printer.Printer (its layer height
     rounds the thickness; None: the default printer). lam: the seed's line-field lambda
     (<= 0, 1/mm^2). thickness_law: a ThicknessLaw, a CSV path or None (the shipped law made at
@@ -297,6 +297,52 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
                   coarse_iterations=coarse.iterations if coarse is not None else 0)
 
 
+def reach_score(d: Design) -> dict:
+    """How well a design's law and flattening fit its target, for ranking stretches: the
+    length-weighted ``log_excess`` of the asked curvature over both sides
+    (inverse.thickness_law.curvature_reach), the flattening's mean out-of-bounds area fraction,
+    and their sum ``score`` (lower is better; a factor e off in curvature on average costs as much
+    as all of the area out of the stretch bounds)."""
+    reach = d.curvature_reach or {}
+    ex, wsum = 0.0, 0.0
+    for side in ("front", "back"):
+        r = reach.get(side)
+        if r:
+            n = sum(rb.side == side for rb in d.ribbons)
+            ex, wsum = ex + n * r["log_excess"], wsum + n
+    ex = ex / wsum if wsum else 0.0
+    oob = float(np.mean(d.flat.sigma_out_of_bounds_pct)) / 100.0
+    return {"stretch": d.stretch, "log_excess": round(ex, 4), "out_of_bounds": round(oob, 4),
+            "score": round(ex + oob, 4)}
+
+
+def choose_stretch(V, F, options: DesignOptions | None = None, *, where: str = "target", **overrides):
+    """`design --stretch auto`: the design at each stretch a law exists for, and the best by
+    `reach_score`. With no thickness_law, the candidates are the shipped laws' stretches
+    (inverse.thickness_law.shipped_laws); with a law that states its stretch, that one only; a law
+    that does not state it cannot choose (one-line error). Ties go to the larger stretch (more
+    contraction for the flattening). Returns (Design, {"candidates": [...], "chosen": s})."""
+    from inverse.thickness_law import ThicknessLaw, load_thickness_law, shipped_laws
+
+    o = replace(options or DesignOptions(), **overrides)
+    if o.thickness_law is None:
+        candidates = sorted(shipped_laws(), reverse=True)
+    else:
+        law = o.thickness_law if isinstance(o.thickness_law, ThicknessLaw) else load_thickness_law(o.thickness_law)
+        if law.stretch is None:
+            raise SelfshapeError(f"{law.source}: --stretch auto needs a law that states its fabric stretch "
+                                 f"(a '# fabric_stretch = s' line); give --stretch instead")
+        candidates = [law.stretch]
+    best, rows = None, []
+    for s in candidates:
+        d = design(V, F, o, where=where, stretch=s)
+        row = reach_score(d)
+        rows.append(row)
+        if best is None or row["score"] < best[1]["score"] - 1e-9:
+            best = (d, row)
+    return best[0], {"candidates": rows, "chosen": best[1]["stretch"]}
+
+
 # ----------------------------------------------------------------------------- the verb
 VERIFY_KEYS = ("verify_converged", "verify_reason", "verify_newton_iterations", "verify_n_triangles",
                "verify_simulation_s", "deviation_pct_bbox", "deviation_target_to_deployed_pct_bbox",
@@ -399,7 +445,11 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
     written: list = []
     try:
         o = replace(options or DesignOptions(), **overrides)
-        d = design(V, F, o, where=name)
+        choice = None
+        if o.stretch == "auto":
+            d, choice = choose_stretch(V, F, o, where=name)
+        else:
+            d = design(V, F, o, where=name)
         t = time.perf_counter()
         os.makedirs(out_dir, exist_ok=True)
         for stale in OUTPUTS:                 # an earlier run's files must not mix with this run's
@@ -422,6 +472,8 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
         d.times["write"] = time.perf_counter() - t
         rep = {"target": os.path.abspath(str(target_path)), "time_s": None}
         rep.update(report_dict(d))
+        if choice is not None:
+            rep["stretch_choice"] = choice
         rep["stages_s"] = {k: round(v, 3) for k, v in d.times.items()}
         rep["stages_cpu_s"] = {k: round(v, 3) for k, v in d.cpu_times.items()}
         rep["time_s"] = round(time.perf_counter() - t_start, 3)

@@ -307,7 +307,8 @@ def curvature_reach(law: ThicknessLaw, kappa, spacing_mm, side, length_mm, layer
     quantiles of the asked curvature, the law's printable range [kappa at the thickest, at the
     thinnest printable layer multiple] at the side's median spacing, and the fractions of ribbon
     length asking for less than the law's lowest (curls too much) or more than its highest
-    curvature. The asked curvature of a target scales as 1 / size, so with ``diagonal_mm`` (the
+    curvature, and ``log_excess``, the length-weighted mean of |ln(asked / nearest reachable)|
+    (0 when all is in range; 0.69 = a factor 2 off on average), which ranks laws for a target. The asked curvature of a target scales as 1 / size, so with ``diagonal_mm`` (the
     target's bounding-box diagonal) ``diagonal_in_range_mm`` is the range of diagonals at which
     the median asked curvature of every side lies inside the law's range, cut below at
     ``min_diagonal_mm`` (a pattern needs room for several ribbon periods for the law's
@@ -328,11 +329,13 @@ def curvature_reach(law: ThicknessLaw, kappa, spacing_mm, side, length_mm, layer
         t_lo, t_hi = printable_range(tab, layer_height_mm)
         k_ends = curvature(law, [t_lo, t_hi], [mu_med, mu_med], s)
         k_min, k_max = float(k_ends.min()), float(k_ends.max())
+        kk = np.maximum(k, 1e-6)
+        excess = float(np.sum(w * np.abs(np.log(kk / np.clip(kk, k_min, k_max)))) / w.sum())
         below = float(w[k < k_min].sum() / w.sum())
         above = float(w[k > k_max].sum() / w.sum())
         out[s] = {"asked_per_mm": q, "law_range_per_mm": [k_min, k_max], "at_spacing_mm": mu_med,
                   "printable_thickness_mm": [t_lo, t_hi], "length_below_range": round(below, 4),
-                  "length_above_range": round(above, 4)}
+                  "length_above_range": round(above, 4), "log_excess": round(excess, 4)}
         if diagonal_mm is not None and q["p50"] > 0:
             lo_d = max(lo_d, diagonal_mm * q["p50"] / k_max)
             hi_d = min(hi_d, diagonal_mm * q["p50"] / k_min) if k_min > 0 else hi_d

@@ -7,6 +7,7 @@ stderr naming the problem; an unexpected failure exits 3, also with one line.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 
@@ -28,6 +29,15 @@ def _levels(text):
     if n < 0:
         raise argparse.ArgumentTypeError(f"must be 'auto' or an integer >= 0, got {text!r}")
     return n
+
+
+def _stretch(text):
+    if text == "auto":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number > 1 or 'auto', got {text!r}") from None
 
 
 def _cmd_simulate(a):
@@ -52,6 +62,11 @@ def _cmd_design(a):
                     thickness_law=a.law, lam=a.lam, printer=printer, verify_iterations=a.verify_iterations,
                     refine=a.refine, mesh_size_mm=a.mesh_size, mesh_across=a.mesh_across, verbose=a.verbose)
     print(f"design written to {a.output} in {r['time_s']:.1f} s")
+    if r.get("stretch_choice"):
+        c = r["stretch_choice"]
+        print("stretch auto: " + ", ".join(f"s {row['stretch']:g}: curvature off by x{math.exp(row['log_excess']):.2f}, "
+                                         f"{100 * row['out_of_bounds']:.1f} % out of bounds" for row in c["candidates"])
+              + f" -> {c['chosen']:g}")
     warning = (r.get("curvature_reach") or {}).get("warning")
     if warning:
         print(f"warning: {warning}")
@@ -130,7 +145,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pattern.toml [mesh] across: triangle rows across a ribbon (default 2)")
     d.add_argument("-v", "--verbose", action="store_true")
     d.add_argument("--diagonal", type=float, default=110.0, help="scale the target to this bounding-box diagonal, mm")
-    d.add_argument("--stretch", type=float, default=1.6, help="fabric pre-stretch s")
+    d.add_argument("--stretch", type=_stretch, default=1.6,
+                   help="fabric pre-stretch s, or 'auto': the shipped law's stretch that fits the target best")
     d.add_argument("--law", default=None, help="curvature-law CSV (default: the shipped inverse/data table)")
     d.add_argument("--lam", type=float, default=0.0, help="line-field lambda of the seed (<= 0, 1/mm^2)")
     d.add_argument("--printer", default=None,
