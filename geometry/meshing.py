@@ -86,7 +86,7 @@ def estimate_triangles(outline_area: float, piece_areas, piece_perimeters, piece
     cover sqrt(3)/4 h^2 each): the fabric at ``size_mm``, each printed piece at its size h_p,
     and the graded band around each piece, where the size grows as h_p + grading * d, which
     adds perimeter / grading * (1 / h_p - 1 / size_mm) per unit density. Overlaps are
-    counted twice (an upper estimate); a Gmsh mesh has 0.5-1.3x this (0.5 where a print covers the whole fabric)."""
+    counted twice (an upper estimate); a Gmsh mesh has 0.5-2x this (0.5 where a print covers the whole fabric, up to 2 for small stars)."""
     c = 4.0 / math.sqrt(3.0)
     hp = np.minimum(np.asarray(piece_h, float), size_mm)
     n = outline_area / size_mm ** 2

@@ -364,7 +364,12 @@ def _print(raw, src, outline, base_dir, confine=False) -> list[PrintedElement]:
     for f in files:
         path = gcode_path(f, base_dir, f"{where} gcode", confine)
         n0, bounds = len(out), None
-        for e in _read_gcode(path, f"{where} {f}", **options):
+        try:
+            read = _read_gcode(path, f"{where} {f}", **options)
+        except SelfshapeError as err:          # "print.gcode: line 3: ...": say which pattern asked for it
+            msg = str(err)
+            raise SelfshapeError(msg if msg.startswith(where) else f"{where} gcode {msg}") from None
+        for e in read:
             g = _polygonal(e.geometry.intersection(outline))
             b = e.geometry.bounds
             bounds = b if bounds is None else (min(bounds[0], b[0]), min(bounds[1], b[1]),

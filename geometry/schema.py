@@ -51,8 +51,9 @@ class Num:
 
     def describe(self) -> str:
         """The range as text, e.g. "[0.1, 2] mm" or "(0, 1e+04] MPa"."""
-        lo = "-inf" if self.lo is None else f"{self.lo:g}"
-        hi = "inf" if self.hi is None else f"{self.hi:g}"
+        fmt = (lambda v: f"{int(v)}") if self.integer else (lambda v: f"{v:g}")
+        lo = "-inf" if self.lo is None else fmt(self.lo)
+        hi = "inf" if self.hi is None else fmt(self.hi)
         br = ("(" if self.lo_open or self.lo is None else "[") + f"{lo}, {hi}" + (
             ")" if self.hi_open or self.hi is None else "]")
         return br + (f" {self.unit}" if self.unit not in ("", "1") else "")
@@ -199,8 +200,28 @@ def model_parameter_spec(parameter) -> Num:
     """The range of a membrane-model Parameter: its own bounds intersected with the unit's cap."""
     cap = MODEL_UNIT_CAPS.get(parameter.unit, Num(-1e6, 1e6, parameter.unit, "a bounded model parameter"))
     lo, hi, lo_open = parameter.lo, parameter.hi, parameter.lo_open
+    capped = False
     if lo is None or lo < cap.lo:
-        lo, lo_open = cap.lo, cap.lo_open
+        lo, lo_open, capped = cap.lo, cap.lo_open, True
     if hi is None or hi > cap.hi:
-        hi = cap.hi
-    return Num(lo, hi, parameter.unit, cap.reason, lo_open=lo_open)
+        hi, capped = cap.hi, True
+    return Num(lo, hi, parameter.unit, cap.reason if capped else "the model's own bounds", lo_open=lo_open)
+
+
+def ranges_markdown() -> str:
+    """The "Ranges" tables of docs/pattern-format.md, generated from this module (a test
+    checks that the document holds exactly this text)."""
+    from shellfem.materials import MEMBRANE_MODELS
+
+    rows = ["| table | key | range | why |", "|---|---|---|---|"]
+    for table, keys in PATTERN_NUMBERS.items():
+        for key, spec in keys.items():
+            rows.append(f"| `[{table}]` | `{key}` | {spec.describe()} | {spec.reason} |")
+    for name, model in MEMBRANE_MODELS.items():
+        for p in model.parameters:
+            spec = model_parameter_spec(p)
+            rows.append(f"| `[fabric.{name}]` | `{p.name}` | {spec.describe()} | {spec.reason} |")
+    rows += ["", "| printer field | range | why |", "|---|---|---|"]
+    for key, spec in PRINTER_NUMBERS.items():
+        rows.append(f"| `{key}` | {spec.describe()} | {spec.reason} |")
+    return "\n".join(rows) + "\n"
