@@ -405,7 +405,7 @@ def test_mesh_budget_refuses_before_meshing():
         assert f"{MAX_TRIANGLES:,}" in stderr and not os.path.exists(os.path.join(d, "o.msh"))
         big = {"fabric": {"rectangle": [200.0, 100.0]}, "ribbon": [{"path": [[1.0, 2.0], [19.0, 2.0]]}],
                "mesh": {"size_mm": 0.05}}
-        assert "would need about 1.8e+07 triangles" in mesh_error(big, d)
+        assert "mesh size 0.05 mm would need about 1.85e+07 triangles" in mesh_error(big, d)
 
 
 @pytest.mark.parametrize("size", [2.0, 0.8])
