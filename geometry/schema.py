@@ -95,9 +95,9 @@ def number(value, name: str, spec: Num):
         raise SelfshapeError(f"{name} must be a finite number in {spec.describe()}, got {v}")
     lo_bad = spec.lo is not None and (v <= spec.lo if spec.lo_open else v < spec.lo)
     hi_bad = spec.hi is not None and (v >= spec.hi if spec.hi_open else v > spec.hi)
-    if lo_bad or hi_bad:
+    if lo_bad or hi_bad:       # the reasons explain the upper ends (lower ones are mostly "positive")
         raise SelfshapeError(f"{name} must be in {spec.describe()}, got {v:.6g}"
-                             + (f" ({spec.reason})" if spec.reason else ""))
+                             + (f" ({spec.reason})" if spec.reason and hi_bad else ""))
     return v
 
 
