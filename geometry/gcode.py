@@ -61,6 +61,10 @@ ARC_TOLERANCE_MM = 0.002
 #: Most extruded segments one file may hold (arcs linearised): the bound on the work a
 #: G-code input can ask for (about 40x a dense 200 x 200 mm print at 0.8 mm beads).
 MAX_SEGMENTS = 2_000_000
+#: Most distinct extrusion heights: stacking layers of different footprints costs an overlay
+#: per layer and thickness class (quadratic in the layers); a print on fabric has a few
+#: layers (2 mm of plastic is 10 at 0.2 mm), 500 is a 100 mm tall object.
+MAX_LAYERS = 500
 
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)"
 _PARAMS_RE = re.compile(r"\s*([A-Z])\s*(" + _NUMBER + r"|(?=\s|$))")     # a bare letter is a flag
@@ -526,6 +530,10 @@ def _parse(path):
     if len(seg):
         zr = np.round(seg["z"], 4)
         levels, seg["layer"] = np.unique(zr, return_inverse=True)
+        if len(levels) > MAX_LAYERS:
+            first = int(seg["line"][np.flatnonzero(seg["layer"] == MAX_LAYERS)[0]])
+            _fail(name, first, f"more than {MAX_LAYERS} extrusion heights (layers); selfshape reads prints of at "
+                               f"most that many (a print on fabric has a few)")
     else:
         levels = np.zeros(0)
     meta = st.meta

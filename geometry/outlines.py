@@ -14,7 +14,7 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon
 
-from geometry.schema import COORD_MAX_MM, MIN_FEATURE_MM
+from geometry.schema import COORD_MAX_MM
 from shellfem.errors import SelfshapeError
 
 

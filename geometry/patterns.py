@@ -32,7 +32,7 @@ from geometry.expressions import compile_field
 from geometry.schema import (MIN_FABRIC_WIDTH_MM, MIN_FEATURE_MM, PATTERN_NUMBERS, check_keys, model_parameter_spec,
                              number)
 from geometry.stars import star_elements
-from shellfem.errors import SelfshapeError, check_number
+from shellfem.errors import SelfshapeError
 from geometry.tomlfile import read_toml
 from shellfem.materials import MEMBRANE_MODELS, Fabric, Plastic
 

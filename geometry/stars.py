@@ -96,8 +96,9 @@ def star_elements(outline: Polygon, spacing: float, arm_length, thickness, arm_w
     if spacing < 1e-3 * math.sqrt(outline.area) and outline.area / (spacing * spacing) > 2e6:
         raise SelfshapeError(f"{where} spacing_mm = {spacing:g} gives more than a million stars")
     centres, idx = lattice_points(outline, spacing, origin, angle_deg)
-    if len(centres) == 0:
-        return []
+    if len(centres) == 0:          # never a silent empty print
+        raise SelfshapeError(f"{where} no lattice node lies inside the fabric (spacing_mm = {spacing:g}); "
+                             f"use a smaller spacing or move origin")
     c = outline.centroid
     x, y = centres[:, 0], centres[:, 1]
     xr, yr = np.round(x, 9) + 0.0, np.round(y, 9) + 0.0        # for messages

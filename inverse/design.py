@@ -50,7 +50,7 @@ from inverse.separation import separate_ribbons, simplify_paths
 from inverse.to_pattern import pattern_dict
 from inverse.verify import verify_design
 from inverse.vtu import write_flat_vtu
-from shellfem.errors import SelfshapeError, check_number
+from shellfem.errors import SelfshapeError
 
 RIBBON_LENGTH_MM, RIBBON_WIDTH_MM = 15.0, 1.5
 #: Every file design_file may write (removed from the output directory before a new run writes).
@@ -453,9 +453,10 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
     solver_options({k: v for k, v in (("max_iterations", verify_iterations), ("metric_floor", metric_floor))
                     if v is not None}, "verification [solver] (--verify-iterations, --metric-floor)")
     # [mesh] of the written pattern, checked before the design runs (named as the caller gave them)
-    check_number("design: mesh size (--mesh-size, mesh_size_mm)", mesh_size_mm, 0.0, lo_open=True)
+    from geometry.schema import PATTERN_NUMBERS, number
+    number(mesh_size_mm, "design: mesh size (--mesh-size, mesh_size_mm)", PATTERN_NUMBERS["mesh"]["size_mm"])
     if mesh_across is not None:
-        check_number("design: rows across a ribbon (--mesh-across, mesh_across)", mesh_across, 0.0, lo_open=True)
+        number(mesh_across, "design: rows across a ribbon (--mesh-across, mesh_across)", PATTERN_NUMBERS["mesh"]["across"])
     name = os.path.basename(str(target_path))
     V, F = read_mesh(target_path)
     out_dir = os.fspath(out_dir)

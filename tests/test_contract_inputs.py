@@ -299,6 +299,7 @@ def test_misspelt_key_names_file_key_and_closest(table, allowed, data):
     ("[[region]]\npolygon = [[10, 10], [12, 10], [12, 10.00001]]\nthickness_mm = 0.4",
      "[[region]] #2: polygon is a"),
     ("[stars]\nspacing_mm = 10\narm_length = 1e-9", "[stars] arm_length gives a 1e-08 mm arm"),
+    ("[stars]\nspacing_mm = 500\norigin = [300, 300]", "[stars] no lattice node lies inside the fabric"),
 ])
 def test_cases_of_the_issue(text, word):
     """Appended to a valid pattern (its own tables replaced where the text repeats them)."""
@@ -449,6 +450,16 @@ def test_gcode_segment_cap_names_the_line(tmp_path, monkeypatch):
     (tmp_path / "long.gcode").write_text("\n".join(lines) + "\n")
     with pytest.raises(SelfshapeError, match=r"long.gcode: line 53: more than 50 extruded segments"):
         gc.read_gcode(tmp_path / "long.gcode")
+
+
+def test_gcode_layer_cap_names_the_line(tmp_path, monkeypatch):
+    import geometry.gcode as gc
+    from shellfem.errors import SelfshapeError
+    monkeypatch.setattr(gc, "MAX_LAYERS", 5)
+    lines = ["M83"] + [f"G1 Z{0.2 * (k + 1):.1f}\nG0 X0 Y{k}\nG1 X10 Y{k} E0.5" for k in range(8)]
+    (tmp_path / "tall.gcode").write_text("\n".join(lines) + "\n")
+    with pytest.raises(SelfshapeError, match=r"tall.gcode: line 19: more than 5 extrusion heights"):
+        gc.read_gcode(tmp_path / "tall.gcode")
 
 
 @pytest.mark.parametrize("line, word", [
