@@ -84,7 +84,7 @@ def polygon(points, where: str = "polygon") -> Polygon:
     Raises SelfshapeError naming ``where`` if there are fewer than 3 distinct points, a
     non-finite coordinate, zero area or a self-intersection (with its location).
     """
-    p = as_points(points, where, min_points=1)
+    p = as_points(points, f"{where}: polygon", min_points=1)
     keep = np.ones(len(p), bool)
     keep[1:] = np.any(p[1:] != p[:-1], axis=1)      # drop consecutive duplicates
     p = p[keep]

@@ -365,7 +365,7 @@ def _print(raw, src, outline, base_dir, confine=False) -> list[PrintedElement]:
         path = gcode_path(f, base_dir, f"{where} gcode", confine)
         n0, bounds = len(out), None
         try:
-            read = _read_gcode(path, f"{where} {f}", **options)
+            read = _read_gcode(path, f"{where} gcode {f}", **options)
         except SelfshapeError as err:          # "print.gcode: line 3: ...": say which pattern asked for it
             msg = str(err)
             raise SelfshapeError(msg if msg.startswith(where) else f"{where} gcode {msg}") from None

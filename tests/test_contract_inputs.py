@@ -31,7 +31,7 @@ import time
 import numpy as np
 import pytest
 import tomli_w
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from geometry import patterns
@@ -256,6 +256,37 @@ def test_any_printer_in_range_writes_finite_bounded_gcode(fields):
     feeds = [float(v) for v in re.findall(r"^G[01] .*F([0-9.]+)", text, re.MULTILINE)]
     words = [float(v) for v in re.findall(r"(?<=[XYZEFS])(-?[0-9.]+)", text)]
     assert feeds and max(feeds) <= 60 * 1000 and all(math.isfinite(v) and len(repr(v)) < 20 for v in words)
+
+
+def other_keys():
+    """(table, key) of every non-numeric key the reader accepts (choices, points, files, flags):
+    patterns.KEYS and the [fabric] shape and model keys, minus the schema's numeric ones."""
+    rows = [("fabric", k) for k in ("rectangle", "outline", "model")]
+    rows += [(t, k) for t, keys in patterns.KEYS.items() for k in sorted(keys)
+             if k not in PATTERN_NUMBERS.get(t, {})]
+    return rows
+
+
+#: values of the wrong kind for any non-numeric key: none is a valid choice, point list or file
+WRONG_KIND = st.sampled_from([True, {"a": 1}, "zz-not-valid", 12345, [[True, 1.0]], [["x", "y"]], -7.5,
+                              [[1.0, 2.0, 3.0, 4.0]], [[1e300, 1e300], [2e300, 1e300], [1e300, 3e300]]])
+
+
+@pytest.mark.parametrize("table,key", other_keys(), ids=lambda v: v)
+@SETTINGS
+@given(value=WRONG_KIND)
+def test_other_keys_of_the_wrong_kind_name_the_key(table, key, value):
+    assume(not (key == "boundary" and value is True))        # the one valid value among them
+    raw = base_pattern()
+    if table == "support":
+        raw["support"][0].update({"fix": "xyz"} if key == "position" else {})
+        if key == "boundary":
+            raw["support"][0].pop("points")
+    set_key(raw, table, key, value) if table not in ("support", "print") else \
+        (raw["support"][0].__setitem__(key, value) if table == "support" else raw["print"].__setitem__(key, value))
+    with folder() as d:
+        line = mesh_error(raw, d)
+    assert key in line, line
 
 
 # ---------------------------------------------------------------- unknown keys, from the schema

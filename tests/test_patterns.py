@@ -121,7 +121,7 @@ BAD = [
     (lambda r: r["region"][0].pop("polygon"), "[[region]] #1: missing polygon"),
     (lambda r: r["region"][0].update(polygon=[[0, 0], [1, 1]]), "[[region]] #1: polygon needs at least 3 distinct"),
     (lambda r: r["region"][0].update(polygon=[[0, 0], [1, 1], [2, 2]]), "[[region]] #1: polygon"),
-    (lambda r: r["region"][0].update(polygon="square"), "[[region]] #1 must be a list of [x, y] points"),
+    (lambda r: r["region"][0].update(polygon="square"), "[[region]] #1: polygon must be a list of [x, y] points"),
     (lambda r: r["fabric"].update(stretch=0.9), "[fabric]: stretch must be in [1, 3], got 0.9"),
     (lambda r: r["fabric"].update(stretch=[1.2, 0.95]), "[fabric]: stretch must be in [1, 3], got 0.95"),
     (lambda r: r["fabric"].update(stretch=[1.2, 1.3, 1.4]), "[fabric]: stretch must be a number or [sx, sy]"),
@@ -205,7 +205,7 @@ def test_gcode_print_entry_and_bare_gcode(tmp_path):
     bare = load_pattern(gpath)
     assert bare.outline.bounds == pytest.approx((9.25 - 10, 9.25 - 10, 40.75 + 10, 20.75 + 10))
     assert len(bare.elements) == 2 and bare.fabric.stretch == (1.35, 1.35)
-    with pytest.raises(SelfshapeError, match=r"\[print\] nothere.gcode: G-code file .* not found"):
+    with pytest.raises(SelfshapeError, match=r"\[print\] gcode nothere.gcode: G-code file .* not found"):
         load_pattern({"fabric": {"rectangle": [30.0, 30.0]}, "print": {"gcode": "nothere.gcode"}})
 
 
