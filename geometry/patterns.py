@@ -14,6 +14,10 @@ This module owns the format both ways: :func:`fabric_table` and :func:`plastic_t
 the inverses of the [fabric] and [plastic] parse (every field), :func:`write_pattern`
 writes a pattern dict as TOML. [fabric.<model>] tables are those of the membrane models
 registered in shellfem.materials, validated against each model's parameter schema.
+
+Every numeric key is checked strictly (no bools, no strings) against its physical range in
+geometry.schema, unknown keys are errors suggesting the closest valid one, and a pattern read
+from a file may only name [print] files inside its folder and must print something.
 """
 from __future__ import annotations
 
@@ -51,7 +55,8 @@ KEYS = {
     "mesh": {"size_mm", "across"},
     "print": {"gcode", "side", "origin_mm"},
 }
-#: (key, Fabric attribute, lower bound, bound exclusive) of the numeric [fabric] entries
+#: (key, Fabric attribute, lower bound, bound exclusive) of the numeric [fabric] entries; the
+#: reader checks them against the (tighter) physical ranges of geometry.schema.PATTERN_NUMBERS
 FABRIC_FIELDS = (("thickness_mm", "thickness", 0.0, True), ("young_modulus_mpa", "young_modulus", 0.0, True),
                  ("poisson", "poisson", None, False), ("bending_stiffness_nmm", "bending_stiffness", 0.0, False),
                  ("course_angle_deg", "course_angle_deg", None, False),
