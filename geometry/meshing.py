@@ -33,6 +33,7 @@ from shapely.geometry import Polygon
 from geometry.arrangement import GRID, arrangement, feature_width, piece_regions, printed_pieces
 from geometry.mesh_quality import mesh_quality
 from geometry.msh import add_physical_groups, write_msh
+from geometry.schema import MAX_TRIANGLES
 from shellfem.errors import SelfshapeError
 from shellfem.sheet import Sheet
 
@@ -77,6 +78,29 @@ def quantise_size(h, size_mm: float, base: float | None = None) -> np.ndarray:
     base = float(h.min()) if base is None else min(float(base), size_mm)
     k = np.floor(np.log(h / base) / math.log(SIZE_STEP) + 1e-9)
     return np.where(h >= size_mm, size_mm, np.minimum(base * SIZE_STEP ** np.maximum(k, 0), size_mm))
+
+
+def estimate_triangles(outline_area: float, piece_areas, piece_perimeters, piece_h, size_mm: float,
+                       grading: float = GRADING) -> float:
+    """Triangles a mesh will have, estimated before meshing (equilateral triangles of edge h
+    cover sqrt(3)/4 h^2 each): the fabric at ``size_mm``, each printed piece at its size h_p,
+    and the graded band around each piece, where the size grows as h_p + grading * d, which
+    adds perimeter / grading * (1 / h_p - 1 / size_mm) per unit density. Overlaps are
+    counted twice (an upper estimate); a Gmsh mesh has 0.5-2x this (0.5 where a print covers the whole fabric, up to 2 for small stars)."""
+    c = 4.0 / math.sqrt(3.0)
+    hp = np.minimum(np.asarray(piece_h, float), size_mm)
+    n = outline_area / size_mm ** 2
+    n += float(np.sum(np.asarray(piece_areas, float) / hp ** 2))
+    n += float(np.sum(np.asarray(piece_perimeters, float) / grading * (1.0 / hp - 1.0 / size_mm)))
+    return c * n
+
+
+def check_mesh_budget(where: str, n_estimate: float, size_mm: float) -> None:
+    """Refuse a mesh estimated above MAX_TRIANGLES, in one line, before Gmsh runs for hours."""
+    if n_estimate > MAX_TRIANGLES:
+        raise SelfshapeError(f"{where}: mesh size {size_mm:g} mm would need about {n_estimate:.3g} triangles, "
+                             f"more than the {MAX_TRIANGLES:,} selfshape meshes; use a larger [mesh] size_mm "
+                             f"(or --size) or a smaller [mesh] across")
 
 
 # ---------------------------------------------------------------- gmsh model
@@ -233,15 +257,16 @@ def _mesh_model(gmsh, pattern, size_mm, across, grading, algorithm, kernel):
     across = float(getattr(pattern, "mesh_across", ACROSS) if across is None else across)
     if not (math.isfinite(size) and size > 0):
         raise SelfshapeError(f"{pattern.source}: mesh size must be > 0 mm, got {size_mm!r}")
-    scale = math.sqrt(pattern.outline.area)
-    if scale / size > 5e3:
-        raise SelfshapeError(f"{pattern.source}: mesh size {size:g} mm is too small for a {scale:.4g} mm fabric")
+    if not (math.isfinite(across) and across > 0):
+        raise SelfshapeError(f"{pattern.source}: mesh across must be > 0, got {across!r}")
     if kernel not in ("geo", "occ"):
         raise ValueError(f"kernel must be 'geo' or 'occ', got {kernel!r}")
     geoms, thick, side, _ = printed_pieces(pattern.elements)
-    regions = piece_regions(geoms)
     floor = size * 1e-3
     piece_h = np.maximum(feature_width(geoms) / across, floor)
+    check_mesh_budget(pattern.source, estimate_triangles(pattern.outline.area, shapely.area(geoms),
+                                                         shapely.length(geoms), piece_h, size, grading), size)
+    regions = piece_regions(geoms)
     faces = _build_geo(gmsh, pattern.outline, geoms) if kernel == "geo" else \
         _build_occ(gmsh, pattern.outline, geoms, size)
     printed = [f for f, face in faces.items() if len(face.pieces)]

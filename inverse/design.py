@@ -50,7 +50,7 @@ from inverse.separation import separate_ribbons, simplify_paths
 from inverse.to_pattern import pattern_dict
 from inverse.verify import verify_design
 from inverse.vtu import write_flat_vtu
-from shellfem.errors import SelfshapeError, check_number
+from shellfem.errors import SelfshapeError
 
 RIBBON_LENGTH_MM, RIBBON_WIDTH_MM = 15.0, 1.5
 #: Every file design_file may write (removed from the output directory before a new run writes).
@@ -199,6 +199,25 @@ class DesignOptions:
     layout_edge_mm: float | None = 2.0
 
 
+#: A target whose vertices all lie within this fraction of its bounding-box diagonal of one
+#: plane is flat: there is no curvature to design for (0.11 mm at the default 110 mm).
+FLAT_REL = 1e-3
+
+
+def _check_curved(V, where: str) -> None:
+    """Refuse a flat target (a single triangle is one) in one line: its curvature is zero
+    everywhere, so the layout would print arbitrary ribbons that curl it away from flat;
+    the design of a flat sheet is to print nothing."""
+    c = V - V.mean(axis=0)
+    diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    normal = np.linalg.svd(c, full_matrices=False)[2][-1]
+    off = float(np.abs(c @ normal).max())
+    if off <= FLAT_REL * diag:
+        raise SelfshapeError(f"{where}: the target is flat ({len(V)} vertices within {off:.2g} mm of a plane, "
+                             f"{FLAT_REL:g} of its {diag:.4g} mm diagonal): a flat sheet has no curvature to "
+                             f"design for")
+
+
 def design(V, F, options: DesignOptions | None = None, *, where: str = "target", **overrides) -> Design:
     """Inverse design of a disk-topology target (V (n, 3), F (m, 3)); see the module doc.
 
@@ -239,6 +258,7 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     total_area = float(face_areas(V0, F0).sum())
     if not total_area > 0:
         raise SelfshapeError(f"{where}: zero total area")
+    _check_curved(V0, where)
     levels = 0 if o.edge_mm is None else refine_levels_for_edge(V0, F0, o.edge_mm, o.max_faces)
     Vf, Ff = refine(V0, F0, levels) if levels else (V0, F0)
     Ff = np.ascontiguousarray(Ff, dtype=np.int64)
@@ -433,9 +453,10 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
     solver_options({k: v for k, v in (("max_iterations", verify_iterations), ("metric_floor", metric_floor))
                     if v is not None}, "verification [solver] (--verify-iterations, --metric-floor)")
     # [mesh] of the written pattern, checked before the design runs (named as the caller gave them)
-    check_number("design: mesh size (--mesh-size, mesh_size_mm)", mesh_size_mm, 0.0, lo_open=True)
+    from geometry.schema import PATTERN_NUMBERS, number
+    number(mesh_size_mm, "design: mesh size (--mesh-size, mesh_size_mm)", PATTERN_NUMBERS["mesh"]["size_mm"])
     if mesh_across is not None:
-        check_number("design: rows across a ribbon (--mesh-across, mesh_across)", mesh_across, 0.0, lo_open=True)
+        number(mesh_across, "design: rows across a ribbon (--mesh-across, mesh_across)", PATTERN_NUMBERS["mesh"]["across"])
     name = os.path.basename(str(target_path))
     V, F = read_mesh(target_path)
     out_dir = os.fspath(out_dir)

@@ -398,10 +398,11 @@ def test_registration_is_never_worse_than_its_kabsch_start():
 
 
 @pytest.mark.parametrize("kwargs, message", [
-    ({"metric_floor": -1.0}, "metric_floor must be >= 0"), ({"metric_floor": "ten"}, "metric_floor must be a number"),
-    ({"metric_floor": True}, "metric_floor must be a number"), ({"metric_floor": float("nan")}, "metric_floor must be finite"),
-    ({"verify_iterations": 0}, "max_iterations must be a positive integer"),
-    ({"verify_iterations": 2.5}, "max_iterations must be a positive integer")])
+    ({"metric_floor": -1.0}, r"metric_floor must be in \[0, 1e\+06\], got -1"),
+    ({"metric_floor": "ten"}, "metric_floor must be a number"),
+    ({"metric_floor": True}, "metric_floor must be a number"), ({"metric_floor": float("nan")}, "metric_floor must be a finite"),
+    ({"verify_iterations": 0}, r"max_iterations must be an integer in \[1, 100000\], got 0"),
+    ({"verify_iterations": 2.5}, r"max_iterations must be an integer in \[1, 100000\], got 2.5")])
 def test_design_rejects_bad_verification_solver_options(tmp_path, kwargs, message):
     with pytest.raises(SelfshapeError, match=r"^verification \[solver\] \(--verify-iterations, --metric-floor\): "
                        + message):
