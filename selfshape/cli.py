@@ -29,6 +29,12 @@ class _Parser(argparse.ArgumentParser):
         msg = " ".join(str(message).split())
         self.exit(2, f"{self.prog}: error: {msg} (see {self.prog} --help)\n")
 
+    def _get_values(self, action, arg_strings):
+        # Python 3.11's argparse turns "--size=--" into [] without calling the type
+        if action.option_strings and action.nargs is None and list(arg_strings) == ["--"]:
+            raise argparse.ArgumentError(action, "expected one argument, got '--'")
+        return super()._get_values(action, arg_strings)
+
 
 def _number(lo=None, lo_open=False, hi=None, integer=False):
     """An argparse type: a finite number (an integer if ``integer``) within the bounds."""
