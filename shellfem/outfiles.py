@@ -27,6 +27,7 @@ naming the file, not a raw OSError.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -61,15 +62,44 @@ def _probe_writable(folder: str, shown: str) -> None:
     os.remove(tmp)
 
 
-def _existing_ancestor(path: str, shown: str) -> str:
-    """The nearest existing ancestor of ``path`` (which does not exist); a SelfshapeError if
-    that ancestor is not a folder (the path lies under a file)."""
-    a = os.path.dirname(os.path.abspath(path))
+def _probe_folder(folder: str, shown: str) -> None:
+    """The folder exists and can be written, or it can be created (tried: its missing parts are
+    made, probed and removed again, so a name too long, a path under a file or a read-only
+    file system is caught before the work, not after it)."""
+    if os.path.isdir(folder):
+        _probe_writable(folder, shown)
+        return
+    a = os.path.abspath(folder)
+    missing = []
     while not os.path.lexists(a):
+        missing.append(a)
         a = os.path.dirname(a)
     if not os.path.isdir(a):
         raise SelfshapeError(f"{shown}: {a} is not a folder")
-    return a
+    try:
+        os.makedirs(folder)
+    except OSError as e:
+        for d in missing:
+            with contextlib.suppress(OSError):
+                os.rmdir(d)
+        raise SelfshapeError(f"{shown}: cannot create the folder ({e.strerror or e})") from None
+    try:
+        _probe_writable(folder, shown)
+    finally:
+        for d in missing:                   # deepest first
+            with contextlib.suppress(OSError):
+                os.rmdir(d)
+
+
+def _name_fits(path: str, shown: str) -> None:
+    """The file name is not longer than its file system allows (else the final rename fails)."""
+    folder = os.path.dirname(os.path.abspath(path))
+    try:
+        limit = os.pathconf(folder if os.path.isdir(folder) else "/", "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    if len(os.fsencode(os.path.basename(path))) > limit:
+        raise SelfshapeError(f"{shown}: the file name is longer than the {limit} bytes the file system allows")
 
 
 def _check_entry(path: str, shown: str, inputs) -> None:
@@ -118,14 +148,12 @@ def check_output_file(path, *, inputs=(), suffix: str | None = None, create_pare
         raise SelfshapeError(f"{p}: names a folder, a file is asked")
     _check_entry(p, p, inputs)
     parent = os.path.dirname(os.path.abspath(p))
-    if os.path.isdir(parent):
-        _probe_writable(parent, p)
-    elif create_parents:
-        _probe_writable(_existing_ancestor(p, p), p)
-    else:
+    if not os.path.isdir(parent) and not create_parents:
         if os.path.lexists(parent):
             raise SelfshapeError(f"{p}: {parent} is not a folder")
         raise SelfshapeError(f"{p}: directory {parent} does not exist")
+    _probe_folder(parent, p)
+    _name_fits(p, p)
     return p
 
 
@@ -169,8 +197,11 @@ class OutputDir:
     def _entries(self):
         names = list(self.names)
         if self.patterns and os.path.isdir(self.path):
-            names += sorted(n for n in os.listdir(self.path)
-                            if n not in self.names and any(r.fullmatch(n) for r in self.patterns))
+            try:
+                listed = os.listdir(self.path)
+            except OSError as e:
+                raise SelfshapeError(f"{self.path}: cannot list the folder ({e.strerror or e})") from None
+            names += sorted(n for n in listed if n not in self.names and any(r.fullmatch(n) for r in self.patterns))
         return [(n, os.path.join(self.path, n)) for n in names]
 
     def check(self) -> None:
@@ -186,9 +217,7 @@ class OutputDir:
         if os.path.isdir(p):
             for _, f in self._entries():
                 _check_entry(f, f, self.inputs)
-            _probe_writable(p, p)
-        else:
-            _probe_writable(_existing_ancestor(p, p), p)
+        _probe_folder(p, p)
 
     # -- the run
     def begin(self) -> "OutputDir":

@@ -140,6 +140,9 @@ def _bad_cases(verb, base, inputs):
     dangling = base / ("gone" + sfx)
     dangling.symlink_to(base / "nowhere")
     cases.append((str(dangling), str(dangling)))
+    long = str(base / ("x" * 300 + sfx))                # longer than a file name may be
+    cases.append((long, long))
+    cases.append((str(base / "new" / ("y" * 300) / ("out" + sfx)), "y" * 300))
     if kind == "dir":
         cases.append((str(base / "afile"), str(base / "afile")))
         summary = VERBS[verb][2] if verb != "calibrate fabric" else "tensile_45deg.png"   # a pattern-named plot
