@@ -74,9 +74,10 @@ def _quiet(enabled: bool):
             try:
                 sys.stderr.flush()
                 saved = os.dup(2)
-                os.dup2(sink.fileno(), 2)
             except (OSError, ValueError):       # no file descriptor 2 (embedded): Python level only
                 saved = None
+            if saved is not None:
+                os.dup2(sink.fileno(), 2)
             try:
                 with contextlib.redirect_stderr(io.StringIO()):
                     yield
