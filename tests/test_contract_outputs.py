@@ -85,6 +85,13 @@ VERBS = {
 }
 
 
+# where each verb's work starts (patched to raise): the folder's stale outputs must be gone
+# by then, and nothing of the run left after it
+WORK = {"simulate": ("forward.simulate", "simulate"), "design": ("inverse.design", "design"),
+        "calibrate strips": ("validation.strips", "fit_modulus_ratio"),
+        "calibrate fabric": ("validation.fabric", "_load_tensile"), "validate": ("validation.loop", "validate")}
+
+
 def argv_of(verb, inputs, out):
     return [out if a == "OUT" else a.format(**inputs) for a in VERBS[verb][0]]
 
@@ -194,9 +201,17 @@ def _same_as_input(verb, base, inputs):
 
 
 @pytest.mark.parametrize("verb", sorted(VERBS))
-def test_bad_output_paths_are_refused_before_the_work(verb, inputs, tmp_path, capsys):
+def test_bad_output_paths_are_refused_before_the_work(verb, inputs, tmp_path, capsys, monkeypatch):
     """Every bad output kind: exit 2, one line naming it, and every file as it was (the
-    victim behind a planted link intact, no folder created, nothing written)."""
+    victim behind a planted link intact, no folder created, nothing written); the verb's work
+    never starts (it is replaced by a failure: exit 3 if it ran)."""
+    import importlib
+    mod, fn = {**WORK, "mesh": ("geometry.meshing", "_mesh_model"),
+               "predict": ("validation.loop", "predict_rows")}[verb]
+
+    def work(*a, **k):
+        raise AssertionError("the work started before the output was checked")
+    monkeypatch.setattr(importlib.import_module(mod), fn, work)
     cases = _bad_cases(verb, tmp_path, inputs)
     before = snapshot(tmp_path)
     for out, named in cases:
@@ -299,13 +314,6 @@ def test_summary_is_written_last_and_the_folder_is_complete(verb, inputs, tmp_pa
     assert _no_temp_files(out) == []
     with open(out / summary) as f:
         json.load(f, parse_constant=lambda c: pytest.fail(f"{summary} holds {c}"))
-
-
-# where each verb's work starts (patched to raise): the folder's stale outputs must be gone
-# by then, and nothing of the run left after it
-WORK = {"simulate": ("forward.simulate", "simulate"), "design": ("inverse.design", "design"),
-        "calibrate strips": ("validation.strips", "fit_modulus_ratio"),
-        "calibrate fabric": ("validation.fabric", "_load_tensile"), "validate": ("validation.loop", "validate")}
 
 
 @pytest.mark.parametrize("verb", sorted(WORK))
