@@ -442,12 +442,13 @@ def test_gcode_with_a_non_finite_word_is_not_written(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["ok.gcode"]
 
 
-JSONISH = st.recursive(
-    st.none() | st.booleans() | st.integers(-10**6, 10**6) | st.floats(allow_nan=True, allow_infinity=True)
-    | st.text(max_size=5),
-    lambda kids: st.lists(kids, max_size=4) | st.dictionaries(st.text("abcxyz_", min_size=1, max_size=4), kids,
-                                                             max_size=4),
-    max_leaves=12)
+def _containers(kids):
+    return st.lists(kids, max_size=4) | st.dictionaries(st.text("abcxyz_", min_size=1, max_size=4), kids, max_size=4)
+
+
+JSONISH = st.recursive(st.none() | st.booleans() | st.integers(-10**6, 10**6)
+                       | st.floats(allow_nan=True, allow_infinity=True) | st.text(max_size=5),
+                       _containers, max_leaves=12)
 
 
 def _non_finite(o):
