@@ -35,7 +35,6 @@ from __future__ import annotations
 import math
 import os
 import re
-import tempfile
 from dataclasses import dataclass
 
 import numpy as np
@@ -666,6 +665,10 @@ def read_gcode(path, *, side=None, mirror_axis_x=None, filament_diameter_mm=None
 
 # ---------------------------------------------------------------- writer
 
+#: a G-code word whose number is not finite (what Python formats for inf/nan)
+_NON_FINITE_WORD = re.compile(r"(?:^|\s)[A-Za-z][+-]?(?:inf|nan)(?![A-Za-z])", re.I)
+
+
 class GcodeWriter:
     """The text of one print, line by line, with the tool position and print statistics.
 
@@ -762,19 +765,12 @@ class GcodeWriter:
         self.lines += ["M104 S0", "M140 S0", "M107", "M84", "; end of selfshape print"]
 
     def write(self, path):
-        """Write the lines to ``path`` atomically (a temporary file in the same folder, renamed)."""
-        path = os.fspath(path)
-        text = "\n".join(self.lines) + "\n"
-        folder = os.path.dirname(os.path.abspath(path))
-        try:
-            fd, tmp = tempfile.mkstemp(prefix=".selfshape-", suffix=".gcode", dir=folder)
-        except OSError as e:
-            raise SelfshapeError(f"cannot write {path}: {e.strerror}") from None
-        try:
-            with os.fdopen(fd, "w") as f:
-                f.write(text)
-            os.replace(tmp, path)
-        except OSError as e:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise SelfshapeError(f"cannot write {path}: {e.strerror}") from None
+        """Write the lines to ``path`` atomically (a temporary file in the same folder, renamed;
+        removed on any failure, Ctrl-C included: shellfem.outfiles.write_text_file)."""
+        from shellfem.outfiles import NonFiniteOutput, write_text_file
+        for k, line in enumerate(self.lines, 1):     # G-code drives hardware: never "Einf" or "Xnan"
+            word = _NON_FINITE_WORD.search(line.split(";", 1)[0])
+            if word:
+                raise NonFiniteOutput(f"{os.path.basename(os.fspath(path))}: line {k}: {word.group().strip()} "
+                                      f"is not a finite number; nothing is written")
+        write_text_file(path, "\n".join(self.lines) + "\n")

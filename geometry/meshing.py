@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 import time
 
 import numpy as np
@@ -338,29 +337,19 @@ def coarse_meshes(pattern, n_fine: int, size_mm: float | None = None, levels: in
 
 def mesh_pattern_file(pattern_path, out_msh, size_mm: float | None = None) -> dict:
     """Mesh a pattern file (.toml, or .gcode: see geometry.patterns) and write a Gmsh .msh
-    (geometry.msh: physical groups per region, element data region and thickness). Written
-    atomically.
+    (geometry.msh: physical groups per region, element data region and thickness). The output
+    is checked before meshing and written atomically (shellfem.outfiles.check_output_file).
     Returns dict(n_vertices, n_triangles, n_regions, min_angle_deg, time_s).
     """
     from geometry.patterns import load_pattern
     t0 = time.perf_counter()
     pattern = load_pattern(pattern_path)
-    out_msh = os.fspath(out_msh)
-    root, ext = os.path.splitext(out_msh)
-    if ext.lower() != ".msh":
-        raise SelfshapeError(f"{out_msh}: the mesh output must be a .msh file")
-    d = os.path.dirname(os.path.abspath(out_msh))
-    if not os.path.isdir(d):
-        raise SelfshapeError(f"{out_msh}: directory {d} does not exist")
-    tmp = f"{root}.partial{os.getpid()}.msh"
-    try:
-        with gmsh_session() as gmsh:
-            sheet, etags = _mesh_model(gmsh, pattern, size_mm, None, GRADING, ALGORITHM, KERNEL)
-            write_msh(gmsh, tmp, sheet, etags)
-        os.replace(tmp, out_msh)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    from shellfem.outfiles import check_output_file, write_atomic
+    out_msh = check_output_file(out_msh, inputs=[pattern_path], suffix=".msh", create_parents=False,
+                                what="mesh output")
+    with gmsh_session() as gmsh:
+        sheet, etags = _mesh_model(gmsh, pattern, size_mm, None, GRADING, ALGORITHM, KERNEL)
+        write_atomic(out_msh, lambda tmp: write_msh(gmsh, tmp, sheet, etags))
     q = mesh_quality(sheet)
     return dict(n_vertices=q["n_vertices"], n_triangles=q["n_triangles"], n_regions=q["n_regions"],
                 min_angle_deg=q["min_angle_deg"], time_s=time.perf_counter() - t0)

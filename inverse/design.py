@@ -34,7 +34,6 @@ Units: mm, 1/mm; the flat pattern is in printed (pre-stretched) mm.
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 import time
@@ -369,14 +368,27 @@ VERIFY_KEYS = ("verify_converged", "verify_reason", "verify_newton_iterations", 
                "deviation_p99_pct_bbox", "icp_iterations", "verify_note")
 
 
-def _refine_and_rewrite(d, o, rep, pattern, sims, name, raw, out_dir, written, refine_options, smoothness, verbose,
-                        pattern_kw):
-    """The --refine stage of design_file: refine, then rewrite pattern.toml, G-code, pattern.png
-    and the verification for the rounded refined thicknesses; on failure keep the open-loop
-    design and record why (report "refine": {"ok": false, "reason": ...})."""
-    from geometry.patterns import parse_pattern, write_pattern
-    from inverse.design_refine import refine_design
+def _write_design_files(out, d, raw, printer, title):
+    """pattern.toml, flat.vtu, front.gcode (back.gcode when a ribbon is on the back) and
+    pattern.png of design d into the OutputDir ``out``, each atomically; pattern.toml's
+    numbers must be finite (shellfem.outfiles.NonFiniteOutput)."""
+    from geometry.patterns import write_pattern
     from inverse.gcode import ribbons_to_gcode_files
+    from shellfem.outfiles import check_finite
+
+    check_finite(raw, "pattern.toml")
+    out.write("pattern.toml", lambda tmp: write_pattern(tmp, raw))
+    out.write("flat.vtu", lambda tmp: write_flat_vtu(d, tmp))
+    out.written += ribbons_to_gcode_files(d.ribbons, out.makedirs(), printer)   # atomic on their own
+    out.write("pattern.png", lambda tmp: plot_pattern(d, tmp, title=title))
+
+
+def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smoothness, verbose, pattern_kw):
+    """The --refine stage of design_file: refine, then rewrite pattern.toml, G-code, pattern.png
+    and the verification (into the OutputDir ``out``) for the rounded refined thicknesses; on
+    failure keep the open-loop design and record why (report "refine": {"ok": false, "reason": ...})."""
+    from geometry.patterns import parse_pattern
+    from inverse.design_refine import refine_design
     from inverse.printer import Printer
 
     t = time.perf_counter()
@@ -396,16 +408,14 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, raw, out_dir, written, r
         return
     rep["open_loop"] = {k: rep[k] for k in VERIFY_KEYS if k in rep}
     rep["open_loop"]["thickness_histogram"] = rep.get("thickness_histogram")
-    p_toml = os.path.join(out_dir, "pattern.toml")
+    p_toml = out.file("pattern.toml")
     raw2 = pattern_dict(d, seed=o.seed, target_name=name, **pattern_kw)
-    write_pattern(p_toml, raw2)
-    ribbons_to_gcode_files(d.ribbons, out_dir, o.printer)
-    plot_pattern(d, os.path.join(out_dir, "pattern.png"), title=name + " (refined)")
+    _write_design_files(out, d, raw2, o.printer, name + " (refined)")
     rep.update(report_dict(d))
     for k in VERIFY_KEYS:
         rep.pop(k, None)
     pattern2 = parse_pattern(raw2, p_toml, os.path.dirname(os.path.abspath(p_toml)))
-    rep.update(verify_design(d, pattern2, out_dir, written))
+    rep.update(verify_design(d, pattern2, out))
     near, rel = block.get("rounded", {}), rep.get("deviation_pct_bbox")
     if near.get("deviation_pct_bbox") and rel:
         # release from flat reaches the refined state if its deviations match the state nearest the target
@@ -425,7 +435,7 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, raw, out_dir, written, r
 def design_file(target_path, out_dir, options: DesignOptions | None = None, *, verify: bool = False,
                 mesh_size_mm: float = 2.0, mesh_across: float | None = None, verify_iterations: int | None = None,
                 metric_floor: float | None = None, refine: bool = False, refine_options=None,
-                refine_smoothness: float = 0.05, verbose: bool = False, **overrides) -> dict:
+                refine_smoothness: float = 0.05, verbose: bool = False, inputs=(), **overrides) -> dict:
     """`selfshape design TARGET -o DIR`: writes DIR/pattern.toml, flat.vtu, front.gcode (and
     back.gcode when a ribbon is on the back), pattern.png and report.json (last); with
     ``verify`` also deployed.vtu and verify.png and the deviation in report.json.
@@ -442,13 +452,16 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
     the open-loop verification and "refine" the iteration. A refinement that fails keeps the
     open-loop design and says why in "refine". time_s is the
     design time (read to written outputs, Table 5.1's "Time"), total_time_s includes the
-    verification. Outputs of an earlier run in the directory are removed first; on failure
-    every file this run wrote is removed. Returns the report dict."""
+    verification. The output folder is checked before the design runs and the outputs of an
+    earlier run there (OUTPUTS, no other file) are removed first; every file is written
+    atomically, none with a non-finite number; on failure (Ctrl-C included) every file this run
+    wrote is removed (shellfem.outfiles.OutputDir). ``inputs``: other input files the outputs
+    must not overwrite (the CLI's --printer TOML). Returns the report dict."""
     from geometry.target import read_mesh
-    from inverse.gcode import ribbons_to_gcode_files
+    from shellfem.outfiles import OutputDir
 
     t_start = time.perf_counter()
-    from geometry.patterns import parse_pattern, solver_options, write_pattern
+    from geometry.patterns import parse_pattern, solver_options
     # the values go to pattern.toml's [solver]: checked as load_pattern will check them
     solver_options({k: v for k, v in (("max_iterations", verify_iterations), ("metric_floor", metric_floor))
                     if v is not None}, "verification [solver] (--verify-iterations, --metric-floor)")
@@ -459,37 +472,20 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
         number(mesh_across, "design: rows across a ribbon (--mesh-across, mesh_across)", PATTERN_NUMBERS["mesh"]["across"])
     name = os.path.basename(str(target_path))
     V, F = read_mesh(target_path)
-    out_dir = os.fspath(out_dir)
-    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
-        raise SelfshapeError(f"{out_dir}: exists and is not a directory")
-    created = not os.path.isdir(out_dir)
-    written: list = []
-    try:
-        o = replace(options or DesignOptions(), **overrides)
+    o = replace(options or DesignOptions(), **overrides)
+    law = o.thickness_law if isinstance(o.thickness_law, (str, os.PathLike)) else None
+    # checked before the design runs; an earlier run's files are removed first (shellfem.outfiles)
+    out = OutputDir(out_dir, OUTPUTS, inputs=[target_path, law, *inputs])
+    with out:
         choice = None
         if o.stretch == "auto":
             d, choice = choose_stretch(V, F, o, where=name)
         else:
             d = design(V, F, o, where=name)
         t = time.perf_counter()
-        os.makedirs(out_dir, exist_ok=True)
-        for stale in OUTPUTS:                 # an earlier run's files must not mix with this run's
-            if os.path.isfile(os.path.join(out_dir, stale)):
-                os.remove(os.path.join(out_dir, stale))
-        p = p_toml = os.path.join(out_dir, "pattern.toml")
-        written.append(p)
         raw = pattern_dict(d, mesh_size_mm=mesh_size_mm, mesh_across=mesh_across, seed=o.seed, target_name=name,
                            max_iterations=verify_iterations, metric_floor=metric_floor)
-        write_pattern(p, raw)
-        p = os.path.join(out_dir, "flat.vtu")
-        written.append(p)
-        write_flat_vtu(d, p)
-        for side in ("front", "back"):
-            written.append(os.path.join(out_dir, f"{side}.gcode"))
-        ribbons_to_gcode_files(d.ribbons, out_dir, o.printer)
-        p = os.path.join(out_dir, "pattern.png")
-        written.append(p)
-        plot_pattern(d, p, title=name)
+        _write_design_files(out, d, raw, o.printer, name)
         d.times["write"] = time.perf_counter() - t
         rep = {"target": os.path.abspath(str(target_path)), "time_s": None}
         rep.update(report_dict(d))
@@ -500,27 +496,16 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
         rep["time_s"] = round(time.perf_counter() - t_start, 3)
         if verify or refine:
             t = time.perf_counter()
+            p_toml = out.file("pattern.toml")
             pattern = parse_pattern(raw, p_toml, os.path.dirname(os.path.abspath(p_toml)))
             sims = []
-            rep.update(verify_design(d, pattern, out_dir, written, sims=sims))
+            rep.update(verify_design(d, pattern, out, sims=sims))
             rep["stages_s"]["verify"] = round(time.perf_counter() - t, 3)
             if refine:
-                _refine_and_rewrite(d, o, rep, pattern, sims, name, raw, out_dir, written, refine_options,
-                                    refine_smoothness, verbose, dict(mesh_size_mm=mesh_size_mm, mesh_across=mesh_across,
-                                    max_iterations=verify_iterations, metric_floor=metric_floor))
+                _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, refine_smoothness, verbose,
+                                    dict(mesh_size_mm=mesh_size_mm, mesh_across=mesh_across,
+                                         max_iterations=verify_iterations, metric_floor=metric_floor))
         rep["total_time_s"] = round(time.perf_counter() - t_start, 3)
-        rep["files"] = sorted(os.path.basename(p) for p in written if os.path.exists(p)) + ["report.json"]
-        p = os.path.join(out_dir, "report.json")
-        written.append(p)
-        tmp = p + ".tmp"
-        with open(tmp, "w") as f:
-            json.dump(rep, f, indent=2)
-        os.replace(tmp, p)
+        rep["files"] = sorted({os.path.basename(p) for p in out.written if os.path.exists(p)} | {"report.json"})
+        out.write_json("report.json", rep)          # last: a folder with a report.json is complete
         return rep
-    except BaseException:
-        for p in written + [os.path.join(out_dir, "report.json.tmp")]:
-            if os.path.exists(p):
-                os.remove(p)
-        if created and os.path.isdir(out_dir) and not os.listdir(out_dir):
-            os.rmdir(out_dir)
-        raise

@@ -27,13 +27,13 @@ Pipeline (``calibrate_fabric``):
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 
 import numpy as np
 
 from shellfem.errors import SelfshapeError
+from shellfem.outfiles import OutputDir
 from validation import elastica
 from validation.fabric_curves import (stiffness_with_se, barrier_curve, fit_barrier_curve, fit_shear_modulus,
                                       release_tangent, shear_stress_strain, stabilised_cycles,
@@ -44,6 +44,10 @@ from validation.fabric_law import fit_orthotropic_uniaxial, uniaxial_response
 from validation.plots import Series, plot_series
 
 PARAM_NAMES = ("a1", "a2", "a3", "b1", "b2", "g1", "g2")
+#: The files `selfshape calibrate fabric` writes: parameters.json, shear.png, master_curve.png and
+#: one tensile_<deg>deg.png per orientation (FABRIC_PLOTS); an earlier run's are removed first.
+FABRIC_OUTPUTS = ("shear.png", "master_curve.png", "parameters.json")
+FABRIC_PLOTS = (r"tensile_\d+(?:\.\d+)?(?:e[+-]?\d+)?deg\.png",)
 
 
 # ----------------------------------------------------------------------------- calibration
@@ -206,6 +210,7 @@ def calibrate_fabric(folder: str, out_dir: str) -> dict:
     meta = read_meta(folder)
     nu = meta["poisson"]
     files = find_test_files(folder)
+    outs = OutputDir(out_dir, FABRIC_OUTPUTS, patterns=FABRIC_PLOTS).begin()   # checked, stale removed, first
     tensile = _load_tensile(files["tensile"], meta)
     shear = _shear_results(files["shear"], meta)
     cant = _cantilever_results(files["cantilever"])
@@ -290,13 +295,10 @@ def calibrate_fabric(folder: str, out_dir: str) -> dict:
         },
         "meta": {k: meta[k] for k in META_KEYS},
     }
-    os.makedirs(out_dir, exist_ok=True)
-    result["plots"] = [os.path.basename(p) for p in _plots(out_dir, tensile, fits, params_by, nu, shear, cant)]
-    path = os.path.join(out_dir, "parameters.json")
-    tmp = path + ".tmp"
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(result, f, indent=1, allow_nan=False)
-    os.replace(tmp, path)
+    with outs:                  # atomic (validation.plots.save_figure), parameters.json last
+        result["plots"] = [os.path.basename(p) for p in _plots(outs.makedirs(), tensile, fits, params_by, nu, shear,
+                                                                 cant)]
+        outs.write_json("parameters.json", result, indent=1)
     return result
 
 

@@ -23,6 +23,7 @@ import os
 import numpy as np
 
 from shellfem.errors import SelfshapeError
+from shellfem.outfiles import OutputDir, check_finite_arrays, check_output_file, write_atomic
 from validation import effects as fx
 from validation import stats
 from validation.strips import MEASURED, REST, model_source, n_rows, read_strips, strip_model, subset
@@ -36,6 +37,8 @@ COVARIATES = ("side", "stretch", "orientation_deg", "plastic_thickness_mm", "fab
 DESIGN = ("side", "stretch", "orientation_deg", "plastic_thickness_mm", "fabric_thickness_mm",
           "width_mm", "length_mm")
 FORMAT = "selfshape-strip-model/1"
+#: The files `selfshape validate` writes (an earlier run's are removed first; report.json last).
+VALIDATE_OUTPUTS = ("residuals_before.png", "residuals_after.png", "model.json", "report.json")
 
 
 # ---------------------------------------------------------------------------
@@ -371,22 +374,13 @@ def validate_file(csv_path, out_dir, seed=0) -> dict:
     """Run :func:`validate` on a strips CSV; write report.json, model.json and
     residual plots (residuals_before.png, residuals_after.png) to out_dir."""
     rows = read_strips(csv_path)
+    outs = OutputDir(out_dir, VALIDATE_OUTPUTS, inputs=[csv_path]).begin()   # checked, stale removed, first
     rep = validate(rows, seed=seed)
-    os.makedirs(out_dir, exist_ok=True)
-    _plot_residuals(rows, rep, out_dir)
-    with open(os.path.join(out_dir, "model.json"), "w") as fh:
-        json.dump(model_dict(rep["_final"]["fit"]), fh, indent=2)
-    with open(os.path.join(out_dir, "report.json"), "w") as fh:
-        json.dump(_public(rep), fh, indent=2, default=_jsonable)
+    with outs:                  # atomic, every number finite, report.json last
+        _plot_residuals(rows, rep, outs.makedirs())
+        outs.write_json("model.json", model_dict(rep["_final"]["fit"]))
+        outs.write_json("report.json", _public(rep))
     return _public(rep)
-
-
-def _jsonable(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    raise TypeError(type(o).__name__)
 
 
 def _plot_residuals(rows, rep, out_dir):
@@ -407,7 +401,7 @@ def _plot_residuals(rows, rep, out_dir):
         fig.suptitle(f"{rep['data']}: residuals {tag} "
                      f"(rel. RMS {rep['error_' + tag]:.3f})", fontsize=9)
         fig.tight_layout()
-        fig.savefig(os.path.join(out_dir, f"residuals_{tag}.png"), dpi=110)
+        write_atomic(os.path.join(out_dir, f"residuals_{tag}.png"), lambda tmp: fig.savefig(tmp, dpi=110))
         plt.close(fig)
 
 
@@ -445,16 +439,18 @@ def predict_file(model_json, csv_path, out_csv) -> int:
     every input column plus ``curvature_per_mm_predicted``. Returns the row count."""
     model = load_model(model_json)
     rows = read_strips(csv_path, require_measured=False)
+    out_csv = check_output_file(out_csv, inputs=[model_json, csv_path])     # before the work
     pred = predict_rows(model, rows)
     header, body = rows["_raw"]
     col = model.get("measured_column", MEASURED) + "_predicted"
-    tmp = str(out_csv) + ".tmp"
-    d = os.path.dirname(os.path.abspath(out_csv))
-    os.makedirs(d, exist_ok=True)
-    with open(tmp, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(list(header) + [col])
-        for r, p in zip(body, pred):
-            w.writerow(list(r) + [f"{p:.8g}"])
-    os.replace(tmp, out_csv)
+    check_finite_arrays(f"{os.path.basename(out_csv)} (from {os.path.basename(str(model_json))})", {col: pred})
+    os.makedirs(os.path.dirname(os.path.abspath(out_csv)), exist_ok=True)
+
+    def write(tmp):
+        with open(tmp, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(list(header) + [col])
+            for r, p in zip(body, pred):
+                w.writerow(list(r) + [f"{p:.8g}"])
+    write_atomic(out_csv, write)
     return len(body)

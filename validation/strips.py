@@ -16,15 +16,17 @@ rest curvature) minimised over uniform states of a fully printed strip.
 from __future__ import annotations
 
 import csv
-import json
 import os
 
 import numpy as np
 
 from shellfem.errors import SelfshapeError, check_number
+from shellfem.outfiles import OutputDir
 
 MEASURED = "curvature_per_mm"
 REST = "rest_curvature_per_mm"
+#: The files `selfshape calibrate strips` writes (an earlier run's are removed first).
+STRIPS_OUTPUTS = ("strips_fit.png", "parameters.json")
 NUMERIC = ("stretch", "orientation_deg", "plastic_thickness_mm", "fabric_thickness_mm",
            "width_mm", "length_mm")
 REQUIRED = ("specimen", "side") + NUMERIC
@@ -193,8 +195,10 @@ def calibrate_strips(csv_path, out_dir) -> dict:
     (``modulus_ratio`` [value, standard error], its 95 % profile-likelihood
     interval, the fit residuals; for comparison the ratio with the measured rest
     curvatures and the seed's Eq. 3.17 linear regression) and
-    out_dir/strips_fit.png. Returns the parameters dict."""
+    out_dir/strips_fit.png (checked before the fit, written atomically, parameters.json last,
+    every number finite: shellfem.outfiles). Returns the parameters dict."""
     rows = read_strips(csv_path)
+    outs = OutputDir(out_dir, STRIPS_OUTPUTS, inputs=[csv_path]).begin()   # checked, stale removed, before the fit
     base = fit_modulus_ratio(rows)
     out = {"modulus_ratio": [base["value"], base["se"]]}
     rest = rows[REST]
@@ -217,10 +221,9 @@ def calibrate_strips(csv_path, out_dir) -> dict:
                         "measured_per_mm": [float(v) for v in rows[MEASURED]],
                         "fitted_per_mm": [float(v) for v in base["fitted"]],
                         "residual_per_mm": [float(v) for v in base["residuals"]]}
-    os.makedirs(out_dir, exist_ok=True)
-    _plot_fit(rows, base["value"], os.path.join(out_dir, "strips_fit.png"))
-    with open(os.path.join(out_dir, "parameters.json"), "w") as fh:
-        json.dump(out, fh, indent=2)
+    with outs:                  # atomic, parameters.json last; nothing left on failure
+        outs.write("strips_fit.png", lambda tmp: _plot_fit(rows, base["value"], tmp))
+        outs.write_json("parameters.json", out)
     return out
 
 
