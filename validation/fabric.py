@@ -48,9 +48,14 @@ PARAM_NAMES = ("a1", "a2", "a3", "b1", "b2", "g1", "g2")
 
 # ----------------------------------------------------------------------------- calibration
 
-def _pair(v, se):
+def _pair(v, se, what="a fitted value"):
+    """[value, standard error] as finite floats; a non-finite one fails the calibration
+    (parameters.json holds finite numbers only)."""
     v, se = float(v), float(se)
-    return [v if math.isfinite(v) else None, se if math.isfinite(se) else None]
+    if not (math.isfinite(v) and math.isfinite(se)):
+        raise SelfshapeError(f"calibration produced a non-finite {what} ({v!r} +- {se!r}): "
+                             "the tests do not determine it")
+    return [v, se]
 
 
 def _mean_with_se(values, ses):
@@ -194,12 +199,15 @@ def _plots(out_dir, tensile, fits, params_by_pct, nu, shear, cant) -> list:
     return paths
 
 
-def calibrate_fabric(folder: str, out_dir: str) -> dict:
+def calibrate_fabric(folder: str, out_dir: str, plots: bool = True) -> dict:
     """Fit the fabric model on a test folder (meta.json, tensile_*, shear_*, cantilever.csv).
 
     Writes out_dir/parameters.json (every parameter as [value, standard error]; mm, N, MPa)
-    and PNG plots; returns the same dict. Bad input raises SelfshapeError before anything
-    is written.
+    and PNG plots (unless ``plots`` is False: studies and tests that only need the numbers);
+    returns the same dict. Bad input, and tests that do not determine the parameters the
+    engine uses (the 0 and 90 deg curves at the largest stretch), raise SelfshapeError before
+    anything is written. Sets left undetermined at lower stretches, and the seed's route where
+    it defines no parameters, are left out and named under ``not_identifiable``.
     """
     if not os.path.isdir(folder):
         raise SelfshapeError(f"{folder}: not a directory (expected a fabric test folder)")
@@ -213,28 +221,68 @@ def calibrate_fabric(folder: str, out_dir: str) -> dict:
 
     fits, ortho_by, seed_by, params_by, seed_params_by = {}, {}, {}, {}, {}
     release, release_by, validation, seed_validation, rms, rms_model = {}, {}, {}, {}, {}, {}
-    for pct in sorted(tensile, key=float):
+    not_identifiable = {}
+    top_params = None
+    # the largest max stretch first: its test reaches nearest the barrier and defines the
+    # engine's parameters; lower stretches start from it (far below the barrier, the seed's
+    # three-parameter curve alone does not pin A, b and g down: see fit_barrier_curve)
+    for pct in sorted(tensile, key=float, reverse=True):
         fits[pct] = {deg: fit_barrier_curve(c["e"], c["S"]) for deg, c in tensile[pct].items()}
         f1, f2 = fits[pct]["0"], fits[pct]["90"]
         # the seed's route: Eq. 4.6-4.7 with e22 = -nu e11, then the small system for a1, a2
-        (a1, a2), (se_a1, se_a2) = stiffness_with_se(f1["A"], f1["se"][0], f2["A"], f2["se"][0], nu)
-        seed_by[pct] = {"a1": _pair(a1, se_a1), "a2": _pair(a2, se_a2), "a3": _pair(a3, a3_se),
-                        "b1": _pair(f1["b"], f1["se"][1]), "b2": _pair(f2["b"], f2["se"][1]),
-                        "g1": _pair(f1["g"], f1["se"][2]), "g2": _pair(f2["g"], f2["se"][2])}
-        seed_params_by[pct] = _model_params(fits[pct], a3, nu)
+        why = None
+        if not (f1["barrier_found"] and f2["barrier_found"]):
+            why = "the barrier is not seen (b or g on its search bound: the test stays far below it)"
+        else:
+            try:
+                (a1, a2), (se_a1, se_a2) = stiffness_with_se(f1["A"], f1["se"][0], f2["A"], f2["se"][0], nu)
+            except SelfshapeError as e:
+                why = str(e)
+        if why is not None:
+            not_identifiable[f"orthotropic_seed_eq46_by_stretch.{pct}"] = (
+                f"the seed's route (Eq. 4.6-4.7 on 0 and 90 deg) at {pct} %: {why}")
+        else:
+            seed_by[pct] = {"a1": _pair(a1, se_a1), "a2": _pair(a2, se_a2), "a3": _pair(a3, a3_se),
+                            "b1": _pair(f1["b"], f1["se"][1]), "b2": _pair(f2["b"], f2["se"][1]),
+                            "g1": _pair(f1["g"], f1["se"][2]), "g2": _pair(f2["g"], f2["se"][2])}
+            seed_params_by[pct] = _model_params(fits[pct], a3, nu)
         # model-consistent refinement: the engine's own uniaxial response fits 0 and 90 deg
         c0, c9 = tensile[pct]["0"], tensile[pct]["90"]
-        cons = fit_orthotropic_uniaxial(c0["e"], c0["S"], c9["e"], c9["S"], nu, a3)
+        starts = ([None] if pct in seed_params_by else []) + ([top_params] if top_params is not None else [])
+        if not starts:
+            raise SelfshapeError(f"{c0['name']}, {c9['name']}: the 0 and 90 deg curves at the largest stretch "
+                                 f"({pct} %) do not determine the fabric law ({not_identifiable[next(iter(not_identifiable))]})")
+        cons = None
+        for st in starts:
+            trial = fit_orthotropic_uniaxial(c0["e"], c0["S"], c9["e"], c9["S"], nu, a3, start=st)
+            if cons is None or trial["rms"] < cons["rms"]:
+                cons = trial
+        if cons["at_bound"]:
+            msg = (f"{', '.join(cons['at_bound'])} on the search bound: the 0 and 90 deg curves at {pct} % "
+                   f"({c0['name']}, {c9['name']}) do not determine them")
+            if top_params is None:
+                raise SelfshapeError(msg)
+            not_identifiable[f"orthotropic_by_stretch.{pct}"] = msg + " (left out of orthotropic_by_stretch)"
+        if top_params is None:
+            top_params = cons["params"]
         params_by[pct] = cons["params"]
-        ortho_by[pct] = {k: (_pair(a3, a3_se) if k == "a3" else _pair(cons["params"][k], cons["se"][k]))
+        ortho_by[pct] = {k: (_pair(a3, a3_se) if k == "a3" else _pair(cons["params"][k], cons["se"][k], k))
                          for k in PARAM_NAMES}
         rms_model[pct] = cons["rms"]
         tangents = {deg: release_tangent(f) for deg, f in sorted(fits[pct].items(), key=lambda kv: float(kv[0]))}
         release_by[pct] = {deg: _pair(*v) for deg, v in tangents.items()}
         release[pct] = _pair(*_mean_with_se([v[0] for v in tangents.values()], [v[1] for v in tangents.values()]))
         validation[pct] = _validation(tensile[pct], params_by[pct], nu)
-        seed_validation[pct] = _validation(tensile[pct], seed_params_by[pct], nu)
+        if pct in seed_params_by:
+            seed_validation[pct] = _validation(tensile[pct], seed_params_by[pct], nu)
         rms[pct] = {deg: f["rms"] for deg, f in fits[pct].items()}
+    for key in not_identifiable:
+        if key.startswith("orthotropic_by_stretch."):
+            ortho_by.pop(key.split(".", 1)[1], None)
+    order = sorted(tensile, key=float)
+    ortho_by, seed_by, release, release_by, validation, seed_validation, rms, rms_model = (
+        {p: d[p] for p in order if p in d}
+        for d in (ortho_by, seed_by, release, release_by, validation, seed_validation, rms, rms_model))
     top = max(tensile, key=float)
     kb = {k: _pair(f["k_b"], f["se"]) for k, f in cant.items()}
     kb_mean = _pair(*_mean_with_se([f["k_b"] for f in cant.values()], [f["se"] for f in cant.values()]))
@@ -245,7 +293,8 @@ def calibrate_fabric(folder: str, out_dir: str) -> dict:
         "orthotropic": ortho_by[top],
         "orthotropic_max_stretch_pct": float(top),
         "orthotropic_by_stretch": ortho_by,
-        "orthotropic_seed_eq46": seed_by[top],
+        "orthotropic_seed_eq46": seed_by.get(top),
+        "not_identifiable": not_identifiable,
         "orthotropic_seed_eq46_by_stretch": seed_by,
         "release_modulus_mpa": release,
         "release_modulus_by_orientation_mpa": release_by,
@@ -290,8 +339,11 @@ def calibrate_fabric(folder: str, out_dir: str) -> dict:
         },
         "meta": {k: meta[k] for k in META_KEYS},
     }
+    if result["orthotropic_seed_eq46"] is None:
+        del result["orthotropic_seed_eq46"]
     os.makedirs(out_dir, exist_ok=True)
-    result["plots"] = [os.path.basename(p) for p in _plots(out_dir, tensile, fits, params_by, nu, shear, cant)]
+    result["plots"] = ([os.path.basename(p) for p in _plots(out_dir, tensile, fits, params_by, nu, shear, cant)]
+                       if plots else [])
     path = os.path.join(out_dir, "parameters.json")
     tmp = path + ".tmp"
     with open(tmp, "w", encoding="utf-8") as f:
