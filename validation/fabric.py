@@ -42,6 +42,7 @@ from validation.fabric_files import (META_KEYS, number_key, find_test_files, rea
                                      read_tensile)
 from validation.fabric_law import fit_orthotropic_uniaxial, uniaxial_response
 from validation.plots import Series, plot_series
+from validation.textfiles import refuse_overwrite
 
 PARAM_NAMES = ("a1", "a2", "a3", "b1", "b2", "g1", "g2")
 
@@ -107,7 +108,10 @@ def _shear_results(files: dict, meta: dict) -> dict:
     for deg, path in sorted(files.items(), key=lambda kv: float(kv[0])):
         t = read_shear(path)
         g, tau = shear_stress_strain(t["lateral_displacement_mm"], t["lateral_load_N"], side, h)
-        per[deg] = {"gamma": g, "tau": tau, "fit": fit_shear_modulus(g, tau)}
+        try:
+            per[deg] = {"gamma": g, "tau": tau, "fit": fit_shear_modulus(g, tau)}
+        except SelfshapeError as e:
+            raise SelfshapeError(f"{os.path.basename(path)}: {e}") from None
     res = {"per": per}
     for key in ("odd_cubic", "linear"):
         vals = [p["fit"][key]["slope"] for p in per.values()]
@@ -128,8 +132,11 @@ def _cantilever_results(path: str) -> dict:
         key = f"{number_key(o)}/{f}"
         if np.sum(m) < 2:
             raise SelfshapeError(f"{name}: {key} has one free length; need >= 2 to fit k_B with an error")
-        fit = elastica.fit_bending_stiffness(t["free_length_mm"][m], t["areal_weight_N_per_mm2"][m],
-                                             t["height_over_width"][m])
+        try:
+            fit = elastica.fit_bending_stiffness(t["free_length_mm"][m], t["areal_weight_N_per_mm2"][m],
+                                                 t["height_over_width"][m])
+        except SelfshapeError as e:
+            raise SelfshapeError(f"{name}: rows of {key}: {e}") from None
         fit["L"], fit["w"], fit["h"] = t["free_length_mm"][m], t["areal_weight_N_per_mm2"][m], t["height_over_width"][m]
         groups[key] = fit
     return groups
@@ -214,10 +221,15 @@ def calibrate_fabric(folder: str, out_dir: str, plots: bool = True) -> dict:
     meta = read_meta(folder)
     nu = meta["poisson"]
     files = find_test_files(folder)
+    refuse_overwrite(out_dir, [folder, os.path.join(folder, "meta.json"), files["cantilever"]]
+                     + list(files["shear"].values()) + [p for by in files["tensile"].values() for p in by.values()])
     tensile = _load_tensile(files["tensile"], meta)
     shear = _shear_results(files["shear"], meta)
     cant = _cantilever_results(files["cantilever"])
     a3, a3_se = shear["odd_cubic"]
+    if not a3 > 0:
+        raise SelfshapeError(f"{', '.join(os.path.basename(p) for p in files['shear'].values())}: initial shear slope "
+                             f"a3 = {a3:.4g} MPa is not positive (the law needs a3 > 0)")
 
     fits, ortho_by, seed_by, params_by, seed_params_by = {}, {}, {}, {}, {}
     release, release_by, validation, seed_validation, rms, rms_model = {}, {}, {}, {}, {}, {}
@@ -227,7 +239,12 @@ def calibrate_fabric(folder: str, out_dir: str, plots: bool = True) -> dict:
     # engine's parameters; lower stretches start from it (far below the barrier, the seed's
     # three-parameter curve alone does not pin A, b and g down: see fit_barrier_curve)
     for pct in sorted(tensile, key=float, reverse=True):
-        fits[pct] = {deg: fit_barrier_curve(c["e"], c["S"]) for deg, c in tensile[pct].items()}
+        fits[pct] = {}
+        for deg, c in tensile[pct].items():
+            try:
+                fits[pct][deg] = fit_barrier_curve(c["e"], c["S"])
+            except SelfshapeError as e:
+                raise SelfshapeError(f"{c['name']}: unloading branch of cycles {c['cycles']}: {e}") from None
         f1, f2 = fits[pct]["0"], fits[pct]["90"]
         # the seed's route: Eq. 4.6-4.7 with e22 = -nu e11, then the small system for a1, a2
         why = None
