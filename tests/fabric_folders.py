@@ -44,6 +44,8 @@ class FabricSpec:
     shear_orientations: tuple = (0, 90)
     cycles: int = 3
     precondition: float = 1.08         # cycle-1 unloading stress / stabilised stress
+    unload_drop: float = 0.0           # steep start of unloading (stress relaxation at the turn), fraction
+    unload_drop_width: float = 0.004   # ... of the top stress, decaying over this Green strain
     speed_mm_s: float = 0.45           # crosshead speed
     rate_hz: float = 2.0               # sampling rate
     load_noise_n: float = 0.0013       # load-cell noise, N (standard deviation)
@@ -104,8 +106,12 @@ def tensile_rows(spec: FabricSpec, deg: float, pct: float, rng) -> list:
                 raise ValueError(f"spec beyond the barrier at {deg} deg, {pct} %")
             if branch == "load":
                 S = S + 0.25 * S.max() * np.sin(np.pi * d / d_max) ** 0.7
-            elif c == 1 and spec.cycles > 1:
-                S = S * spec.precondition
+            else:
+                if spec.unload_drop:
+                    e_top = d_max / L + 0.5 * (d_max / L) ** 2
+                    S = S + spec.unload_drop * S.max() * np.exp(-(e_top - e) / spec.unload_drop_width)
+                if c == 1 and spec.cycles > 1:
+                    S = S * spec.precondition
             f = _load_of_stress(S, d, spec) + spec.load_noise_n * rng.standard_normal(d.size)
             for di, fi in zip(d, f):
                 rows.append((f"{t:.2f}", c, branch, _fmt(di, spec.extension_decimals), _fmt(fi, spec.load_decimals)))

@@ -159,7 +159,7 @@ def stiffness_from_uniaxial(A1: float, A2: float, nu: float) -> tuple[float, flo
         raise SelfshapeError(f"uniaxial slopes must be positive to define a1, a2 (got A1 = {A1:.4g}, A2 = {A2:.4g} MPa)")
     n2 = nu * nu
     r = (n2 * (P - Q) + np.sqrt(n2 * n2 * (P - Q) ** 2 + 4 * P * Q)) / (2 * P)
-    if 1 - n2 * r <= 0 or 1 - n2 / r <= 0:
+    if not (np.isfinite(r) and r > 0) or 1 - n2 * r <= 0 or 1 - n2 / r <= 0:
         raise SelfshapeError(f"uniaxial slopes A1 = {A1:.4g}, A2 = {A2:.4g} MPa admit no a1, a2 with nu = {nu:g}")
     a1 = P / (1 - n2 * r)
     return float(a1), float(r * r * a1)
