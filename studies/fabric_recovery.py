@@ -52,7 +52,10 @@ def main(argv=None):
         err = FF.recovery_errors(spec, res)
         kb = max(v for k, v in err.items() if k.startswith("k_B"))
         ok = all(err[k] <= TOL[k] for k in ("a1", "a2", "b1", "b2", "g1", "g2")) and kb <= TOL["k_B"]
-        rows.append({"seed": seed, "ok": ok, "errors": err, "thickness_mm": spec.thickness_mm, "pcts": spec.pcts,
+        # error in units of the reported standard error (honest SEs: mostly |z| < 3)
+        z = {k: (res["orthotropic"][k][0] - spec.params[k]) / res["orthotropic"][k][1]
+             for k in ("a1", "a2", "a3", "b1", "b2", "g1", "g2")}
+        rows.append({"seed": seed, "ok": ok, "errors": err, "z": z, "thickness_mm": spec.thickness_mm, "pcts": spec.pcts,
                      "cycles": spec.cycles, "rate_hz": spec.rate_hz, "orientations": spec.orientations,
                      "poisson_in_meta": spec.poisson is not None, "params": spec.params})
         print(f"seed {seed}: {'ok ' if ok else 'OUT'} h {spec.thickness_mm:.2f} mm, pcts {spec.pcts}, "
@@ -63,6 +66,7 @@ def main(argv=None):
     worst = {k: max(r["errors"][k] for r in done) for k in ("a1", "a2", "a3", "b1", "b2", "g1", "g2")} if done else {}
     if done:
         worst["k_B"] = max(v for r in done for k, v in r["errors"].items() if k.startswith("k_B"))
+        worst["median_abs_z"] = {k: float(sorted(abs(r["z"][k]) for r in done)[len(done) // 2]) for k in done[0]["z"]}
     summary = {"folders": len(rows), "failed": len(rows) - len(done), "within_tolerance": sum(r["ok"] for r in done),
                "worst": worst, "tolerance": TOL, "seconds": time.time() - t0}
     print(json.dumps(summary))

@@ -174,6 +174,24 @@ def test_malformed_meta_json_fields(tmp_path, capsys, meta, key):
     assert_bad_input(rc, err, "meta.json", key)
 
 
+@pytest.mark.parametrize("fname, col, value", [
+    ("tensile_00deg_80pct.csv", "extension_mm", "1e300"), ("tensile_90deg_80pct.csv", "load_N", "-1e300"),
+    ("shear_00deg.csv", "lateral_displacement_mm", "1e9"), ("cantilever.csv", "free_length_mm", "1e300"),
+    ("cantilever.csv", "areal_weight_N_per_mm2", "5"), ("cantilever.csv", "height_over_width", "1e300"),
+])
+def test_fabric_values_outside_physical_ranges(tmp_path, capsys, fname, col, value):
+    folder = G.write_folder(G.random_spec(14), tmp_path / "fab")
+    path = os.path.join(folder, fname)
+    lines = open(path).read().splitlines()
+    cells = lines[3].split(",")
+    cells[lines[0].split(",").index(col)] = value
+    lines[3] = ",".join(cells)
+    open(path, "w").write("\n".join(lines) + "\n")
+    rc, err = run(["calibrate", "fabric", folder, "-o", tmp_path / "o"], capsys)
+    assert_bad_input(rc, err, fname, "row 3", col)
+    assert not (tmp_path / "o").exists()
+
+
 def test_binary_strips_file(tmp_path, capsys):
     p = tmp_path / "bin.csv"
     p.write_bytes((HEADER + "\n").encode() + b"A,front,1.35,0,0.3,0.8,10,40,0.05,\n\xff\xd8\xff\xe0JFIF\x00\n")

@@ -42,9 +42,11 @@ from validation.fabric_files import (META_KEYS, number_key, find_test_files, rea
                                      read_tensile)
 from validation.fabric_law import fit_orthotropic_uniaxial, uniaxial_response
 from validation.plots import Series, plot_series
-from validation.textfiles import refuse_overwrite
+from validation.textfiles import finite_json, refuse_overwrite
 
 PARAM_NAMES = ("a1", "a2", "a3", "b1", "b2", "g1", "g2")
+MAX_STRETCH_RATIO = 10.0   # tensile extension up to 10 x the gauge length (a 1000 % stretch)
+MAX_LOAD_N = 1e4           # N: a textile strip breaks long before
 
 
 # ----------------------------------------------------------------------------- calibration
@@ -92,6 +94,14 @@ def _load_tensile(files: dict, meta: dict) -> dict:
             bad = np.flatnonzero(t["extension_mm"] <= -L)
             if bad.size:
                 raise SelfshapeError(f"{name}: row {bad[0] + 1}, column extension_mm: below minus the gauge length")
+            bad = np.flatnonzero(t["extension_mm"] > MAX_STRETCH_RATIO * L)
+            if bad.size:
+                raise SelfshapeError(f"{name}: row {bad[0] + 1}, column extension_mm: {t['extension_mm'][bad[0]]:g} mm is "
+                                     f"beyond {MAX_STRETCH_RATIO:g} x the gauge length {L:g} mm")
+            bad = np.flatnonzero(np.abs(t["load_N"]) > MAX_LOAD_N)
+            if bad.size:
+                raise SelfshapeError(f"{name}: row {bad[0] + 1}, column load_N: {t['load_N'][bad[0]]:g} N is beyond "
+                                     f"+-{MAX_LOAD_N:g} N (not a fabric strip's load)")
             if not np.any(t["branch"] == "unload"):
                 raise SelfshapeError(f"{name}: no unload rows (the calibration uses the unloading branch)")
             cycles, why = stabilised_cycles(t, meta, name)
@@ -107,6 +117,11 @@ def _shear_results(files: dict, meta: dict) -> dict:
     per = {}
     for deg, path in sorted(files.items(), key=lambda kv: float(kv[0])):
         t = read_shear(path)
+        for col, top in (("lateral_displacement_mm", 2.0 * side), ("lateral_load_N", MAX_LOAD_N)):
+            bad = np.flatnonzero(np.abs(t[col]) > top)
+            if bad.size:
+                raise SelfshapeError(f"{os.path.basename(path)}: row {bad[0] + 1}, column {col}: "
+                                     f"{t[col][bad[0]]:g} is beyond +-{top:g} (twice the sample side, mm / N)")
         g, tau = shear_stress_strain(t["lateral_displacement_mm"], t["lateral_load_N"], side, h)
         try:
             per[deg] = {"gamma": g, "tau": tau, "fit": fit_shear_modulus(g, tau)}
@@ -361,6 +376,7 @@ def calibrate_fabric(folder: str, out_dir: str, plots: bool = True) -> dict:
     os.makedirs(out_dir, exist_ok=True)
     result["plots"] = ([os.path.basename(p) for p in _plots(out_dir, tensile, fits, params_by, nu, shear, cant)]
                        if plots else [])
+    result = finite_json(result)
     path = os.path.join(out_dir, "parameters.json")
     tmp = path + ".tmp"
     with open(tmp, "w", encoding="utf-8") as f:

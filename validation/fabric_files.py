@@ -140,10 +140,13 @@ def read_cantilever(path: str) -> dict:
     from validation.elastica import master_curve_table
     t = read_table(path, CANTILEVER_COLUMNS)
     name = os.path.basename(path)
-    for col in ("free_length_mm", "areal_weight_N_per_mm2", "height_over_width"):
+    for col, top in (("free_length_mm", 1e4), ("areal_weight_N_per_mm2", 1e-2), ("height_over_width", np.inf)):
         bad = np.flatnonzero(t[col] <= 0)
         if bad.size:
             raise SelfshapeError(f"{name}: row {bad[0] + 1}, column {col}: must be > 0")
+        bad = np.flatnonzero(t[col] > top)
+        if bad.size:
+            raise SelfshapeError(f"{name}: row {bad[0] + 1}, column {col}: {t[col][bad[0]]:g} is beyond {top:g}")
     r_max = float(master_curve_table()[1][-1])
     bad = np.flatnonzero(t["height_over_width"] > r_max)
     if bad.size:

@@ -22,7 +22,7 @@ import os
 import numpy as np
 
 from shellfem.errors import SelfshapeError, check_number
-from validation.textfiles import read_csv_rows, refuse_overwrite
+from validation.textfiles import finite_json, read_csv_rows, refuse_overwrite
 
 MEASURED = "curvature_per_mm"
 REST = "rest_curvature_per_mm"
@@ -237,19 +237,6 @@ def seed_linear_fit(rows):
     return 1.0 / slope, se / slope ** 2
 
 
-def _finite_json(o, where="parameters"):
-    """o with every float checked finite (SelfshapeError naming the entry otherwise)."""
-    if isinstance(o, dict):
-        return {k: _finite_json(v, f"{where}.{k}") for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_finite_json(v, f"{where}[{i}]") for i, v in enumerate(o)]
-    if isinstance(o, (float, np.floating)):
-        if not math.isfinite(float(o)):
-            raise SelfshapeError(f"calibration produced a non-finite {where} ({float(o)!r})")
-        return float(o)
-    return o
-
-
 def calibrate_strips(csv_path, out_dir) -> dict:
     """Fit the plastic/fabric modulus ratio to a strips CSV with the base model
     (plastic flat at rest: step 1 of the validation loop). Writes out_dir/parameters.json
@@ -304,7 +291,7 @@ def calibrate_strips(csv_path, out_dir) -> dict:
                         "measured_per_mm": [float(v) for v in rows[MEASURED]],
                         "fitted_per_mm": [float(v) for v in base["fitted"]],
                         "residual_per_mm": [float(v) for v in base["residuals"]]}
-    out = _finite_json(out)
+    out = finite_json(out)
     os.makedirs(out_dir, exist_ok=True)
     _plot_fit(rows, base["value"], os.path.join(out_dir, "strips_fit.png"))
     path = os.path.join(out_dir, "parameters.json")

@@ -8,7 +8,10 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 import os
+
+import numpy as np
 
 from shellfem.errors import SelfshapeError
 
@@ -80,3 +83,20 @@ def refuse_overwrite(output, inputs, verb_option: str = "-o") -> None:
         if p is not None and os.path.realpath(str(p)) == out:
             raise SelfshapeError(f"{output}: {verb_option} is the input file {os.path.basename(str(p))}; "
                                  "refusing to overwrite input data (choose another output path)")
+
+
+def finite_json(o, where="parameters"):
+    """A JSON-ready copy of o (numpy scalars and arrays to Python) with every number checked
+    finite: a SelfshapeError naming the entry otherwise, so a verb fails with a reason rather
+    than write NaN or Infinity (which are not JSON)."""
+    if isinstance(o, dict):
+        return {k: finite_json(v, f"{where}.{k}") for k, v in o.items()}
+    if isinstance(o, np.ndarray):
+        o = o.tolist()
+    if isinstance(o, (list, tuple)):
+        return [finite_json(v, f"{where}[{i}]") for i, v in enumerate(o)]
+    if isinstance(o, np.generic):
+        o = o.item()
+    if isinstance(o, float) and not math.isfinite(o):
+        raise SelfshapeError(f"the calibration produced a non-finite {where} ({o!r}): the data do not determine it")
+    return o
