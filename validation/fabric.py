@@ -16,7 +16,10 @@ Pipeline (``calibrate_fabric``):
   stress (Eq. 4.4) -> the seed's route: fit sigma = A e - b log(1 - e/g) (Eq. 4.6-4.7) on 0 and
   90 deg -> b1, g1, b2, g2 and a1, a2 from A1 = (a1 - sqrt(a1 a2) nu^2)/(1 - nu^2), A2 likewise
   ("orthotropic_seed_eq46"); then, from there, the model-consistent fit in which the model's own
-  uniaxial-stress response matches the 0 and 90 deg curves ("orthotropic", what the engine uses);
+  uniaxial-stress response matches the 0 and 90 deg curves ("orthotropic", what the engine uses).
+  The largest max stretch goes first (its curves reach nearest the barrier); lower ones also
+  start from its parameters, since far below the barrier the seed's route alone may define
+  nothing. What the curves do not determine is left out and named under "not_identifiable";
 - release (pseudo-Young) modulus: slope of each orientation's unloading curve at release,
   averaged over orientations, per max stretch;
 - a3: initial slope of shear stress vs shear strain, averaged over 0 and 90 deg;
@@ -280,10 +283,10 @@ def calibrate_fabric(folder: str, out_dir: str, plots: bool = True) -> dict:
             seed_params_by[pct] = _model_params(fits[pct], a3, nu)
         # model-consistent refinement: the engine's own uniaxial response fits 0 and 90 deg
         c0, c9 = tensile[pct]["0"], tensile[pct]["90"]
-        starts = ([None] if pct in seed_params_by else []) + ([top_params] if top_params is not None else [])
-        if not starts:
-            raise SelfshapeError(f"{c0['name']}, {c9['name']}: the 0 and 90 deg curves at the largest stretch "
-                                 f"({pct} %) do not determine the fabric law ({not_identifiable[next(iter(not_identifiable))]})")
+        # starts: the Eq. 4.6 fits (always at the largest stretch; below it only where the seed's
+        # route is determined) and the largest stretch's parameters; the better fit is kept
+        starts = ([None] if (pct in seed_params_by or top_params is None) else []) + \
+                 ([top_params] if top_params is not None else [])
         cons = None
         for st in starts:
             trial = fit_orthotropic_uniaxial(c0["e"], c0["S"], c9["e"], c9["S"], nu, a3, start=st)
