@@ -177,6 +177,8 @@ def _cmd_calibrate(a):
 
 
 def _cmd_validate(a):
+    from validation.strips import check_for_validation  # input contract (issue 19): checked before the loop
+    check_for_validation(a.data, [a.output])
     from validation.loop import validate_file
     r = validate_file(a.data, a.output, seed=a.seed)
     print(f"error before {r['error_before']:.4f}, after {r['error_after']:.4f}; "
@@ -184,6 +186,8 @@ def _cmd_validate(a):
 
 
 def _cmd_predict(a):
+    from validation.model_file import check_predict  # input contract (issue 19): model.json, rows, -o
+    check_predict(a.model, a.data, a.output)
     from validation.loop import predict_file
     n = predict_file(a.model, a.data, a.output)
     print(f"wrote {n} predictions to {a.output}")
