@@ -45,7 +45,7 @@ from validation.strips import MEASURED, REST, model_source, n_rows, read_strips,
 
 Z_GAIN = 2.0                # without replicates: paired CV gain must exceed this many standard errors
 GAIN_NOISE_FRACTION = 0.05  # CV gain must exceed this fraction of the noise variance
-MAX_CV = 4                  # effects per step scored by CV: the significant ones with the largest F
+MAX_REFIT = 3               # effects per step refitted with all parameters after the screen
 ALPHA = 0.05                # family-wise false-positive rate of each step's tests (and of the residual tests)
 N_PERM = 999
 COVARIATES = ("side", "stretch", "orientation_deg", "plastic_thickness_mm", "fabric_thickness_mm",
@@ -67,11 +67,13 @@ def _scan_modulus_ratio(rows, y):
     return float(grid[np.argmin(((k - y[None]) ** 2).sum(1)), 0])
 
 
-def fit(rows, effects, start=None, aux=None, weights=None):
+def fit(rows, effects, start=None, aux=None, weights=None, free=None):
     """Least-squares fit of base + ``effects`` to the measured curvatures of rows.
     ``start``: natural parameter values to start from (default: grid-scanned
     modulus ratio and the effects' initial values). ``weights``: per-row weights
-    (1 / noise variance, (1/mm)^-2; default: ordinary least squares). Returns a dict:
+    (1 / noise variance, (1/mm)^-2; default: ordinary least squares). ``free``: boolean
+    mask of the parameters to optimise (the others stay at ``start``; default all; the
+    standard errors of fixed ones are 0). Returns a dict:
     effects (names), names, theta, se (natural units, delta method for log parameters),
     cov (internal units), aux, ssr (unweighted, (1/mm)^2), wssr (weighted; = ssr without
     weights), sigma, n, residuals (measured - predicted, unweighted), weights."""
@@ -83,14 +85,33 @@ def fit(rows, effects, start=None, aux=None, weights=None):
     u0, flags = fx.to_internal(effects, start)
     lo, hi = fx.bounds_internal(effects)
     sw = 1.0 if weights is None else np.sqrt(np.asarray(weights, float))
-    fun = lambda u: (fx.predict(rows, effects, fx.natural(effects, u), aux) - y) * sw  # noqa: E731
-    r = stats.nls_fit(fun, u0, lo, hi, batch_fn=fun)
-    theta = fx.natural(effects, r["theta"])
-    se = np.where(flags, theta * r["se"], r["se"])
+    if free is None:
+        fun = lambda u: (fx.predict(rows, effects, fx.natural(effects, u), aux) - y) * sw  # noqa: E731
+        r = stats.nls_fit(fun, u0, lo, hi, batch_fn=fun)
+        u_hat, u_se, cov = r["theta"], r["se"], r["cov"]
+    else:
+        free = np.asarray(free, bool)
+        u0 = np.clip(u0, lo, hi)
+
+        def fun(v):
+            v = np.asarray(v, float)
+            u = np.broadcast_to(u0, v.shape[:-1] + u0.shape).copy()
+            u[..., free] = v
+            return (fx.predict(rows, effects, fx.natural(effects, u), aux) - y) * sw
+
+        r = stats.nls_fit(fun, u0[free], lo[free], hi[free], batch_fn=fun)
+        u_hat = u0.copy()
+        u_hat[free] = r["theta"]
+        u_se = np.zeros(u0.size)
+        u_se[free] = r["se"]
+        cov = np.zeros((u0.size, u0.size))
+        cov[np.ix_(free, free)] = r["cov"]
+    theta = fx.natural(effects, u_hat)
+    se = np.where(flags, theta * u_se, u_se)
     res = -r["residuals"] / sw
     return {"effects": [e.name for e in effects], "names": fx.parameter_names(effects),
             "theta": theta, "se": se, "aux": aux, "ssr": float(res @ res), "wssr": r["ssr"], "sigma": r["sigma"],
-            "n": r["n"], "residuals": res, "cov": r["cov"], "weights": weights}
+            "n": r["n"], "residuals": res, "cov": cov, "weights": weights}
 
 
 def _effects_of(names):
@@ -231,7 +252,7 @@ def noise_estimate(rows, residuals, fallback_rms, fitted=None):
 # selection
 
 
-def fit_best(rows, effects, start_base, n_new=1, aux=None, weights=None):
+def fit_best(rows, effects, start_base, n_new=1, aux=None, weights=None, partial=False):
     """:func:`fit` of base + ``effects`` from the best of several starts: ``start_base``
     holds the current parameters (modulus ratio and the effects before the last
     ``n_new``); each new effect may start at its initial value or at any of its
@@ -239,7 +260,9 @@ def fit_best(rows, effects, start_base, n_new=1, aux=None, weights=None):
     evaluated in one batched model call and the fit runs from the lowest. Why: effects
     such as the width transition or a modulus factor can have a second minimum on the
     far side of their neutral value, which a single start from the neutral value misses
-    once other effects are in the model."""
+    once other effects are in the model. ``partial``: optimise only the modulus ratio and
+    the new effects' parameters (a cheap screen whose squared error bounds the full
+    fit's from above)."""
     effects = list(effects)
     tails = [[]]
     for e in effects[len(effects) - n_new:]:
@@ -255,7 +278,12 @@ def fit_best(rows, effects, start_base, n_new=1, aux=None, weights=None):
         start = list(starts[int(np.argmin(ssr))])
     else:
         start = list(starts[0])
-    return fit(rows, effects, start=start, aux=aux, weights=weights)
+    free = None
+    if partial:
+        free = np.zeros(len(start), bool)
+        free[0] = True
+        free[len(start_base):] = True
+    return fit(rows, effects, start=start, aux=aux, weights=weights, free=free)
 
 
 class _Reference:
@@ -339,7 +367,7 @@ class _Reference:
         return {"F": float(F), "dof": [int(df1), dof_pe], "p": float(sps.f.sf(F, df1, dof_pe))}
 
 
-def select_effects(rows, seed=0, folds=5, candidates=fx.CATALOGUE):
+def select_effects(rows, seed=0, folds=5, candidates=fx.CATALOGUE, report=True):
     """Stepwise selection of catalogue effects on ``rows`` (see module doc).
 
     Each step refits every applicable effect not in the model together with all the
@@ -358,7 +386,10 @@ def select_effects(rows, seed=0, folds=5, candidates=fx.CATALOGUE):
     model: a swap that fits as well within the noise is reported as indistinguishable
     (the data cannot tell the two apart) instead of picking one silently.
 
-    Returns dict: fit (final), added, rejected {name: reason}, steps, removed,
+    ``report=False`` (the outer folds of :func:`validate`) skips what only the report
+    needs: the residual permutation tests, the swap analysis and the CV errors.
+
+    Returns dict: fit (final), base_fit, added, rejected {name: reason}, steps, removed,
     indistinguishable, partly_confounded, noise, lack_of_fit_before/after,
     tests_before, tests_after, cv_rms_before, cv_rms_after (grouped ``folds``-fold CV
     RMS of the base and final models, 1/mm)."""
@@ -368,16 +399,16 @@ def select_effects(rows, seed=0, folds=5, candidates=fx.CATALOGUE):
     cur = fit(rows, [])
     ref = _Reference(rows, cur)
     base = cur = fit(rows, [], start=cur["theta"], weights=ref.w)
-    err_base = cv_errors(rows, [], split, start=cur["theta"], weights=ref.w)
-    fallback = float(np.sqrt(np.mean(err_base ** 2)))
-    noise = ref.summary if ref.replicates else noise_estimate(rows, cur["residuals"], fallback)
+    if report:
+        err_base = cv_errors(rows, [], split, start=cur["theta"], weights=ref.w)
+    noise = ref.summary if ref.replicates else _residual_noise(cur)
     lof_before = ref.lack_of_fit(cur)
     rejected, pool = {}, []
     for e in candidates:
         ok, why = e.applicable(rows)
         (pool.append(e) if ok else rejected.__setitem__(e.name, why))
     penalty = float(np.log(n) + 2 * np.log(max(len(pool), 1)))
-    tests_before = residual_analysis(rows, cur["residuals"], y - cur["residuals"], seed)
+    tests_before = residual_analysis(rows, cur["residuals"], y - cur["residuals"], seed) if report else None
     added, steps, removed, last = [], [], [], {}
     visited = {frozenset()}
     while True:
@@ -388,16 +419,35 @@ def select_effects(rows, seed=0, folds=5, candidates=fx.CATALOGUE):
         m = len(tried)
         unit = ref.s2 if ref.replicates else sig2
         trials = []
-        for e in tried:
-            f = fit_best(rows, _effects_of(added) + [e], list(cur["theta"]), weights=ref.w)
-            F, p = ref.f_test(cur, f)
-            t = {"effect": e, "fit": f, "F": F, "p": p, "p_bonferroni": min(1.0, p * m),
-                 "gain": (ref.wssr(cur) - ref.wssr(f)) / n}
+
+        def judge(t, f):
+            t["fit"] = f
+            t["F"], t["p"] = ref.f_test(cur, f)
+            t["p_bonferroni"] = min(1.0, t["p"] * m)
+            t["gain"] = (ref.wssr(cur) - ref.wssr(f)) / n
             # the drop per row must also be a fraction of the noise variance (in the weighted
             # metric the noise variance is s2, about 1)
             t["pays"] = bool(t["p_bonferroni"] < ALPHA and t["gain"] > GAIN_NOISE_FRACTION * unit)
+
+        for e in tried:  # screen: the new effect and the modulus ratio only (when others are in)
+            t = {"effect": e, "refitted": not added}
+            judge(t, fit_best(rows, _effects_of(added) + [e], list(cur["theta"]), weights=ref.w,
+                              partial=bool(added)))
             trials.append(t)
-        trials.sort(key=lambda t: (not t["pays"], -t["F"]))
+        # refit all parameters for the best screened ones, and for any whose screen (a lower
+        # bound of its F) beats the best refitted F
+        while True:
+            trials.sort(key=lambda t: -t["F"])
+            todo = [t for t in trials[:MAX_REFIT] if not t["refitted"]]
+            best_full = max([t["F"] for t in trials if t["refitted"]], default=-np.inf)
+            todo += [t for t in trials[MAX_REFIT:] if not t["refitted"] and t["F"] > best_full]
+            if not todo:
+                break
+            for t in todo:
+                t["refitted"] = True
+                judge(t, fit(rows, _effects_of(added) + [t["effect"]], start=list(t["fit"]["theta"]),
+                             weights=ref.w))
+        trials.sort(key=lambda t: (not t["pays"], not t["refitted"], -t["F"]))
         for t in trials:
             last[t["effect"].name] = _why_not(t, unit, ref)
         steps.append({"model": list(added), "rms_current_per_mm": float(np.sqrt(cur["ssr"] / n)),
@@ -433,8 +483,7 @@ def select_effects(rows, seed=0, folds=5, candidates=fx.CATALOGUE):
             visited.add(frozenset(added))
         ref = _Reference(rows, cur)
         cur = fit(rows, _effects_of(added), start=cur["theta"], weights=ref.w)  # this step's weights
-        if ref.replicates:
-            noise = ref.summary
+        noise = ref.summary if ref.replicates else _residual_noise(cur)
     cur, added, dropped = _best_subset(rows, cur, added, ref, penalty)
     for name, q in dropped.items():
         removed.append(name)
@@ -444,29 +493,43 @@ def select_effects(rows, seed=0, folds=5, candidates=fx.CATALOGUE):
     if dropped:
         ref = _Reference(rows, cur)
         cur = fit(rows, _effects_of(added), start=cur["theta"], weights=ref.w)
-        if ref.replicates:
-            noise = ref.summary
+        noise = ref.summary if ref.replicates else _residual_noise(cur)
     for name, why in last.items():
         if name not in added:
             rejected[name] = why
     for e in pool:
         if e.name not in added and e.name not in rejected:
             rejected[e.name] = "not tried"
-    indist = _swap_analysis(rows, cur, added, pool, ref, noise["sigma"])
+    indist = _swap_analysis(rows, cur, added, pool, ref, noise["sigma"]) if report else []
     for d in indist:
         a, c = d["effects"]
         rejected[c] = (f"indistinguishable from {a} (swapping it for {a} changes the squared error by "
                        f"{d['ssr_difference_over_noise']:.3g} noise variances and the predictions by "
                        f"{d['prediction_rms_difference_per_mm']:.3g} 1/mm RMS, within the noise "
                        f"{noise['sigma']:.3g}); {a} was added") + ("; " + rejected[c] if c in rejected else "")
-    err_cur = cv_errors(rows, _effects_of(added), split, start=cur["theta"], weights=ref.w) if added else err_base
-    tests_after = residual_analysis(rows, cur["residuals"], y - cur["residuals"], seed) if added else tests_before
+    if not report:
+        err_base = err_cur = np.full(n, np.nan)
+        tests_after = None
+    else:
+        err_cur = (cv_errors(rows, _effects_of(added), split, start=cur["theta"], weights=ref.w) if added
+                   else err_base)
+        tests_after = residual_analysis(rows, cur["residuals"], y - cur["residuals"], seed) if added else tests_before
     return {"fit": cur, "base_fit": base, "added": added, "rejected": rejected, "steps": steps, "removed": removed,
             "indistinguishable": indist, "partly_confounded": _correlated(cur),
             "noise": noise, "lack_of_fit_before": lof_before, "lack_of_fit_after": ref.lack_of_fit(cur),
             "penalty_per_parameter": penalty, "tests_before": tests_before, "tests_after": tests_after,
             "cv_rms_before": float(np.sqrt(np.mean(err_base ** 2))),
             "cv_rms_after": float(np.sqrt(np.mean(err_cur ** 2)))}
+
+
+def _residual_noise(f):
+    """Without replicates: the residual standard deviation of fit f (1/mm) on its residual
+    degrees of freedom, the only noise estimate such data give (not independent of the
+    model, so the error it is compared with is not a floor)."""
+    dof = max(f["n"] - len(f["theta"]), 1)
+    return {"sigma": float(np.sqrt(f["ssr"] / dof)), "dof": None,
+            "method": "residual standard deviation of the selected model (no replicates: not an "
+                      "independent noise floor)"}
 
 
 def _best_subset(rows, cur, added, ref, penalty, max_effects=6):
@@ -509,15 +572,23 @@ def _why_not(t, sig2, ref):
 
 def _swap_analysis(rows, cur, added, pool, ref, sigma):
     """Pairs (added effect, other effect) such that replacing the first by the second in
-    the final model fits as well within the noise (:meth:`_Reference.indistinguishable`)."""
+    the final model fits as well within the noise (:meth:`_Reference.indistinguishable`).
+    Each swap is screened with the other effects' parameters held (the modulus ratio and
+    the new effect free) and the MAX_REFIT best screens per added effect are refitted
+    with all parameters."""
     out = []
     for a in added:
         base = [x for x in added if x != a]
         start = _theta_without(cur, a)
+        screens = []
         for e in pool:
             if e.name in added:
                 continue
-            f = fit(rows, _effects_of(base) + [e], start=list(start) + list(e.init), weights=ref.w)
+            f = fit_best(rows, _effects_of(base) + [e], start, weights=ref.w, partial=bool(base))
+            screens.append((ref.wssr(f), e, f))
+        screens.sort(key=lambda t: t[0])
+        for _, e, f0 in screens[:MAX_REFIT]:
+            f = fit(rows, _effects_of(base) + [e], start=list(f0["theta"]), weights=ref.w) if base else f0
             same, d, diff = ref.indistinguishable(cur, f, sigma)
             if same:
                 out.append({"effects": [a, e.name], "ssr_difference_over_noise": d,
@@ -560,7 +631,7 @@ def validate(rows, seed=0, outer_folds=5, inner_folds=5):
     per_fold = []
     for j, (tr, te) in enumerate(stats.kfold(n, outer_folds, seed, groups=rows["specimen"])):
         train, test = subset(rows, tr), subset(rows, te)
-        sel = select_effects(train, seed=seed + 1 + j, folds=inner_folds)
+        sel = select_effects(train, seed=seed + 1 + j, folds=inner_folds, report=False)
         before[te] = predict_fit(test, sel["base_fit"])
         after[te] = predict_fit(test, sel["fit"])
         per_fold.append(sel["added"])
