@@ -110,6 +110,19 @@ def run_case(case, seed, n_points, reps, with_oracle=True):
     return rec
 
 
+def clean_false_additions(seeds, n_points, reps):
+    """False additions of the selection on clean sets (select_effects on all rows, as the
+    final step of validate): {"sets", "with_additions", "additions"} and the effects added."""
+    hits = []
+    for seed in seeds:
+        rows = strip_sets.strip_set("clean", seed, n_points=n_points, reps=reps)
+        added = loop.select_effects(rows, seed=seed, report=False)["added"]
+        if added:
+            hits.append({"seed": seed, "added": added})
+    return {"sets": len(seeds), "n_points": n_points, "reps": reps, "with_additions": len(hits),
+            "additions": hits}
+
+
 def summarise(records):
     """Per case: seeds, recovery rate per effect, false additions, held-out / floor."""
     table = []
@@ -153,22 +166,52 @@ def main(argv=None):
     ap.add_argument("--n-points", type=int, default=24, help="design points per set")
     ap.add_argument("--reps", type=int, default=3, help="replicates per design point")
     ap.add_argument("--no-oracle", action="store_true")
+    ap.add_argument("--clean-seeds", type=int, default=40,
+                    help="clean sets (with replicates, and without: n-points x reps single strips) on which the "
+                         "selection's false additions are counted (0: skip)")
     ap.add_argument("--out", default="out/validation")
+    ap.add_argument("--from-json", default=None,
+                    help="summarise the records of an earlier run's loop_recovery.json instead of running")
+    ap.add_argument("--baseline", default=None,
+                    help="an earlier run's loop_recovery.json (e.g. of the loop before a change) whose summary "
+                         "is kept beside this one for comparison")
     a = ap.parse_args(argv)
-    cases = [c for c in a.cases.split(",") if c] or list(strip_sets.CASES)
-    seeds = range(a.first_seed, a.first_seed + (3 if a.quick else a.seeds))
-    records = []
-    for case in cases:
-        for seed in seeds:
-            r = run_case(case, seed, a.n_points, a.reps, with_oracle=not a.no_oracle)
-            records.append(r)
-            print(json.dumps(r), flush=True)
+    if a.from_json:
+        with open(a.from_json) as fh:
+            earlier = json.load(fh)
+        records, command = earlier["records"], earlier["command"]
+        a.n_points, a.reps = earlier["n_points"], earlier["reps"]
+    else:
+        cases = [c for c in a.cases.split(",") if c] or list(strip_sets.CASES)
+        seeds = range(a.first_seed, a.first_seed + (3 if a.quick else a.seeds))
+        records = []
+        for case in cases:
+            for seed in seeds:
+                r = run_case(case, seed, a.n_points, a.reps, with_oracle=not a.no_oracle)
+                records.append(r)
+                print(json.dumps(r), flush=True)
+        command = "python studies/loop_recovery.py " + " ".join(argv if argv is not None else sys.argv[1:])
     table = summarise(records)
     print_table(table)
+    out = {"command": command, "n_points": a.n_points, "reps": a.reps, "noise_relative": strip_sets.NOISE,
+           "records": records, "summary": table}
+    if a.from_json and "clean_false_additions" in earlier:
+        out["clean_false_additions"] = earlier["clean_false_additions"]
+    elif a.clean_seeds and not a.from_json:
+        seeds = list(range(1000, 1000 + a.clean_seeds))
+        out["clean_false_additions"] = [clean_false_additions(seeds, a.n_points, a.reps),
+                                        clean_false_additions(seeds, a.n_points * a.reps, 1)]
+        for c in out["clean_false_additions"]:
+            print(f"clean sets ({c['n_points']} points x {c['reps']}): {c['with_additions']} of {c['sets']} "
+                  f"with a false addition {[h['added'] for h in c['additions']]}")
+    if a.baseline:
+        with open(a.baseline) as fh:
+            base = json.load(fh)
+        out["baseline"] = {"command": base["command"], "note": base.get("note", ""),
+                           "summary": summarise(base["records"])}
     os.makedirs(a.out, exist_ok=True)
     with open(os.path.join(a.out, "loop_recovery.json"), "w") as fh:
-        json.dump({"command": "python studies/loop_recovery.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-                   "n_points": a.n_points, "reps": a.reps, "records": records, "summary": table}, fh, indent=2)
+        json.dump(out, fh, indent=2)
 
 
 if __name__ == "__main__":

@@ -8,15 +8,15 @@
 3. stepwise selection of catalogue effects (validation.effects): at each step refit
    every applicable effect not in the model with all parameters (several starts), keep
    those whose squared-error drop is significant against the noise floor (nested F test
-   with the pure-error degrees of freedom, weighted by the noise variance, Bonferroni
-   over the effects tried; without replicates the classical partial F test), add the
-   one with the lowest grouped K-fold CV error if its CV gain exceeds
-   GAIN_NOISE_FRACTION of the noise variance (without replicates also Z_GAIN standard
-   errors); then test each effect already in for removal; rejected effects are tried
-   again at every step. Stop when none passes. Finally every added effect is swapped
-   for every other effect: swaps that fit as well within the noise are reported as
-   indistinguishable ("confounded with X"), strongly correlated parameters as partly
-   confounded;
+   with the pure-error degrees of freedom, the fits weighted by the noise variance,
+   Bonferroni over the effects tried, family-wise ALPHA_ADD; without replicates the
+   classical partial F test) and add the one with the largest F if its drop also
+   exceeds GAIN_NOISE_FRACTION of the noise variance; then test each effect already in
+   for removal; rejected effects are tried again at every step. Stop when none passes.
+   Then the best subset of the added effects by an extended BIC with the noise known.
+   Finally every added effect is swapped for every other effect: swaps that fit as well
+   within the noise are reported as indistinguishable ("confounded with X"), strongly
+   correlated parameters as partly confounded;
 4. report (report.json, plots, model.json). The errors before/after are relative
    RMS on held-out rows of an outer K-fold split; each outer training part runs
    the whole selection on its own, so held-out rows never take part in it.
@@ -43,10 +43,10 @@ from validation import effects as fx
 from validation import stats
 from validation.strips import MEASURED, REST, model_source, n_rows, read_strips, strip_model, subset
 
-Z_GAIN = 2.0                # without replicates: paired CV gain must exceed this many standard errors
 GAIN_NOISE_FRACTION = 0.05  # CV gain must exceed this fraction of the noise variance
 MAX_REFIT = 3               # effects per step refitted with all parameters after the screen
-ALPHA = 0.05                # family-wise false-positive rate of each step's tests (and of the residual tests)
+ALPHA_ADD = 0.01            # family-wise false-positive rate of each step's addition tests (Bonferroni)
+ALPHA = 0.05                # level of the removal, lack-of-fit and indistinguishability tests, residual tests
 N_PERM = 999
 COVARIATES = ("side", "stretch", "orientation_deg", "plastic_thickness_mm", "fabric_thickness_mm",
               "width_mm", "length_mm", REST)
@@ -185,20 +185,25 @@ def variance_function(groups, residuals, level, iterations=30):
     span 0.001-0.1 1/mm a plain pooled variance is dominated by the few high-curvature
     groups and scatters by +-25 % over seeds at 24 groups of 3, the variance function uses
     every group in proportion to its information. A constant variance is the case b = 0.
+    ``groups`` None: no replicates, each squared residual is taken as a one-dof estimate
+    (the shape of the variance only; its scale then comes from the residual variance).
     Returns (a, b, dof) or None when no group has replicates."""
-    g = np.asarray(groups)
-    cnt = np.bincount(g)
     r = np.asarray(residuals, float)
-    mean_r = np.bincount(g, r) / cnt
-    ss = np.bincount(g, (r - mean_r[g]) ** 2)
-    d = cnt - 1
-    keep = d > 0
-    if not keep.any():
-        return None
-    s2, dj = ss[keep] / d[keep], d[keep].astype(float)
-    m2 = (np.bincount(g, np.abs(np.asarray(level, float))) / cnt)[keep] ** 2
+    if groups is None:  # no replicates: each squared residual is a one-dof variance estimate
+        s2, dj, m2 = r ** 2, np.ones(r.size), np.asarray(level, float) ** 2
+    else:
+        g = np.asarray(groups)
+        cnt = np.bincount(g)
+        mean_r = np.bincount(g, r) / cnt
+        ss = np.bincount(g, (r - mean_r[g]) ** 2)
+        d = cnt - 1
+        keep = d > 0
+        if not keep.any():
+            return None
+        s2, dj = ss[keep] / d[keep], d[keep].astype(float)
+        m2 = (np.bincount(g, np.abs(np.asarray(level, float))) / cnt)[keep] ** 2
     X = np.stack([np.ones_like(m2), m2], 1)
-    pooled = float(ss[keep].sum() / dj.sum())
+    pooled = float((s2 * dj).sum() / dj.sum())
     v = np.full(s2.size, max(pooled, 1e-300))
     coef = np.array([pooled, 0.0])
     for _ in range(iterations):
@@ -234,18 +239,6 @@ def noise_model(rows, residuals, fitted, min_dof=5):
                        "(additive and relative noise) fitted over the groups",
              "variance_function": {"additive_sigma_per_mm": float(np.sqrt(a)), "relative_sigma": float(np.sqrt(b))},
              "pooled_sigma_per_mm": pooled["sigma"] if pooled else None}, v)
-
-
-def noise_estimate(rows, residuals, fallback_rms, fitted=None):
-    """Noise standard deviation of the measured curvature (dict: sigma 1/mm, dof,
-    method, ...): :func:`noise_model` of the residuals when replicates give >= 5 degrees
-    of freedom, else ``fallback_rms`` (dof None). ``fitted``: the model's predictions
-    (default: measured - residuals)."""
-    fitted = rows[MEASURED] - residuals if fitted is None else fitted
-    nm = noise_model(rows, residuals, fitted)
-    if nm is None:
-        return {"sigma": float(fallback_rms), "dof": None, "method": "CV RMS of the base model (no replicates)"}
-    return nm[0]
 
 
 # ---------------------------------------------------------------------------
@@ -296,8 +289,10 @@ class _Reference:
     freedom. Why: the noise is heteroscedastic (relative, for sensor noise); ordinary
     least squares judged by the mean variance lets the high-curvature rows hide what the
     precise low-curvature rows show, and testing OLS fits by weighted errors judges them
-    by rows they ignore. Without replicates: unweighted fits and the classical partial F
-    test (the larger model's residual variance on its residual degrees of freedom)."""
+    by rows they ignore. Without replicates: the shape of the variance function from the
+    current model's squared residuals (weights w = mean(v) / v) and the classical partial
+    F test (the larger model's weighted residual variance on its residual degrees of
+    freedom)."""
 
     V_FLOOR = 1e-3  # per-row variance at least this fraction of the mean (bounds the weights)
 
@@ -313,12 +308,17 @@ class _Reference:
             g, r = self.groups, f["residuals"]
             mean_r = np.bincount(g, self.w * r) / np.bincount(g, self.w)
             self.s2 = float((self.w * (r - mean_r[g]) ** 2).sum() / self.dof)
-        else:
-            self.summary, self.v, self.w, self.dof, self.s2 = None, None, None, None, None
+        else:  # shape of the variance from the residuals; scale from each test's residual variance
+            self.summary, self.dof, self.s2 = None, None, None
+            fitted = rows[MEASURED] - f["residuals"]
+            a, b, _ = variance_function(None, f["residuals"], fitted)
+            v = np.maximum(a + b * fitted ** 2, 1e-300)
+            v = np.maximum(v, self.V_FLOOR * v.mean())
+            self.v, self.w = v / v.mean(), v.mean() / v
 
     def wssr(self, f):
         r = f["residuals"]
-        return float(r @ r) if self.w is None else float((self.w * r) @ r)
+        return float((self.w * r) @ r)
 
     def _s2(self, big):
         if self.replicates:
@@ -427,7 +427,7 @@ def select_effects(rows, seed=0, folds=5, candidates=fx.CATALOGUE, report=True):
             t["gain"] = (ref.wssr(cur) - ref.wssr(f)) / n
             # the drop per row must also be a fraction of the noise variance (in the weighted
             # metric the noise variance is s2, about 1)
-            t["pays"] = bool(t["p_bonferroni"] < ALPHA and t["gain"] > GAIN_NOISE_FRACTION * unit)
+            t["pays"] = bool(t["p_bonferroni"] < ALPHA_ADD and t["gain"] > GAIN_NOISE_FRACTION * unit)
 
         for e in tried:  # screen: the new effect and the modulus ratio only (when others are in)
             t = {"effect": e, "refitted": not added}
@@ -563,9 +563,9 @@ def _why_not(t, sig2, ref):
     test = "pure-error" if ref.replicates else "residual-variance"
     if t["pays"]:
         return f"passed (F test p = {t['p']:.3g}) but another effect had a larger F"
-    if t["p_bonferroni"] >= ALPHA:
+    if t["p_bonferroni"] >= ALPHA_ADD:
         return (f"does not pay: its squared-error drop is not significant against the noise ({test} F test, "
-                f"p = {t['p']:.3g}, Bonferroni {t['p_bonferroni']:.3g} >= {ALPHA:g})")
+                f"p = {t['p']:.3g}, Bonferroni {t['p_bonferroni']:.3g} >= {ALPHA_ADD:g})")
     return (f"does not pay: its {'weighted ' if ref.replicates else ''}squared-error gain per row "
             f"{t['gain']:.3g} is below {GAIN_NOISE_FRACTION:g} x noise variance {sig2:.3g}")
 
@@ -661,12 +661,12 @@ def validate(rows, seed=0, outer_folds=5, inner_folds=5):
         "selection_steps": final["steps"],
         "effects_added_per_outer_fold": per_fold,
         "selection_rule": f"stepwise; at each step every effect not in the model is refitted with all "
-                          f"parameters; those whose squared-error drop is significant against the noise floor "
-                          f"(nested F test on the pure error of the replicate groups, weighted by the noise "
-                          f"variance, Bonferroni alpha {ALPHA}) compete on {inner_folds}-fold CV error; the best "
-                          f"is added if its CV gain > {GAIN_NOISE_FRACTION:g} x noise variance; effects in the "
-                          f"model are re-tested for removal after each addition; swaps that fit as well are "
-                          f"reported as indistinguishable",
+                          f"parameters (weighted by the noise variance); the one with the largest squared-error "
+                          f"drop against the noise floor (nested F test on the pure error of the replicate "
+                          f"groups, Bonferroni, family-wise {ALPHA_ADD:g}) is added if the drop also exceeds "
+                          f"{GAIN_NOISE_FRACTION:g} x noise variance; effects in the model are re-tested for "
+                          f"removal (alpha {ALPHA:g}) after each addition; best subset by extended BIC; swaps "
+                          f"that fit as well are reported as indistinguishable",
         "fit_rms_per_mm": float(np.sqrt(f["ssr"] / n)),
     }
     report["_final"] = final
