@@ -11,14 +11,10 @@ from validation.strips import MEASURED
 
 
 def found(sel, effect):
+    """Added, or reported indistinguishable from an added effect."""
     if effect in sel["added"]:
         return True
     return any(effect in d["effects"] and set(d["effects"]) & set(sel["added"]) for d in sel["indistinguishable"])
-
-
-def false_additions(sel, truth):
-    return [a for a in sel["added"] if a not in truth
-            and not any(a in d["effects"] and set(d["effects"]) & set(truth) for d in sel["indistinguishable"])]
 
 
 @pytest.mark.parametrize("case,seed", [
@@ -30,40 +26,45 @@ def false_additions(sel, truth):
 def test_every_effect_of_a_multi_effect_set_is_found(case, seed):
     rows = strip_sets.strip_set(case, seed)
     truth = strip_sets.CASES[case]
-    sel = loop.select_effects(rows, seed=seed)
-    assert all(found(sel, e) for e in truth), (sel["added"], sel["indistinguishable"])
-    assert false_additions(sel, truth) == [], sel["added"]
+    sel = loop.select_effects(rows, seed=seed, report=False)
+    assert sorted(sel["added"]) == sorted(truth)  # these effects are identifiable: each one itself
     # the final model leaves no structure beyond the replicate scatter
     assert sel["lack_of_fit_after"]["p"] > 0.01, sel["lack_of_fit_after"]
     assert sel["lack_of_fit_before"]["p"] < 1e-6
 
 
 def test_heldout_error_reaches_the_noise_floor_over_seeds():
-    """Outer 5-fold held-out error over the loop's own noise-floor estimate, a two- and a
-    three-effect set, two seeds each; the floor estimate itself within 20 % of the truth."""
+    """Outer 5-fold held-out error over the loop's own noise-floor estimate, a two-effect
+    set and a three-effect set at two seeds (the baseline loop was 40, 14 and 1.1 x the
+    floor on these); the floor estimate itself within 20 % of the truth."""
     ratios = []
-    for case in ("side_deposition+orthotropy", "thickness_bias+stretch_modulus+gravity"):
-        for seed in (1, 2):
-            rows = strip_sets.strip_set(case, seed)
-            rep = loop.validate(rows, seed=seed)
-            assert sorted(rep["effects_added"]) == sorted(strip_sets.CASES[case]), rep["effects_added"]
-            assert all(sorted(f) == sorted(strip_sets.CASES[case]) for f in rep["effects_added_per_outer_fold"])
-            true_rel = strip_sets.NOISE * np.sqrt(np.mean(rows["_truth"]["noise_free"] ** 2)) / np.sqrt(
-                np.mean(rows[MEASURED] ** 2))
-            assert abs(rep["noise_relative"] / true_rel - 1) < 0.2
-            assert rep["error_before"] > 5 * rep["noise_relative"]
-            ratios.append(rep["error_after"] / rep["noise_relative"])
+    for case, seed in (("side_deposition+orthotropy", 1), ("thickness_bias+stretch_modulus+gravity", 1),
+                       ("thickness_bias+stretch_modulus+gravity", 2)):
+        rows = strip_sets.strip_set(case, seed)
+        rep = loop.validate(rows, seed=seed)
+        assert sorted(rep["effects_added"]) == sorted(strip_sets.CASES[case]), rep["effects_added"]
+        assert all(sorted(f) == sorted(strip_sets.CASES[case]) for f in rep["effects_added_per_outer_fold"])
+        true_rel = strip_sets.NOISE * np.sqrt(np.mean(rows["_truth"]["noise_free"] ** 2)) / np.sqrt(
+            np.mean(rows[MEASURED] ** 2))
+        assert abs(rep["noise_relative"] / true_rel - 1) < 0.2
+        assert rep["error_before"] > 5 * rep["noise_relative"]
+        ratios.append(rep["error_after"] / rep["noise_relative"])
     assert np.mean(ratios) <= 1.1, ratios
     assert max(ratios) <= 1.25, ratios
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_clean_sets_add_nothing(seed):
-    rows = strip_sets.strip_set("clean", seed)
-    rep = loop.validate(rows, seed=seed)
+def test_clean_sets_add_nothing():
+    """validate on one clean set (outer folds too), then the selection alone on ten more,
+    with replicates and without (the same number of single strips)."""
+    rows = strip_sets.strip_set("clean", 0)
+    rep = loop.validate(rows, seed=0)
     assert rep["effects_added"] == []
     assert all(not f for f in rep["effects_added_per_outer_fold"])
     assert rep["error_after"] == rep["error_before"]
+    for seed in range(100, 110):
+        for n_points, reps in ((24, 3), (72, 1)):
+            rows = strip_sets.strip_set("clean", seed, n_points=n_points, reps=reps)
+            assert loop.select_effects(rows, seed=seed, report=False)["added"] == [], (seed, reps)
 
 
 def test_variance_function_recovers_relative_and_additive_noise():
