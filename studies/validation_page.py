@@ -249,8 +249,9 @@ def strips_section(p: Page, d: dict):
 def loop_section(p: Page, d: dict):
     p.add("## The closed validation loop (validation/data/strips_S1.csv)", "",
           "Relative RMS error on rows held out by an outer 5-fold split grouped by specimen, before (base model) "
-          "and after the effects the loop adds; the reference is the noise floor, the pooled scatter of the "
-          "residuals within groups of replicate specimens.", "")
+          "and after the effects the loop adds; the reference is the noise floor, the scatter of the "
+          "residuals within groups of replicate specimens (variance a + b kappa^2, additive and relative noise, "
+          "fitted over the groups).", "")
     rows = [["held-out error, base model", _g(d["error_before"], 3), _g(d["noise_relative"], 3),
              "noise floor (replicates)", f"{d['error_before'] / d['noise_relative']:.2f} x noise"],
             ["held-out error, with the effects added", _g(d["error_after"], 3), _g(d["noise_relative"], 3),
@@ -290,7 +291,7 @@ def loop_recovery_section(p: Page, d: dict):
         p.add("", f"Clean sets of {c['n_points']} points x {c['reps']} (selection on all rows): "
                   f"{c['with_additions']} of {c['sets']} with a false addition.")
     if "baseline" in d:
-        p.add("", f"Before (baseline: {d['baseline'].get('note') or 'the loop before issue 19'}):", "")
+        p.add("", f"Before, the baseline: {d['baseline'].get('note') or 'the loop before issue 19'}.", "")
         p.add(*table(d["baseline"]["summary"]))
     p.command(d["command"])
     p.add("")
