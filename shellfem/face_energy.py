@@ -1,12 +1,14 @@
 """The energy of each triangle as a function of y = (a, h, psi), with exact derivatives.
 
 z = (a, b) with b = b(h, psi) the discrete second fundamental form of shellfem.bending;
-W(z) = the layered quadratic of shellfem.layers (kept as a sum of squares, layer by layer)
-+ an optional membrane term W_m(a) (a fabric model of shellfem.materials). The chain rule
+W(z) = the layered energy of shellfem.layers (kept as a sum of per-layer terms; quadratic in z
+apart from the exact metric's third fundamental form c = b a^-1 b, whose exact gradient and
+Hessian in z are added on the triangles that carry it) + an optional membrane term W_m(a)
+(a fabric model of shellfem.materials). The chain rule
 z(a, h, psi) -> y runs in one compiled loop over the faces with the quadratic (the
 vectorised version's (m, 6, 9) products cost 20 of its 26 ms at 21k faces). The kernel
 inlines compiled helpers of other modules (the bending module's edge coefficients,
-shellfem.kinematics.sandwich_into), whose edits numba's on-disk cache does not see: touch
+shellfem.kinematics.sandwich_into, shellfem.layers.layer_terms), whose edits numba's on-disk cache does not see: touch
 this file after changing them.
 """
 from __future__ import annotations
@@ -16,7 +18,7 @@ from numba import njit, prange
 
 from shellfem.bending.midedge_tan import edge_coefficients, inadmissible
 from shellfem.kinematics import C_OUTER, sandwich_into
-from shellfem.layers import QuadraticForm
+from shellfem.layers import THIRD_FORM_S, QuadraticForm, layer_terms
 
 
 def face_energy(a, h, psi, quad: QuadraticForm, membrane=None, order: int = 2):
@@ -31,12 +33,13 @@ def face_energy(a, h, psi, quad: QuadraticForm, membrane=None, order: int = 2):
         Wm, gm, Hm = membrane(a)
     else:
         Wm, gm, Hm = np.zeros(m), np.zeros((m, 3)), np.zeros((m, 3, 3))
-    ptr, Qs, zbars = quad.packed()
+    ptr, Qs, zbars, Rs, cbars, thick = quad.packed()
     W = np.empty(m)
     Wy = np.empty((m if order >= 1 else 0, 9))
     Wyy = np.empty((m if order >= 2 else 0, 9, 9))
     _face_energy_kernel(np.ascontiguousarray(a, dtype=float), np.ascontiguousarray(h, dtype=float),
-                        np.ascontiguousarray(psi, dtype=float), ptr, Qs, zbars, quad.Q, np.asarray(Wm, float),
+                        np.ascontiguousarray(psi, dtype=float), ptr, Qs, zbars, Rs, cbars, thick, THIRD_FORM_S, quad.Q,
+                        np.asarray(Wm, float),
                         np.ascontiguousarray(gm, dtype=float), np.ascontiguousarray(Hm, dtype=float), C_OUTER, order,
                         W, Wy, Wyy)
     W = np.where(inadmissible(psi), np.inf, W)
@@ -44,12 +47,11 @@ def face_energy(a, h, psi, quad: QuadraticForm, membrane=None, order: int = 2):
 
 
 @njit(cache=True, parallel=True)
-def _face_energy_kernel(a, h, psi, ptr, Qs, zbars, Qtot, Wm, gm, Hm, C, order, W, Wy, Wyy):
+def _face_energy_kernel(a, h, psi, ptr, Qs, zbars, Rs, cbars, thick, S, Qtot, Wm, gm, Hm, C, order, W, Wy, Wyy):
     m = a.shape[0]
     for f in prange(m):
         z = np.empty(6)
         Wz = np.zeros(6)
-        d = np.empty(6)
         # edge coefficients of b = sum_i beta_i c_i c_i^T and their derivatives
         beta = np.empty(3)
         b_h = np.empty(3)
@@ -61,16 +63,12 @@ def _face_energy_kernel(a, h, psi, ptr, Qs, zbars, Qtot, Wm, gm, Hm, C, order, W
         for k in range(3):
             z[k] = a[f, k]
             z[3 + k] = beta[0] * C[0, k] + beta[1] * C[1, k] + beta[2] * C[2, k]
-        w = 0.0
-        for t in range(ptr[f], ptr[f + 1]):        # sum of squares, layer by layer (no cancellation)
+        Z = np.empty((6, 6))
+        if order == 2:
             for k in range(6):
-                d[k] = z[k] - zbars[t, k]
-            for k in range(6):
-                qd = 0.0
                 for l in range(6):
-                    qd += Qs[t, k, l] * d[l]
-                w += 0.5 * d[k] * qd
-                Wz[k] += qd
+                    Z[k, l] = Qtot[f, k, l]
+        w = layer_terms(z, ptr[f], ptr[f + 1], Qs, zbars, Rs, cbars, thick[f], S, order, Wz, Z)
         W[f] = w + Wm[f]
         if order == 0:
             continue
@@ -91,10 +89,6 @@ def _face_energy_kernel(a, h, psi, ptr, Qs, zbars, Qtot, Wm, gm, Hm, C, order, W
             for i in range(3):
                 J[3 + k, 3 + i] = b_h[i] * C[i, k]
                 J[3 + k, 6 + i] = b_psi[i] * C[i, k]
-        Z = np.empty((6, 6))
-        for k in range(6):
-            for l in range(6):
-                Z[k, l] = Qtot[f, k, l]
         for k in range(3):
             for l in range(3):
                 Z[k, l] += Hm[f, k, l]

@@ -20,7 +20,7 @@ from shellfem.bending.midedge_tan import coefficients, from_coefficients, inadmi
 from shellfem.face_energy import face_energy
 from shellfem.kinematics import (C_OUTER, build_topology, face_chain, face_metrics, hinge_angle_values,
                                  hinge_angles)
-from shellfem.layers import QuadraticForm, bending_quadratic, layer_quadratic, rest_area, sym_to_mat
+from shellfem.layers import QuadraticForm, bending_quadratic, layer_form, rest_area, sym_to_mat
 from shellfem.materials import MEMBRANE_MODELS, Fabric, Plastic, RestState
 from shellfem.sheet import Sheet
 
@@ -53,9 +53,12 @@ class ShellModel:
 
     # --- construction ---------------------------------------------------------------
     @classmethod
-    def homogeneous(cls, sheet: Sheet, E: float, nu: float, h: float, rest_curvature=None):
+    def homogeneous(cls, sheet: Sheet, E: float, nu: float, h: float, rest_curvature=None,
+                    exact_metric: bool = True):
         """Single-layer isotropic shell (MPa, mm), flat and stress-free in the sheet's
-        coordinates unless ``rest_curvature`` (2x2 in the sheet's x, y; 1/mm) is given."""
+        coordinates unless ``rest_curvature`` (2x2 in the sheet's x, y; 1/mm) is given.
+        exact_metric: the exact Kirchhoff-Love metric through the thickness (shellfem.layers;
+        False: the truncated metric a - 2 z b)."""
         P = np.concatenate([sheet.points, np.zeros((sheet.n_vertices, 1))], 1)[sheet.triangles]
         abar = edge_metric(P)
         bbar = np.zeros_like(abar)
@@ -65,15 +68,18 @@ class ShellModel:
             Bm = np.einsum("mji,jk,mkl->mil", Em, np.asarray(rest_curvature, float), Em)
             bbar = np.stack([Bm[:, 0, 0], Bm[:, 0, 1], Bm[:, 1, 1]], 1)
         quad = QuadraticForm(sheet.n_triangles)
-        quad.add(*layer_quadratic(abar, bbar, E, nu, -h / 2, h / 2))
+        quad.add(*layer_form(abar, bbar, E, nu, -h / 2, h / 2, exact_metric=exact_metric))
         return cls(sheet, quad)
 
     @classmethod
-    def from_materials(cls, sheet: Sheet, fabric: Fabric, plastic: Plastic, gravity: bool = True):
+    def from_materials(cls, sheet: Sheet, fabric: Fabric, plastic: Plastic, gravity: bool = True,
+                       exact_metric: bool = True):
         """The seed's model: bare fabric = the fabric's membrane model (Fabric.model, from the
         registry of shellfem.materials) + bending with k_B; printed triangles = fabric layer (E2, nu_f) + plastic layer(s)
         on the front (+z) and/or back (-z) face, plastic with rest curvature (plastic set).
-        The fabric's rest metric is diag(1/sx^2, 1/sy^2) in printed coordinates."""
+        The fabric's rest metric is diag(1/sx^2, 1/sy^2) in printed coordinates. The layers
+        carry the exact Kirchhoff-Love metric (shellfem.layers; exact_metric=False: the
+        truncated a - 2 z b, O(kappa h) off for bilayers)."""
         m = sheet.n_triangles
         P2 = sheet.points[sheet.triangles]                      # (m, 3, 2) printed
         P3 = np.concatenate([P2, np.zeros((m, 3, 1))], 2)
@@ -87,10 +93,11 @@ class ShellModel:
         bare = ~printed
         quad = QuadraticForm(m)
         if printed.any():
-            quad.add(*layer_quadratic(abar_fab, np.zeros((m, 3)), fabric.young_modulus, fabric.poisson,
-                                         -hf / 2, hf / 2), mask=printed)
+            quad.add(*layer_form(abar_fab, np.zeros((m, 3)), fabric.young_modulus, fabric.poisson, -hf / 2, hf / 2,
+                                 exact_metric=exact_metric), mask=printed)
             for mask, bbar, z0, z1, _, _ in plastic_layers(sheet, fabric, plastic, abar_print):
-                quad.add(*layer_quadratic(abar_print, bbar, plastic.young_modulus, plastic.poisson, z0, z1), mask=mask)
+                quad.add(*layer_form(abar_print, bbar, plastic.young_modulus, plastic.poisson, z0, z1,
+                                     exact_metric=exact_metric), mask=mask)
         membrane = None
         if bare.any():
             if fabric.bending_stiffness > 0:
@@ -209,9 +216,10 @@ class ShellModel:
 
     @cached_property
     def edge_bending_form(self) -> np.ndarray:
-        """(m, 3, 3) sigma_i sigma_j c_i^T W_bb c_j per face: d2W/db2 is constant (the layered
-        energy is quadratic in b), so EdgeAngleProblem's Hessian is elementwise with it (the
-        einsum it replaces cost 8 of the 18 ms per evaluation at 21k faces)."""
+        """(m, 3, 3) sigma_i sigma_j c_i^T W_bb c_j per face with W_bb the quadratic part's
+        constant d2W/db2: EdgeAngleProblem's Hessian is elementwise with it (the einsum it
+        replaces cost 8 of the 18 ms per evaluation at 21k faces); on the exact-metric faces
+        (quad.thick) W_bb depends on the state and is recomputed there."""
         sign = self.topo.face_sign
         return (C_OUTER @ self.quad.Q[:, 3:, 3:] @ C_OUTER.T) * sign[:, :, None] * sign[:, None, :]
 
@@ -269,6 +277,7 @@ class EdgeAngleProblem:
         self.a, self.h = face_metrics(xf)
         self.half_phi = model._psi(x, np.zeros(model.n_edges), False)[0]     # psi at theta = 0
         self._CWC = model.edge_bending_form
+        self._thick = np.flatnonzero(model.quad.thick)
 
     def evaluate(self, theta, order: int = 2):
         """(E, gradient, Hessian blocks (m, 3, 3) over each face's edges); E = inf where an
@@ -277,7 +286,7 @@ class EdgeAngleProblem:
         psi = topo.face_sign * theta[topo.face_edges] + self.half_phi
         h = self.h
         beta, _, b_psi, _, b_psipsi = coefficients(h, psi)
-        W, Wz, Wzz = quad.evaluate(np.concatenate([self.a, from_coefficients(beta)], 1))
+        W, Wz, Wzz = quad.evaluate(np.concatenate([self.a, from_coefficients(beta)], 1), order=order)
         E = float(np.where(inadmissible(psi), np.inf, W).sum())
         if order == 0:
             return E, None, None
@@ -287,7 +296,13 @@ class EdgeAngleProblem:
                            minlength=self.model.n_edges)
         if order == 1:
             return E, grad, None
-        Hpsi = b_psi[:, :, None] * b_psi[:, None, :] * self._CWC
+        CWC = self._CWC
+        if len(self._thick):
+            CWC = CWC.copy()
+            t = self._thick
+            sign = topo.face_sign[t]
+            CWC[t] = (C_OUTER @ Wzz[t, 3:, 3:] @ C_OUTER.T) * sign[:, :, None] * sign[:, None, :]
+        Hpsi = b_psi[:, :, None] * b_psi[:, None, :] * CWC
         idx = np.arange(3)
         Hpsi[:, idx, idx] += b_psipsi * gi                # face_sign^2 = 1 on the diagonal
         return E, grad, Hpsi
