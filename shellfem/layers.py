@@ -72,24 +72,6 @@ SYM_BASIS = np.array([[[1.0, 0.0], [0.0, 0.0]], [[0.0, 1.0], [1.0, 0.0]], [[0.0,
 N_GAUSS = 8
 
 
-def _third_form_tensor() -> np.ndarray:
-    """S (3, 3, 3, 3): N_k = b adj(a) b (components k = 11, 12, 22) = sum_j a_j 1/2 b^T S[k, j] b,
-    so that c = b a^-1 b = N / det(a)."""
-    S = np.zeros((3, 3, 3, 3))
-    S[0, 0, 1, 1], S[0, 2, 0, 0] = 2.0, 2.0                       # N11 = a22 b11^2 - 2 a12 b11 b12 + a11 b12^2
-    S[0, 1, 0, 1] = S[0, 1, 1, 0] = -2.0
-    S[1, 0, 1, 2] = S[1, 0, 2, 1] = 1.0                           # N12 = a11 b12 b22 - a12 (b11 b22 + b12^2)
-    S[1, 1, 0, 2] = S[1, 1, 2, 0] = -1.0                          #       + a22 b11 b12
-    S[1, 1, 1, 1] = -2.0
-    S[1, 2, 0, 1] = S[1, 2, 1, 0] = 1.0
-    S[2, 0, 2, 2], S[2, 2, 1, 1] = 2.0, 2.0                       # N22 = a22 b12^2 - 2 a12 b12 b22 + a11 b22^2
-    S[2, 1, 1, 2] = S[2, 1, 2, 1] = -2.0
-    return S
-
-
-THIRD_FORM_S = _third_form_tensor()
-
-
 def sym_to_mat(s: np.ndarray) -> np.ndarray:
     """(…, 3) components (11, 12, 22) -> (…, 2, 2) symmetric matrices."""
     return np.stack([np.stack([s[..., 0], s[..., 1]], -1), np.stack([s[..., 1], s[..., 2]], -1)], -2)
@@ -239,72 +221,95 @@ def bending_quadratic(abar, D, nu, area=None):
     return Q, np.concatenate([abar, np.zeros((m, 3))], 1)
 
 
+_CHUNK = 512   # triangles per parallel task: scratch arrays are allocated once per chunk
+
+
 @njit(cache=True)
-def third_form_derivatives(z, S, order, c, Jc, Hc):
+def layer_scratch():
+    """Scratch arrays of :func:`layer_terms` (allocate once per chunk of triangles, not per
+    triangle: small allocations dominate the cost of the third-form terms otherwise)."""
+    return (np.empty(6), np.empty(3), np.empty(3), np.empty(3), np.empty((3, 6)), np.empty((3, 9)),
+            np.empty((3, 6)), np.empty((3, 6, 6)))
+
+
+@njit(cache=True, inline="always")
+def third_form_derivatives(z, order, c, Jc, Hc):
     """c = b a^-1 b (3,) of one state z = (a, b) (6,), its Jacobian Jc (3, 6) (order >= 1) and
-    Hessians Hc (3, 6, 6) (order 2), written into the given arrays: c = N / det(a) with
-    N_k = sum_j a_j 1/2 b^T S[k, j] b (THIRD_FORM_S), linear in a and quadratic in b."""
-    a0, a1, a2 = z[0], z[1], z[2]
+    Hessians Hc (3, 6, 6) (order 2), written into the given arrays. c = N / det(a) with
+    N = b adj(a) b: linear in a, quadratic in b, written out component by component."""
+    a0, a1, a2, b0, b1, b2 = z[0], z[1], z[2], z[3], z[4], z[5]
     u = 1.0 / (a0 * a2 - a1 * a1)
-    Sb = np.empty((3, 3, 3))
-    N = np.zeros(3)
-    dN = np.zeros((3, 6))
-    for k in range(3):
-        for j in range(3):
-            for l in range(3):
-                s = 0.0
-                for n in range(3):
-                    s += S[k, j, l, n] * z[3 + n]
-                Sb[k, j, l] = s
-            q = 0.0
-            for l in range(3):
-                q += 0.5 * z[3 + l] * Sb[k, j, l]
-            N[k] += z[j] * q
-            dN[k, j] = q
-        for l in range(3):
-            dN[k, 3 + l] = z[0] * Sb[k, 0, l] + z[1] * Sb[k, 1, l] + z[2] * Sb[k, 2, l]
-    for k in range(3):
-        c[k] = N[k] * u
+    N0 = a2 * b0 * b0 - 2.0 * a1 * b0 * b1 + a0 * b1 * b1
+    N1 = a2 * b0 * b1 - a1 * (b0 * b2 + b1 * b1) + a0 * b1 * b2
+    N2 = a2 * b1 * b1 - 2.0 * a1 * b1 * b2 + a0 * b2 * b2
+    c[0], c[1], c[2] = N0 * u, N1 * u, N2 * u
     if order == 0:
         return
-    ddet = np.zeros(6)
-    ddet[0], ddet[1], ddet[2] = a2, -2.0 * a1, a0
-    du = np.empty(6)
-    for i in range(6):
-        du[i] = -ddet[i] * u * u
+    # dN/dz (rows k, columns a0 a1 a2 b0 b1 b2)
+    Jc[0, 0], Jc[0, 1], Jc[0, 2] = b1 * b1, -2.0 * b0 * b1, b0 * b0
+    Jc[0, 3], Jc[0, 4], Jc[0, 5] = 2.0 * (a2 * b0 - a1 * b1), 2.0 * (a0 * b1 - a1 * b0), 0.0
+    Jc[1, 0], Jc[1, 1], Jc[1, 2] = b1 * b2, -(b0 * b2 + b1 * b1), b0 * b1
+    Jc[1, 3], Jc[1, 4], Jc[1, 5] = a2 * b1 - a1 * b2, a2 * b0 - 2.0 * a1 * b1 + a0 * b2, a0 * b1 - a1 * b0
+    Jc[2, 0], Jc[2, 1], Jc[2, 2] = b2 * b2, -2.0 * b1 * b2, b1 * b1
+    Jc[2, 3], Jc[2, 4], Jc[2, 5] = 0.0, 2.0 * (a2 * b1 - a1 * b2), 2.0 * (a0 * b2 - a1 * b1)
+    # du/da = -u^2 ddet/da, ddet/da = (a2, -2 a1, a0); du/db = 0
+    d0, d1, d2 = a2, -2.0 * a1, a0
+    u2 = u * u
+    du0, du1, du2 = -u2 * d0, -u2 * d1, -u2 * d2
+    N = (N0, N1, N2)
+    if order == 2:
+        for k in range(3):
+            for i in range(6):
+                for j in range(6):
+                    Hc[k, i, j] = 0.0
+        # d2N: a-b blocks and b-b blocks (the a-a block is zero), times u
+        Hc[0, 0, 4] = 2.0 * b1
+        Hc[0, 1, 3], Hc[0, 1, 4] = -2.0 * b1, -2.0 * b0
+        Hc[0, 2, 3] = 2.0 * b0
+        Hc[0, 3, 3], Hc[0, 3, 4], Hc[0, 4, 4] = 2.0 * a2, -2.0 * a1, 2.0 * a0
+        Hc[1, 0, 4], Hc[1, 0, 5] = b2, b1
+        Hc[1, 1, 3], Hc[1, 1, 4], Hc[1, 1, 5] = -b2, -2.0 * b1, -b0
+        Hc[1, 2, 3], Hc[1, 2, 4] = b1, b0
+        Hc[1, 3, 4], Hc[1, 3, 5], Hc[1, 4, 4], Hc[1, 4, 5] = a2, -a1, -2.0 * a1, a0
+        Hc[2, 0, 5] = 2.0 * b2
+        Hc[2, 1, 4], Hc[2, 1, 5] = -2.0 * b2, -2.0 * b1
+        Hc[2, 2, 4] = 2.0 * b1
+        Hc[2, 4, 4], Hc[2, 4, 5], Hc[2, 5, 5] = 2.0 * a2, -2.0 * a1, 2.0 * a0
+        u3 = u2 * u
+        dd = (d0, d1, d2)
+        du = (du0, du1, du2)
+        for k in range(3):       # Hc = u d2N + dN (x) du + du (x) dN + N d2u (upper triangle, then mirrored)
+            for i in range(6):
+                for j in range(i, 6):
+                    v = Hc[k, i, j] * u
+                    if i < 3:
+                        v += du[i] * Jc[k, j]
+                    if j < 3:
+                        v += Jc[k, i] * du[j] + N[k] * 2.0 * u3 * dd[i] * dd[j]
+                    Hc[k, i, j] = v
+            Hc[k, 0, 2] -= N[k] * u2          # d2det/da0 da2 = 1, d2det/da1^2 = -2
+            Hc[k, 1, 1] += 2.0 * N[k] * u2
+            for i in range(6):
+                for j in range(i + 1, 6):
+                    Hc[k, j, i] = Hc[k, i, j]
+    # Jc = dN u + N du
     for k in range(3):
         for i in range(6):
-            Jc[k, i] = dN[k, i] * u + N[k] * du[i]
-    if order == 1:
-        return
-    u2, u3 = u * u, u * u * u
-    for k in range(3):
-        for i in range(6):
-            for j in range(i, 6):
-                d2N = 0.0
-                if i < 3 and j >= 3:
-                    d2N = Sb[k, i, j - 3]
-                elif i >= 3:
-                    d2N = z[0] * S[k, 0, i - 3, j - 3] + z[1] * S[k, 1, i - 3, j - 3] + z[2] * S[k, 2, i - 3, j - 3]
-                d2det = 0.0
-                if (i == 0 and j == 2):
-                    d2det = 1.0
-                elif i == 1 and j == 1:
-                    d2det = -2.0
-                d2u = -d2det * u2 + 2.0 * ddet[i] * ddet[j] * u3
-                v = d2N * u + dN[k, i] * du[j] + du[i] * dN[k, j] + N[k] * d2u
-                Hc[k, i, j] = v
-                Hc[k, j, i] = v
+            Jc[k, i] *= u
+        Jc[k, 0] += N[k] * du0
+        Jc[k, 1] += N[k] * du1
+        Jc[k, 2] += N[k] * du2
 
 
-@njit(cache=True)
-def layer_terms(z, t0, t1, Qs, zbars, Rs, cbars, thick, S, order, Wz, Z):
+@njit(cache=True, inline="always")
+def layer_terms(z, t0, t1, Qs, zbars, Rs, cbars, thick, order, Wz, Z, work):
     """Energy of one triangle's layer terms t0..t1-1 at z (6,); adds the gradient to Wz (6,)
     (order >= 1) and, for exact-metric terms, the state-dependent part of the Hessian to Z
-    (6, 6) (order 2; Z holds the constant quadratic part on entry). Each term is evaluated
-    from its own differences w = (z - zbar, c - cbar), never expanded (no cancellation)."""
+    (6, 6) (order 2; Z holds the constant quadratic part on entry). work: :func:`layer_scratch`.
+    Each term is evaluated from its own differences w = (z - zbar, c - cbar), never expanded
+    (no cancellation)."""
     w = 0.0
-    d = np.empty(6)
+    d, c, r, D2, Jc, Rsum, RJ, Hc = work
     for t in range(t0, t1):                       # quadratic part, layer by layer
         for k in range(6):
             d[k] = z[k] - zbars[t, k]
@@ -317,13 +322,11 @@ def layer_terms(z, t0, t1, Qs, zbars, Rs, cbars, thick, S, order, Wz, Z):
                 Wz[k] += qd
     if not thick:
         return w
-    c = np.empty(3)
-    Jc = np.empty((3, 6))
-    Hc = np.empty((3, 6, 6))
-    third_form_derivatives(z, S, order, c, Jc, Hc)
-    r = np.zeros(3)                               # dW/dD2, summed over the terms
-    Rsum = np.zeros((3, 9))
-    D2 = np.empty(3)
+    third_form_derivatives(z, order, c, Jc, Hc)
+    for k in range(3):
+        r[k] = 0.0
+        for l in range(9):
+            Rsum[k, l] = 0.0
     for t in range(t0, t1):
         for k in range(6):
             d[k] = z[k] - zbars[t, k]
@@ -340,10 +343,7 @@ def layer_terms(z, t0, t1, Qs, zbars, Rs, cbars, thick, S, order, Wz, Z):
             r[k] += p + q
         if order >= 1:
             for l in range(6):
-                s = 0.0
-                for k in range(3):
-                    s += Rs[t, k, l] * D2[k]
-                Wz[l] += s
+                Wz[l] += Rs[t, 0, l] * D2[0] + Rs[t, 1, l] * D2[1] + Rs[t, 2, l] * D2[2]
         if order == 2:
             for k in range(3):
                 for l in range(9):
@@ -351,48 +351,47 @@ def layer_terms(z, t0, t1, Qs, zbars, Rs, cbars, thick, S, order, Wz, Z):
     if order == 0:
         return w
     for l in range(6):
-        s = 0.0
-        for k in range(3):
-            s += Jc[k, l] * r[k]
-        Wz[l] += s
+        Wz[l] += Jc[0, l] * r[0] + Jc[1, l] * r[1] + Jc[2, l] * r[2]
     if order == 1:
         return w
     # Z += Jc^T R6 + R6^T Jc + Jc^T R22 Jc + sum_k r_k Hc_k
-    RJ = np.zeros((3, 6))
     for k in range(3):
         for l in range(6):
-            s = 0.0
-            for n in range(3):
-                s += Rsum[k, 6 + n] * Jc[n, l]
-            RJ[k, l] = s
+            RJ[k, l] = Rsum[k, 6] * Jc[0, l] + Rsum[k, 7] * Jc[1, l] + Rsum[k, 8] * Jc[2, l]
     for i in range(6):
-        for j in range(6):
+        for j in range(i, 6):
             s = 0.0
             for k in range(3):
-                s += Jc[k, i] * (Rsum[k, j] + 0.5 * RJ[k, j]) + (Rsum[k, i] + 0.5 * RJ[k, i]) * Jc[k, j]
-                s += r[k] * Hc[k, i, j]
+                s += (Jc[k, i] * (Rsum[k, j] + 0.5 * RJ[k, j]) + (Rsum[k, i] + 0.5 * RJ[k, i]) * Jc[k, j]
+                      + r[k] * Hc[k, i, j])
             Z[i, j] += s
+            if j > i:
+                Z[j, i] += s
     return w
 
 
 @njit(cache=True, parallel=True)
-def _evaluate_kernel(z, ptr, Qs, zbars, Rs, cbars, thick, Qtot, S, order, W, g, H):
-    m = z.shape[0]
-    for f in prange(m):
-        Wz = np.zeros(6)
+def _evaluate_kernel(z, faces, ptr, Qs, zbars, Rs, cbars, thick, Qtot, order, W, g, H):
+    n = faces.shape[0]
+    for chunk in prange((n + _CHUNK - 1) // _CHUNK):
+        Wz = np.empty(6)
         Z = np.empty((6, 6))
-        if order == 2:
-            for k in range(6):
-                for l in range(6):
-                    Z[k, l] = Qtot[f, k, l]
-        W[f] = layer_terms(z[f], ptr[f], ptr[f + 1], Qs, zbars, Rs, cbars, thick[f], S, order, Wz, Z)
-        if order >= 1:
-            for k in range(6):
-                g[f, k] = Wz[k]
-        if order == 2:
-            for k in range(6):
-                for l in range(6):
-                    H[f, k, l] = Z[k, l]
+        work = layer_scratch()
+        for i in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
+            f = faces[i]
+            Wz[:] = 0.0
+            if order == 2:
+                for k in range(6):
+                    for l in range(6):
+                        Z[k, l] = Qtot[f, k, l]
+            W[i] = layer_terms(z[f], ptr[f], ptr[f + 1], Qs, zbars, Rs, cbars, thick[f], order, Wz, Z, work)
+            if order >= 1:
+                for k in range(6):
+                    g[i, k] = Wz[k]
+            if order == 2:
+                for k in range(6):
+                    for l in range(6):
+                        H[i, k, l] = Z[k, l]
 
 
 class QuadraticForm:
@@ -460,15 +459,17 @@ class QuadraticForm:
                             self.thick.astype(np.bool_))
         return self._packed
 
-    def evaluate(self, z, order: int = 2):
-        """W (m,), dW/dz (m, 6), d2W/dz2 (m, 6, 6) (exact; None where not asked) at z (m, 6)."""
+    def evaluate(self, z, order: int = 2, faces=None):
+        """W, dW/dz (·, 6), d2W/dz2 (·, 6, 6) (exact; None where not asked) at z (m, 6), for all
+        triangles or for the triangles ``faces`` (an index array; rows in that order)."""
         ptr, Qs, zbars, Rs, cbars, thick = self.packed()
-        m = self.m
-        W = np.empty(m)
-        g = np.empty((m if order >= 1 else 0, 6))
-        H = np.empty((m if order >= 2 else 0, 6, 6))
-        _evaluate_kernel(np.ascontiguousarray(z, dtype=float), ptr, Qs, zbars, Rs, cbars, thick, self.Q,
-                         THIRD_FORM_S, order, W, g, H)
+        faces = np.arange(self.m) if faces is None else np.asarray(faces, np.int64)
+        n = len(faces)
+        W = np.empty(n)
+        g = np.empty((n if order >= 1 else 0, 6))
+        H = np.empty((n if order >= 2 else 0, 6, 6))
+        _evaluate_kernel(np.ascontiguousarray(z, dtype=float), faces, ptr, Qs, zbars, Rs, cbars, thick, self.Q,
+                         order, W, g, H)
         return W, (g if order >= 1 else None), (H if order >= 2 else None)
 
     def minimiser(self, keep=None, tol: float = 1e-14, max_iterations: int = 50):

@@ -15,14 +15,18 @@ from __future__ import annotations
 from functools import cached_property
 
 import numpy as np
+from numba import njit, prange
 
 from shellfem.bending.midedge_tan import coefficients, from_coefficients, inadmissible, second_fundamental_form
 from shellfem.face_energy import face_energy
 from shellfem.kinematics import (C_OUTER, build_topology, face_chain, face_metrics, hinge_angle_values,
                                  hinge_angles)
-from shellfem.layers import QuadraticForm, bending_quadratic, layer_form, rest_area, sym_to_mat
+from shellfem.layers import (QuadraticForm, bending_quadratic, layer_form, layer_scratch, layer_terms, rest_area,
+                             sym_to_mat)
 from shellfem.materials import MEMBRANE_MODELS, Fabric, Plastic, RestState
 from shellfem.sheet import Sheet
+
+_CHUNK = 512   # faces per parallel task in compiled kernels
 
 
 def edge_metric(P: np.ndarray) -> np.ndarray:
@@ -286,7 +290,8 @@ class EdgeAngleProblem:
         psi = topo.face_sign * theta[topo.face_edges] + self.half_phi
         h = self.h
         beta, _, b_psi, _, b_psipsi = coefficients(h, psi)
-        W, Wz, Wzz = quad.evaluate(np.concatenate([self.a, from_coefficients(beta)], 1), order=order)
+        z = np.concatenate([self.a, from_coefficients(beta)], 1)
+        W, Wz, _ = quad.evaluate(z, order=min(order, 1))
         E = float(np.where(inadmissible(psi), np.inf, W).sum())
         if order == 0:
             return E, None, None
@@ -297,15 +302,40 @@ class EdgeAngleProblem:
         if order == 1:
             return E, grad, None
         CWC = self._CWC
-        if len(self._thick):
+        if len(self._thick):             # W_bb depends on the state on the exact-metric faces
             CWC = CWC.copy()
-            t = self._thick
-            sign = topo.face_sign[t]
-            CWC[t] = (C_OUTER @ Wzz[t, 3:, 3:] @ C_OUTER.T) * sign[:, :, None] * sign[:, None, :]
+            ptr, Qs, zbars, Rs, cbars, thick = quad.packed()
+            _thick_edge_form_kernel(np.ascontiguousarray(z), self._thick, ptr, Qs, zbars, Rs, cbars, thick, quad.Q,
+                                    C_OUTER, topo.face_sign.astype(float), CWC)
         Hpsi = b_psi[:, :, None] * b_psi[:, None, :] * CWC
         idx = np.arange(3)
         Hpsi[:, idx, idx] += b_psipsi * gi                # face_sign^2 = 1 on the diagonal
         return E, grad, Hpsi
+
+
+@njit(cache=True, parallel=True)
+def _thick_edge_form_kernel(z, faces, ptr, Qs, zbars, Rs, cbars, thick, Qtot, C, sign, out):
+    """out[f] = sigma_i sigma_j c_i^T W_bb(z_f) c_j on the exact-metric faces (the state-dependent
+    counterpart of ShellModel.edge_bending_form)."""
+    n = faces.shape[0]
+    for chunk in prange((n + _CHUNK - 1) // _CHUNK):
+        Wz = np.empty(6)
+        Z = np.empty((6, 6))
+        work = layer_scratch()
+        for i in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
+            f = faces[i]
+            for k in range(6):
+                Wz[k] = 0.0
+                for l in range(6):
+                    Z[k, l] = Qtot[f, k, l]
+            layer_terms(z[f], ptr[f], ptr[f + 1], Qs, zbars, Rs, cbars, thick[f], 2, Wz, Z, work)
+            for p in range(3):
+                for r in range(3):
+                    s = 0.0
+                    for k in range(3):
+                        for l in range(3):
+                            s += C[p, k] * Z[3 + k, 3 + l] * C[r, l]
+                    out[f, p, r] = sign[f, p] * sign[f, r] * s
 
 
 def plastic_layers(sheet: Sheet, fabric: Fabric, plastic: Plastic, abar_print: np.ndarray):

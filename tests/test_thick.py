@@ -130,7 +130,7 @@ def test_third_form_derivatives_match_finite_differences():
     for _ in range(5):
         z = np.concatenate([[1.0, 0.2, 0.9] + rng.normal(scale=0.1, size=3), rng.normal(scale=0.5, size=3)])
         c, Jc, Hc = np.empty(3), np.empty((3, 6)), np.empty((3, 6, 6))
-        layers.third_form_derivatives(z, layers.THIRD_FORM_S, 2, c, Jc, Hc)
+        layers.third_form_derivatives(z, 2, c, Jc, Hc)
         assert np.allclose(c, layers.third_form(z[:3], z[3:]), rtol=1e-13, atol=1e-15)
         eps = 1e-6
         for k in range(6):
@@ -138,8 +138,8 @@ def test_third_form_derivatives_match_finite_differences():
             zp[k] += eps
             zm[k] -= eps
             cp, cm, Jp, Jm = np.empty(3), np.empty(3), np.empty((3, 6)), np.empty((3, 6))
-            layers.third_form_derivatives(zp, layers.THIRD_FORM_S, 1, cp, Jp, Hc.copy())
-            layers.third_form_derivatives(zm, layers.THIRD_FORM_S, 1, cm, Jm, Hc.copy())
+            layers.third_form_derivatives(zp, 1, cp, Jp, Hc.copy())
+            layers.third_form_derivatives(zm, 1, cm, Jm, Hc.copy())
             assert np.allclose((cp - cm) / (2 * eps), Jc[:, k], rtol=1e-7, atol=1e-9)
             assert np.allclose((Jp - Jm) / (2 * eps), Hc[:, :, k], rtol=1e-6, atol=1e-8)
 
