@@ -281,7 +281,8 @@ class EdgeAngleProblem:
         self.a, self.h = face_metrics(xf)
         self.half_phi = model._psi(x, np.zeros(model.n_edges), False)[0]     # psi at theta = 0
         self._CWC = model.edge_bending_form
-        self._thick = np.flatnonzero(model.quad.thick)
+        self._thick = bool(model.quad.thick.any())
+        self._sign = model.topo.face_sign.astype(float)
 
     def evaluate(self, theta, order: int = 2):
         """(E, gradient, Hessian blocks (m, 3, 3) over each face's edges); E = inf where an
@@ -291,7 +292,12 @@ class EdgeAngleProblem:
         h = self.h
         beta, _, b_psi, _, b_psipsi = coefficients(h, psi)
         z = np.concatenate([self.a, from_coefficients(beta)], 1)
-        W, Wz, _ = quad.evaluate(z, order=min(order, 1))
+        CWC = self._CWC
+        if self._thick and order == 2:    # W_bb depends on the state on the exact-metric faces
+            CWC = CWC.copy()
+        W, Wz = np.empty(len(z)), np.empty((len(z), 6))
+        ptr, Qs, zbars, Rs, cbars, thick = quad.packed()
+        _edge_angle_kernel(z, ptr, Qs, zbars, Rs, cbars, thick, quad.Q, C_OUTER, self._sign, order, W, Wz, CWC)
         E = float(np.where(inadmissible(psi), np.inf, W).sum())
         if order == 0:
             return E, None, None
@@ -301,12 +307,6 @@ class EdgeAngleProblem:
                            minlength=self.model.n_edges)
         if order == 1:
             return E, grad, None
-        CWC = self._CWC
-        if len(self._thick):             # W_bb depends on the state on the exact-metric faces
-            CWC = CWC.copy()
-            ptr, Qs, zbars, Rs, cbars, thick = quad.packed()
-            _thick_edge_form_kernel(np.ascontiguousarray(z), self._thick, ptr, Qs, zbars, Rs, cbars, thick, quad.Q,
-                                    C_OUTER, topo.face_sign.astype(float), CWC)
         Hpsi = b_psi[:, :, None] * b_psi[:, None, :] * CWC
         idx = np.arange(3)
         Hpsi[:, idx, idx] += b_psipsi * gi                # face_sign^2 = 1 on the diagonal
@@ -314,28 +314,33 @@ class EdgeAngleProblem:
 
 
 @njit(cache=True, parallel=True)
-def _thick_edge_form_kernel(z, faces, ptr, Qs, zbars, Rs, cbars, thick, Qtot, C, sign, out):
-    """out[f] = sigma_i sigma_j c_i^T W_bb(z_f) c_j on the exact-metric faces (the state-dependent
-    counterpart of ShellModel.edge_bending_form)."""
-    n = faces.shape[0]
-    for chunk in prange((n + _CHUNK - 1) // _CHUNK):
-        Wz = np.empty(6)
+def _edge_angle_kernel(z, ptr, Qs, zbars, Rs, cbars, thick, Qtot, C, sign, order, W, Wz, CWC):
+    """The layered energy W (m,) and dW/dz (m, 6) (order >= 1) at z (m, 6) in one pass and, with
+    order 2, CWC[f] = sigma_i sigma_j c_i^T W_bb(z_f) c_j on the exact-metric faces (the
+    state-dependent counterpart of ShellModel.edge_bending_form; CWC holds that on entry)."""
+    m = z.shape[0]
+    for chunk in prange((m + _CHUNK - 1) // _CHUNK):
+        g = np.empty(6)
         Z = np.empty((6, 6))
         work = layer_scratch()
-        for i in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
-            f = faces[i]
+        for f in range(chunk * _CHUNK, min(m, (chunk + 1) * _CHUNK)):
+            o = 2 if (order == 2 and thick[f]) else min(order, 1)
+            g[:] = 0.0
+            if o == 2:
+                for k in range(6):
+                    for l in range(6):
+                        Z[k, l] = Qtot[f, k, l]
+            W[f] = layer_terms(z[f], ptr[f], ptr[f + 1], Qs, zbars, Rs, cbars, thick[f], o, g, Z, work)
             for k in range(6):
-                Wz[k] = 0.0
-                for l in range(6):
-                    Z[k, l] = Qtot[f, k, l]
-            layer_terms(z[f], ptr[f], ptr[f + 1], Qs, zbars, Rs, cbars, thick[f], 2, Wz, Z, work)
-            for p in range(3):
-                for r in range(3):
-                    s = 0.0
-                    for k in range(3):
-                        for l in range(3):
-                            s += C[p, k] * Z[3 + k, 3 + l] * C[r, l]
-                    out[f, p, r] = sign[f, p] * sign[f, r] * s
+                Wz[f, k] = g[k]
+            if o == 2:
+                for p in range(3):
+                    for r in range(3):
+                        s = 0.0
+                        for k in range(3):
+                            for l in range(3):
+                                s += C[p, k] * Z[3 + k, 3 + l] * C[r, l]
+                        CWC[f, p, r] = sign[f, p] * sign[f, r] * s
 
 
 def plastic_layers(sheet: Sheet, fabric: Fabric, plastic: Plastic, abar_print: np.ndarray):
