@@ -28,19 +28,20 @@ def face_energy(a, h, psi, quad: QuadraticForm, membrane=None, order: int = 2):
 
     membrane: optional callable a -> (W, g, H) added to the a-part (fabric models).
     Returns W (m,), W_y (m, 9) (order >= 1) and W_yy (m, 9, 9) (order 2), None where not asked;
-    W = +inf where an angle leaves |psi| < PSI_MAX (shellfem.bending.midedge_tan).
+    W = +inf where an angle leaves |psi| < PSI_MAX (shellfem.bending.midedge_tan) and where an
+    exact-metric triangle's layers reach a focal point (shellfem.layers.layer_terms).
     """
     m = len(a)
     if membrane is not None:
         Wm, gm, Hm = membrane(a)
     else:
         Wm, gm, Hm = np.zeros(m), np.zeros((m, 3)), np.zeros((m, 3, 3))
-    ptr, Qs, zbars, Rs, cbars, thick = quad.packed()
+    ptr, Qs, zbars, Rs, cbars, thick, zspan = quad.packed()
     W = np.empty(m)
     Wy = np.empty((m if order >= 1 else 0, 9))
     Wyy = np.empty((m if order >= 2 else 0, 9, 9))
     _face_energy_kernel(np.ascontiguousarray(a, dtype=float), np.ascontiguousarray(h, dtype=float),
-                        np.ascontiguousarray(psi, dtype=float), ptr, Qs, zbars, Rs, cbars, thick, quad.Q,
+                        np.ascontiguousarray(psi, dtype=float), ptr, Qs, zbars, Rs, cbars, thick, zspan, quad.Q,
                         np.asarray(Wm, float),
                         np.ascontiguousarray(gm, dtype=float), np.ascontiguousarray(Hm, dtype=float), C_OUTER, order,
                         W, Wy, Wyy)
@@ -49,7 +50,7 @@ def face_energy(a, h, psi, quad: QuadraticForm, membrane=None, order: int = 2):
 
 
 @njit(cache=True, parallel=True)
-def _face_energy_kernel(a, h, psi, ptr, Qs, zbars, Rs, cbars, thick, Qtot, Wm, gm, Hm, C, order, W, Wy, Wyy):
+def _face_energy_kernel(a, h, psi, ptr, Qs, zbars, Rs, cbars, thick, zspan, Qtot, Wm, gm, Hm, C, order, W, Wy, Wyy):
     m = a.shape[0]
     for chunk in prange((m + _CHUNK - 1) // _CHUNK):
         z = np.empty(6)
@@ -76,7 +77,8 @@ def _face_energy_kernel(a, h, psi, ptr, Qs, zbars, Rs, cbars, thick, Qtot, Wm, g
                 for k in range(6):
                     for l in range(6):
                         Z[k, l] = Qtot[f, k, l]
-            w = layer_terms(z, ptr[f], ptr[f + 1], Qs, zbars, Rs, cbars, thick[f], order, Wz, Z, work)
+            w = layer_terms(z, ptr[f], ptr[f + 1], Qs, zbars, Rs, cbars, thick[f], zspan[f, 0], zspan[f, 1], order,
+                            Wz, Z, work)
             W[f] = w + Wm[f]
             if order == 0:
                 continue

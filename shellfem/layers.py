@@ -157,23 +157,26 @@ def _form_from_moments(abar, bbar, E, M, area):
 
 
 def layer_form(abar, bbar, E, nu, z0, z1, area=None, exact_metric: bool = True):
-    """One layer's term (Q, zbar, R, cbar) for QuadraticForm.add: the exact Kirchhoff-Love
-    metric (module docstring); exact_metric=False gives the truncated metric a - 2 z b
-    (:func:`layer_quadratic`, R = cbar = None). abar, bbar (m, 3); E MPa; z0, z1 mm about the
+    """One layer's term (Q, zbar, R, cbar, zspan) for QuadraticForm.add: the exact Kirchhoff-Love
+    metric (module docstring), zspan (m, 2) = (z0, z1) its admissible-set bounds; exact_metric=False
+    gives the truncated metric a - 2 z b (:func:`layer_quadratic`, R = cbar = zspan = None). abar, bbar (m, 3); E MPa; z0, z1 mm about the
     mesh surface; area: rest area (mm^2, default that of abar)."""
     if not exact_metric:
-        return layer_quadratic(abar, bbar, E, nu, z0, z1, area) + (None, None)
-    return _form_from_moments(abar, bbar, E, layer_moments(abar, bbar, nu, z0, z1), area)
+        return layer_quadratic(abar, bbar, E, nu, z0, z1, area) + (None, None, None)
+    m = len(abar)
+    zspan = np.stack([np.broadcast_to(np.asarray(z0, float), (m,)), np.broadcast_to(np.asarray(z1, float), (m,))], 1)
+    return _form_from_moments(abar, bbar, E, layer_moments(abar, bbar, nu, z0, z1), area) + (zspan,)
 
 
 def layer_form_derivative(abar, bbar, E, nu, z0, z1, dz0, dz1, area=None, exact_metric: bool = True):
-    """dW/dp of one layer as a term (dQ, zbar, dR, cbar) for QuadraticForm.add, when its bounds
+    """dW/dp of one layer as a term (dQ, zbar, dR, cbar, None) for QuadraticForm.add, when its bounds
     move with a parameter p at rates dz0/dp, dz1/dp (mm per unit of p; a front plastic layer
     [hf/2, hf/2 + t] has dz0/dt = 0, dz1/dt = 1). Q9 is linear in the moments and w does not
     depend on p, so dW/dp = 1/2 w^T dQ9/dp w exactly."""
     if not exact_metric:
-        return layer_quadratic_derivative(abar, bbar, E, nu, z0, z1, dz0, dz1, area) + (None, None)
-    return _form_from_moments(abar, bbar, E, layer_moments_derivative(abar, bbar, nu, z0, z1, dz0, dz1), area)
+        return layer_quadratic_derivative(abar, bbar, E, nu, z0, z1, dz0, dz1, area) + (None, None, None)
+    return _form_from_moments(abar, bbar, E, layer_moments_derivative(abar, bbar, nu, z0, z1, dz0, dz1),
+                              area) + (None,)
 
 
 def layer_quadratic(abar, bbar, E, nu, z0, z1, area=None):
@@ -302,10 +305,12 @@ def third_form_derivatives(z, order, c, Jc, Hc):
 
 
 @njit(cache=True, inline="always")
-def layer_terms(z, t0, t1, Qs, zbars, Rs, cbars, thick, order, Wz, Z, work):
+def layer_terms(z, t0, t1, Qs, zbars, Rs, cbars, thick, zlo, zhi, order, Wz, Z, work):
     """Energy of one triangle's layer terms t0..t1-1 at z (6,); adds the gradient to Wz (6,)
     (order >= 1) and, for exact-metric terms, the state-dependent part of the Hessian to Z
     (6, 6) (order 2; Z holds the constant quadratic part on entry). work: :func:`layer_scratch`.
+    Exact-metric triangles whose layers [zlo, zhi] reach a focal point (1 - z k_i <= 0 for a
+    principal curvature k_i) are outside the admissible set: W = +inf.
     Each term is evaluated from its own differences w = (z - zbar, c - cbar), never expanded
     (no cancellation)."""
     w = 0.0
@@ -322,6 +327,12 @@ def layer_terms(z, t0, t1, Qs, zbars, Rs, cbars, thick, order, Wz, Z, work):
                 Wz[k] += qd
     if not thick:
         return w
+    det = z[0] * z[2] - z[1] * z[1]
+    Hm = 0.5 * (z[2] * z[3] - 2.0 * z[1] * z[4] + z[0] * z[5]) / det          # mean curvature
+    disc = np.sqrt(max(Hm * Hm - (z[3] * z[5] - z[4] * z[4]) / det, 0.0))
+    if min(1.0 - zhi * (Hm + disc), 1.0 - zhi * (Hm - disc), 1.0 - zlo * (Hm + disc),
+           1.0 - zlo * (Hm - disc)) <= 0.0:
+        return np.inf
     third_form_derivatives(z, order, c, Jc, Hc)
     for k in range(3):
         r[k] = 0.0
@@ -371,7 +382,7 @@ def layer_terms(z, t0, t1, Qs, zbars, Rs, cbars, thick, order, Wz, Z, work):
 
 
 @njit(cache=True, parallel=True)
-def _evaluate_kernel(z, faces, ptr, Qs, zbars, Rs, cbars, thick, Qtot, order, W, g, H):
+def _evaluate_kernel(z, faces, ptr, Qs, zbars, Rs, cbars, thick, zspan, Qtot, order, W, g, H):
     n = faces.shape[0]
     for chunk in prange((n + _CHUNK - 1) // _CHUNK):
         Wz = np.empty(6)
@@ -384,7 +395,8 @@ def _evaluate_kernel(z, faces, ptr, Qs, zbars, Rs, cbars, thick, Qtot, order, W,
                 for k in range(6):
                     for l in range(6):
                         Z[k, l] = Qtot[f, k, l]
-            W[i] = layer_terms(z[f], ptr[f], ptr[f + 1], Qs, zbars, Rs, cbars, thick[f], order, Wz, Z, work)
+            W[i] = layer_terms(z[f], ptr[f], ptr[f + 1], Qs, zbars, Rs, cbars, thick[f], zspan[f, 0], zspan[f, 1],
+                               order, Wz, Z, work)
             if order >= 1:
                 for k in range(6):
                     g[i, k] = Wz[k]
@@ -408,12 +420,15 @@ class QuadraticForm:
         self.m = m
         self.Q = np.zeros((m, 6, 6))   # Hessian of the quadratic part (constant)
         self.thick = np.zeros(m, bool)  # triangles with exact-metric (non-quadratic) terms
-        self._terms = []               # (index array, Q_l, zbar_l, R_l or None, cbar_l or None)
+        self.zspan = np.zeros((m, 2))   # the union of their layers' [z0, z1] (mm): admissible |k z| < 1
+        self._terms = []               # (index array, Q_l, zbar_l, R_l, cbar_l, zspan_l; None if quadratic)
         self._packed = None
 
-    def add(self, Q, zbar, R=None, cbar=None, *, mask=None):
+    def add(self, Q, zbar, R=None, cbar=None, zspan=None, *, mask=None):
         """Add one term per triangle (where mask): Q (m,6,6), zbar (m,6) and, for an
-        exact-metric layer, R (m,3,9) and cbar (m,3) (shellfem.layers.layer_form)."""
+        exact-metric layer, R (m,3,9), cbar (m,3) and optionally zspan (m,2), the layer's
+        [z0, z1], whose union per triangle bounds the admissible curvatures
+        (shellfem.layers.layer_form)."""
         idx = np.arange(self.m) if mask is None else np.flatnonzero(mask)
         if len(idx) == 0:
             return
@@ -421,25 +436,27 @@ class QuadraticForm:
         if R is not None:
             self.thick[idx] = True
             R, cbar = R[idx], cbar[idx]
-        self._terms.append((idx, Q[idx], zbar[idx], R, cbar))
+        if zspan is not None:
+            zspan = zspan[idx]
+            self.zspan[idx, 0] = np.minimum(self.zspan[idx, 0], zspan[:, 0])
+            self.zspan[idx, 1] = np.maximum(self.zspan[idx, 1], zspan[:, 1])
+        self._terms.append((idx, Q[idx], zbar[idx], R, cbar, zspan))
         self._packed = None
 
     def add_form(self, other: "QuadraticForm", mask=None):
         """Add the terms of another form over the same triangles (where mask)."""
         keep = np.ones(self.m, bool) if mask is None else np.asarray(mask, bool)
-        for idx, Q, zbar, R, cbar in other._terms:
+        for idx, *arrays in other._terms:
             sel = keep[idx]
             if not sel.any():
                 continue
             full = np.zeros(self.m, bool)
             full[idx[sel]] = True
-            ex = lambda v, n: None if v is None else _expand(v[sel], idx[sel], self.m)   # noqa: E731
-            self.add(_expand(Q[sel], idx[sel], self.m), _expand(zbar[sel], idx[sel], self.m), ex(R, 0),
-                     ex(cbar, 0), mask=full)
+            self.add(*(None if v is None else _expand(v[sel], idx[sel], self.m) for v in arrays), mask=full)
 
     def packed(self):
         """The terms grouped by triangle, in the order added: (ptr (m+1,), Q (K, 6, 6),
-        zbar (K, 6), R (K, 3, 9), cbar (K, 3), thick (m,)); triangle f's terms are
+        zbar (K, 6), R (K, 3, 9), cbar (K, 3), thick (m,), zspan (m, 2)); triangle f's terms are
         ptr[f]:ptr[f+1], R = 0 for quadratic terms (for compiled kernels)."""
         if self._packed is None:
             if self._terms:
@@ -456,20 +473,20 @@ class QuadraticForm:
                 Q, zbar, counts = np.zeros((0, 6, 6)), np.zeros((0, 6)), np.zeros(self.m, np.int64)
                 R, cbar = np.zeros((0, 3, 9)), np.zeros((0, 3))
             self._packed = (np.concatenate([[0], np.cumsum(counts)]).astype(np.int64), Q, zbar, R, cbar,
-                            self.thick.astype(np.bool_))
+                            self.thick.astype(np.bool_), np.ascontiguousarray(self.zspan))
         return self._packed
 
     def evaluate(self, z, order: int = 2, faces=None):
         """W, dW/dz (·, 6), d2W/dz2 (·, 6, 6) (exact; None where not asked) at z (m, 6), for all
         triangles or for the triangles ``faces`` (an index array; rows in that order)."""
-        ptr, Qs, zbars, Rs, cbars, thick = self.packed()
+        ptr, Qs, zbars, Rs, cbars, thick, zspan = self.packed()
         faces = np.arange(self.m) if faces is None else np.asarray(faces, np.int64)
         n = len(faces)
         W = np.empty(n)
         g = np.empty((n if order >= 1 else 0, 6))
         H = np.empty((n if order >= 2 else 0, 6, 6))
-        _evaluate_kernel(np.ascontiguousarray(z, dtype=float), faces, ptr, Qs, zbars, Rs, cbars, thick, self.Q,
-                         order, W, g, H)
+        _evaluate_kernel(np.ascontiguousarray(z, dtype=float), faces, ptr, Qs, zbars, Rs, cbars, thick, zspan,
+                         self.Q, order, W, g, H)
         return W, (g if order >= 1 else None), (H if order >= 2 else None)
 
     def minimiser(self, keep=None, tol: float = 1e-14, max_iterations: int = 50):
@@ -479,7 +496,7 @@ class QuadraticForm:
         step is below tol of |z|."""
         keep = np.arange(6) if keep is None else np.asarray(keep)
         q = np.zeros((self.m, 6))
-        for idx, Q, zbar, _, _ in self._terms:
+        for idx, Q, zbar, *_ in self._terms:
             q[idx] += (Q @ zbar[:, :, None])[:, :, 0]
         z = np.zeros((self.m, 6))
         z[:, keep] = np.linalg.solve(self.Q[:, keep][:, :, keep], q[:, keep, None])[..., 0]

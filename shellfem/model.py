@@ -296,8 +296,9 @@ class EdgeAngleProblem:
         if self._thick and order == 2:    # W_bb depends on the state on the exact-metric faces
             CWC = CWC.copy()
         W, Wz = np.empty(len(z)), np.empty((len(z), 6))
-        ptr, Qs, zbars, Rs, cbars, thick = quad.packed()
-        _edge_angle_kernel(z, ptr, Qs, zbars, Rs, cbars, thick, quad.Q, C_OUTER, self._sign, order, W, Wz, CWC)
+        ptr, Qs, zbars, Rs, cbars, thick, zspan = quad.packed()
+        _edge_angle_kernel(z, ptr, Qs, zbars, Rs, cbars, thick, zspan, quad.Q, C_OUTER, self._sign, order, W, Wz,
+                           CWC)
         E = float(np.where(inadmissible(psi), np.inf, W).sum())
         if order == 0:
             return E, None, None
@@ -314,7 +315,7 @@ class EdgeAngleProblem:
 
 
 @njit(cache=True, parallel=True)
-def _edge_angle_kernel(z, ptr, Qs, zbars, Rs, cbars, thick, Qtot, C, sign, order, W, Wz, CWC):
+def _edge_angle_kernel(z, ptr, Qs, zbars, Rs, cbars, thick, zspan, Qtot, C, sign, order, W, Wz, CWC):
     """The layered energy W (m,) and dW/dz (m, 6) (order >= 1) at z (m, 6) in one pass and, with
     order 2, CWC[f] = sigma_i sigma_j c_i^T W_bb(z_f) c_j on the exact-metric faces (the
     state-dependent counterpart of ShellModel.edge_bending_form; CWC holds that on entry)."""
@@ -330,7 +331,8 @@ def _edge_angle_kernel(z, ptr, Qs, zbars, Rs, cbars, thick, Qtot, C, sign, order
                 for k in range(6):
                     for l in range(6):
                         Z[k, l] = Qtot[f, k, l]
-            W[f] = layer_terms(z[f], ptr[f], ptr[f + 1], Qs, zbars, Rs, cbars, thick[f], o, g, Z, work)
+            W[f] = layer_terms(z[f], ptr[f], ptr[f + 1], Qs, zbars, Rs, cbars, thick[f], zspan[f, 0], zspan[f, 1], o,
+                               g, Z, work)
             for k in range(6):
                 Wz[f, k] = g[k]
             if o == 2:

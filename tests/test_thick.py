@@ -199,10 +199,10 @@ def test_flat_rest_layer_keeps_the_truncated_quadratic_part():
     moments), and the moments by quadrature equal the closed form."""
     rng = np.random.default_rng(2)
     abar = np.tile([1.0, 0.2, 0.9], (4, 1)) + rng.normal(scale=0.05, size=(4, 3))
-    Q, zbar, R, cbar = layers.layer_form(abar, np.zeros((4, 3)), 2.0, 0.3, 0.4, 0.9)
+    Q, zbar, R, cbar, zspan = layers.layer_form(abar, np.zeros((4, 3)), 2.0, 0.3, 0.4, 0.9)
     Q0, zbar0 = layers.layer_quadratic(abar, np.zeros((4, 3)), 2.0, 0.3, 0.4, 0.9)
     assert np.allclose(Q, Q0, rtol=1e-14, atol=0) and np.array_equal(zbar, zbar0)
-    assert np.all(cbar == 0) and R.shape == (4, 3, 9)
+    assert np.all(cbar == 0) and R.shape == (4, 3, 9) and np.all(zspan == [0.4, 0.9])
     tiny = np.full((4, 3), 1e-300)                # forces the quadrature branch, same moments
     assert np.allclose(layers.layer_moments(abar, tiny, 0.3, 0.4, 0.9),
                        layers.layer_moments(abar, np.zeros((4, 3)), 0.3, 0.4, 0.9), rtol=1e-13, atol=0)
@@ -322,3 +322,18 @@ def test_thickness_sensitivity_on_a_rolled_thick_sheet():
         col = G[:, j].toarray().ravel()
         assert np.linalg.norm(col - fd_g) <= 1e-6 * np.linalg.norm(fd_g)
         assert abs(dEt[j] - fd_E) > 1e-3 * abs(fd_E)
+
+
+def test_curvature_beyond_a_focal_point_is_inadmissible():
+    """The Kirchhoff body x + z n folds where 1 - z k_i <= 0 inside a layer, and there the exact
+    energy has spurious wells (a fibre at z k = 2 has its length back): such states are +inf,
+    like inverted triangles, so no step can reach them. Just inside, the energy is finite."""
+    abar = np.array([[1.0, 0.0, 1.0]])
+    qf = layers.QuadraticForm(1)
+    qf.add(*layers.layer_form(abar, np.zeros((1, 3)), 1.0, 0.3, -0.4, 0.4))
+    qf.add(*layers.layer_form(abar, np.zeros((1, 3)), 100.0, 0.5, 0.4, 0.7))
+    assert np.allclose(qf.zspan, [[-0.4, 0.7]])
+    for k, finite in ((1 / 0.7 - 1e-9, True), (1 / 0.7 + 1e-9, False), (-1 / 0.4 + 1e-9, True), (-1 / 0.4 - 1e-9, False)):
+        z = np.array([[1.0, 0.0, 1.0, 0.3 * k, 0.0, k]])        # principal curvatures 0.3 k and k
+        assert np.isfinite(qf.evaluate(z, 0)[0][0]) == finite
+    assert np.isfinite(qf.evaluate(np.array([[1.0, 0.0, 1.0, 2 / 0.55, 0.0, 0.0]]), 0)[0][0]) == False  # noqa: E712
