@@ -28,8 +28,7 @@ def face_energy(a, h, psi, quad: QuadraticForm, membrane=None, order: int = 2):
 
     membrane: optional callable a -> (W, g, H) added to the a-part (fabric models).
     Returns W (m,), W_y (m, 9) (order >= 1) and W_yy (m, 9, 9) (order 2), None where not asked;
-    W = +inf where an angle leaves |psi| < PSI_MAX (shellfem.bending.midedge_tan) and where an
-    exact-metric triangle's layers reach a focal point (shellfem.layers.layer_terms).
+    W = +inf where an angle leaves |psi| < PSI_MAX (shellfem.bending.midedge_tan).
     """
     m = len(a)
     if membrane is not None:

@@ -310,7 +310,11 @@ def layer_terms(z, t0, t1, Qs, zbars, Rs, cbars, thick, zlo, zhi, order, Wz, Z, 
     (order >= 1) and, for exact-metric terms, the state-dependent part of the Hessian to Z
     (6, 6) (order 2; Z holds the constant quadratic part on entry). work: :func:`layer_scratch`.
     Exact-metric triangles whose layers [zlo, zhi] reach a focal point (1 - z k_i <= 0 for a
-    principal curvature k_i) are outside the admissible set: W = +inf.
+    principal curvature k_i) keep only the quadratic (truncated-metric) part: beyond a focal
+    point the Kirchhoff body folds and the third-form terms have spurious wells (a fibre at
+    z k = 2 has its length back), while +inf there would reject the theta = 0 starts of
+    interpolated meshes (sharp kinks at the print's edges). The energy is discontinuous at
+    that bound, which equilibria (|k z| <= 0.15 on printed faces) never approach.
     Each term is evaluated from its own differences w = (z - zbar, c - cbar), never expanded
     (no cancellation)."""
     w = 0.0
@@ -332,7 +336,7 @@ def layer_terms(z, t0, t1, Qs, zbars, Rs, cbars, thick, zlo, zhi, order, Wz, Z, 
     disc = np.sqrt(max(Hm * Hm - (z[3] * z[5] - z[4] * z[4]) / det, 0.0))
     if min(1.0 - zhi * (Hm + disc), 1.0 - zhi * (Hm - disc), 1.0 - zlo * (Hm + disc),
            1.0 - zlo * (Hm - disc)) <= 0.0:
-        return np.inf
+        return w
     third_form_derivatives(z, order, c, Jc, Hc)
     for k in range(3):
         r[k] = 0.0
