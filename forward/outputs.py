@@ -1,15 +1,24 @@
 """The files of a simulation: deployed.vtu (ParaView: deployed surface, printed-state reference,
-regions, thickness, side, curvatures; mm, 1/mm) and summary.json."""
-from __future__ import annotations
+regions, thickness, side, curvatures; mm, 1/mm); summary.json is the Simulation.summary() dict
+written by shellfem.outfiles.write_json.
 
-import json
+Neither takes a non-finite number (shellfem.outfiles.NonFiniteOutput, naming the array or key):
+a NaN or infinity in a result file is never written. ``simulate_pattern_file`` writes them
+through shellfem.outfiles.OutputDir (checked before the work, atomic, summary.json last)."""
+from __future__ import annotations
 
 import numpy as np
 
+from shellfem.outfiles import check_finite_arrays
 
-def write_vtu(sim: Simulation, path: str):
+#: The files `selfshape simulate` writes (an earlier run's are removed before a new run).
+OUTPUTS = ("deployed.vtu", "deployed.png", "summary.json")
+
+
+def write_vtu(sim, path: str):
     """deployed.vtu: deployed surface with point data `reference` and cell data `region`,
-    `thickness_mm`, `side` (+1 front, -1 back, 0 fabric, 2 both), curvatures (1/mm)."""
+    `thickness_mm`, `side` (+1 front, -1 back, 0 fabric, 2 both), curvatures (1/mm).
+    NonFiniteOutput (nothing written) if a position or field is NaN or infinite."""
     import meshio
     sheet = sim.sheet
     k, H, K = sim.model.curvatures(sim.result.q)
@@ -18,12 +27,8 @@ def write_vtu(sim: Simulation, path: str):
              "thickness_front_mm": sheet.thickness_front, "thickness_back_mm": sheet.thickness_back,
              "k1_per_mm": k[:, 0], "k2_per_mm": k[:, 1], "mean_curvature_per_mm": H,
              "gaussian_curvature_per_mm2": K}
+    check_finite_arrays("deployed.vtu", {"deployed positions": sim.positions, "reference": ref, **cells})
     meshio.write(path, meshio.Mesh(sim.positions, [("triangle", sheet.triangles)],
                                    point_data={"reference": ref},
                                    cell_data={name: [np.asarray(v)] for name, v in cells.items()}))
 
-
-def write_summary(summary: dict, path: str):
-    """summary.json: the Simulation.summary() dict (with the pattern and seed), indented."""
-    with open(path, "w") as f:
-        json.dump(summary, f, indent=2)

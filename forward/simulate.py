@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shellfem.errors import SelfshapeError
-from forward.outputs import write_summary, write_vtu
+from shellfem.errors import SelfshapeError, check_number
+from forward.outputs import write_vtu
 from forward.supports import carry_support_motion, support_constraints
 from shellfem.boundary import gauge_dofs, gauge_reaction, smooth_perturbation
 from shellfem.model import ShellModel
@@ -228,30 +228,37 @@ def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=F
 
 def simulate_pattern_file(pattern_path, out_dir, *, size_mm=None, seed=None, render=True, max_iterations=None,
                           verbose=False, coarse_levels=None) -> dict:
-    """`selfshape simulate`: writes DIR/deployed.vtu, DIR/summary.json, DIR/deployed.png.
-    summary.json is written last; on failure nothing produced by this run is left."""
+    """`selfshape simulate`: writes DIR/deployed.vtu, DIR/deployed.png (``render``), DIR/summary.json.
+
+    The output folder is checked before the work (shellfem.outfiles.OutputDir: a file, an
+    unwritable folder, a symbolic link at an output name or the pattern itself as an output
+    is a one-line SelfshapeError); the files an earlier run left there (forward.outputs.OUTPUTS,
+    no others) are removed before the simulation starts, so a rerun never mixes with them.
+    Each file is written atomically and summary.json last: a folder with a summary.json is
+    complete. A simulation whose numbers are not finite (e.g. a modulus of 1e300) is a
+    SelfshapeError and writes nothing. On any failure, Ctrl-C included, nothing produced by
+    this run is left (nor the folder, if this run created it)."""
     from geometry.patterns import load_pattern
+    from forward.outputs import OUTPUTS
+    from shellfem.outfiles import OutputDir
+    if max_iterations is not None:
+        check_number("simulate: max_iterations", max_iterations, 1)
     pattern = load_pattern(pattern_path)
-    sim = simulate(pattern, size_mm=size_mm, seed=seed, max_iterations=max_iterations, verbose=verbose,
-                   coarse_levels=coarse_levels)
-    os.makedirs(out_dir, exist_ok=True)
-    written = []
-    try:
-        vtu = os.path.join(out_dir, "deployed.vtu")
-        write_vtu(sim, vtu)
-        written.append(vtu)
+    out = OutputDir(out_dir, OUTPUTS, inputs=[pattern_path])
+    with out:
+        sim = simulate(pattern, size_mm=size_mm, seed=seed, max_iterations=max_iterations, verbose=verbose,
+                       coarse_levels=coarse_levels)
+        r = sim.result
+        if not (np.isfinite(r.energy) and np.isfinite(r.gradient_norm) and np.isfinite(sim.positions).all()):
+            raise SelfshapeError(f"{pattern_path}: the simulation gave non-finite numbers (energy {r.energy:g} N mm, "
+                                 f"|grad| {r.gradient_norm:g}): a value of the pattern is far outside the physical "
+                                 f"range (a modulus, thickness or length such as 1e300?); nothing is written")
         summary = sim.summary()
         summary["pattern"] = os.path.abspath(str(pattern_path))
         summary["seed"] = pattern.seed if seed is None else seed
+        out.write("deployed.vtu", lambda tmp: write_vtu(sim, tmp))
         if render:
             from forward.render import render_deployed
-            png = os.path.join(out_dir, "deployed.png")
-            render_deployed(sim, png, title=os.path.basename(str(pattern_path)))
-            written.append(png)
-        write_summary(summary, os.path.join(out_dir, "summary.json"))
+            out.write("deployed.png", lambda tmp: render_deployed(sim, tmp, title=os.path.basename(str(pattern_path))))
+        out.write_json("summary.json", summary)          # last: the folder is complete
         return summary
-    except BaseException:
-        for p in written:
-            if os.path.exists(p):
-                os.remove(p)
-        raise

@@ -104,13 +104,44 @@ def printed_elements(seg, p0, p1, heights, filament_diameter_mm, min_width_mm, c
     if not keep.any():
         raise SelfshapeError(f"{name}: line {seg['line'][0]}: every extruded path is thinner than "
                              f"min_width_mm = {min_width_mm:g} mm")
-    beads = shapely.buffer(lines[keep], run_w[keep] / 2.0, cap_style=cap, join_style="round", quad_segs=8)
+    beads = shapely.buffer(lines[keep], run_w[keep] / 2.0, cap_style=cap, join_style="round", quad_segs=8) \
+        if shapely.is_simple(lines[keep]).all() else _beads(lines[keep], run_w[keep], cap)
     r_layer, r_h, r_line, r_path = run_layer[keep], run_h[keep], run_line[keep], run_path[keep]
 
     pieces = stack_beads(beads, r_layer, r_h, sliver=0.2 * min_width_mm)
     elements = _elements(pieces, beads, r_line, r_path, side, name)
     return elements, dict(widths=widths, w_volume=w_volume, path_widths_mm=run_w, n_runs=n_runs,
                           dropped_thin_paths=int((~keep).sum()))
+
+
+def _beads(lines, widths, cap):
+    """Bead polygons of path runs some of which retrace or cross themselves. GEOS buffers a
+    self-overlapping line by noding every pair of its overlapping segments (a 2 mm segment
+    retraced 1,000 times in a 20 KB file exhausts 4 GB), so such a run is built from its
+    distinct segments instead (end points rounded to the 0.001 mm G-code resolution):
+    the union of their flat-capped rectangles, discs at the inner vertices (the round
+    joins) and the two end segments with the run's cap: the same set as the buffer, at the
+    cost of a cascaded union of at most (distinct segments) simple polygons."""
+    simple = shapely.is_simple(lines)
+    out = np.empty(len(lines), dtype=object)
+    out[simple] = shapely.buffer(lines[simple], widths[simple] / 2.0, cap_style=cap, join_style="round", quad_segs=8)
+    for k in np.flatnonzero(~simple):
+        xy = np.round(shapely.get_coordinates(lines[k]), 3)
+        keep = np.r_[True, np.any(xy[1:] != xy[:-1], axis=1)]
+        xy = xy[keep]
+        r = widths[k] / 2.0
+        if len(xy) < 3:         # one segment, retraced: its own bead
+            out[k] = shapely.buffer(shapely.linestrings(xy), r, cap_style=cap, quad_segs=8)
+            continue
+        seg = np.concatenate([xy[:-1], xy[1:]], axis=1)
+        flip = (seg[:, 0] > seg[:, 2]) | ((seg[:, 0] == seg[:, 2]) & (seg[:, 1] > seg[:, 3]))
+        seg[flip] = seg[flip][:, [2, 3, 0, 1]]
+        seg = np.unique(seg, axis=0)
+        rects = shapely.buffer(shapely.linestrings(seg.reshape(-1, 2, 2)), r, cap_style="flat", quad_segs=8)
+        joints = shapely.buffer(shapely.points(np.unique(xy[1:-1], axis=0)), r, quad_segs=8)
+        ends = shapely.buffer(shapely.linestrings([xy[:2], xy[-2:]]), r, cap_style=cap, quad_segs=8)
+        out[k] = shapely.union_all(np.concatenate([rects, joints, ends]))
+    return out
 
 
 def stack_beads(beads, layer, height, sliver=0.02):

@@ -16,6 +16,7 @@ from functools import reduce
 
 import numpy as np
 
+from geometry.schema import MAX_EXPRESSION_DEPTH
 from shellfem.errors import SelfshapeError
 
 VARIABLES = ("x", "y", "r")
@@ -37,6 +38,18 @@ _CMPOPS = {ast.Lt: np.less, ast.LtE: np.less_equal, ast.Gt: np.greater, ast.GtE:
 MAX_LENGTH = 2000
 
 
+def tree_depth(root) -> int:
+    """Depth of an ast tree (root = 1), walked iteratively: a chain of 1,000 unary minus or
+    ``0+0+...`` terms fits the length cap but would overflow Python's recursion limit in any
+    recursive walk."""
+    depth, stack = 0, [(root, 1)]
+    while stack:
+        node, d = stack.pop()
+        depth = max(depth, d)
+        stack.extend((child, d + 1) for child in ast.iter_child_nodes(node))
+    return depth
+
+
 class Expression:
     """A compiled field: ``Expression(text, where)(x, y, r) -> ndarray`` (broadcast shape)."""
 
@@ -52,6 +65,10 @@ class Expression:
         except (RecursionError, MemoryError, ValueError):
             raise SelfshapeError(f"{where}: cannot parse {text!r}: too deeply nested") from None
         self._tree = tree.body
+        depth = tree_depth(self._tree)
+        if depth > MAX_EXPRESSION_DEPTH:       # before the recursive check and evaluation
+            raise SelfshapeError(f"{where}: expression is nested {depth} levels deep (each operator, call, name "
+                                 f"or number is a level); at most {MAX_EXPRESSION_DEPTH} are allowed")
         self._check(self._tree)
         self.variables = sorted({n.id for n in ast.walk(self._tree) if isinstance(n, ast.Name) and n.id in VARIABLES})
 
@@ -62,7 +79,11 @@ class Expression:
     def _check(self, node):
         if isinstance(node, ast.Constant):
             if isinstance(node.value, bool) or not isinstance(node.value, (int, float)):
-                self._fail(node, f"{node.value!r} is not a number")
+                self._fail(node, f"{node.value!r:.40} is not a number")
+            try:
+                float(node.value)
+            except OverflowError:
+                self._fail(node, f"a {len(str(node.value))}-digit number is beyond the float range")
         elif isinstance(node, ast.Name):
             if node.id not in VARIABLES and node.id not in CONSTANTS:
                 if node.id in FUNCTIONS:

@@ -35,12 +35,12 @@ from __future__ import annotations
 import math
 import os
 import re
-import tempfile
 from dataclasses import dataclass
 
 import numpy as np
 
 from geometry.beads import printed_elements
+from geometry.schema import COORD_MAX_MM, PRINTER_NUMBERS
 from shellfem.errors import SelfshapeError
 
 SEGMENT_DTYPE = np.dtype([
@@ -57,6 +57,13 @@ SEGMENT_DTYPE = np.dtype([
 DEFAULT_FILAMENT_DIAMETER_MM = 1.75
 DEFAULT_MIRROR_AXIS_X_MM = 111.5       # centre of the Ultimaker 2 bed (223 mm)
 ARC_TOLERANCE_MM = 0.002
+#: Most extruded segments one file may hold (arcs linearised): the bound on the work a
+#: G-code input can ask for (about 40x a dense 200 x 200 mm print at 0.8 mm beads).
+MAX_SEGMENTS = 2_000_000
+#: Most distinct extrusion heights: stacking layers of different footprints costs an overlay
+#: per layer and thickness class (quadratic in the layers); a print on fabric has a few
+#: layers (2 mm of plastic is 10 at 0.2 mm), 500 is a 100 mm tall object.
+MAX_LAYERS = 500
 
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)"
 _PARAMS_RE = re.compile(r"\s*([A-Z])\s*(" + _NUMBER + r"|(?=\s|$))")     # a bare letter is a flag
@@ -192,15 +199,16 @@ def _header_from_meta(meta) -> GcodeHeader:
     if not meta["selfshape"]:
         raise SelfshapeError(f"{name}: no selfshape header (the file was not written by selfshape)")
     values = {}
-    for table, keys, what in ((meta["selfshape"], _SELFSHAPE_KEYS, "selfshape header"),
-                              (meta["settings"], _SETTING_KEYS, "header setting")):
+    for table, keys, what, kind in ((meta["selfshape"], _SELFSHAPE_KEYS, "selfshape header", "selfshape"),
+                                    (meta["settings"], _SETTING_KEYS, "header setting", "setting")):
         for f, key, _, parse in keys:
             if key not in table:
                 raise SelfshapeError(f"{name}: {what} {key} is missing")
             try:
                 values[f] = parse(table[key])
             except ValueError:
-                raise SelfshapeError(f"{name}: {what} {key} = {table[key]!r} is not valid") from None
+                line = meta["header_lines"].get((kind, key), "?")
+                raise SelfshapeError(f"{name}: line {line}: {what} {key} is not valid") from None
     return GcodeHeader(**values, relative_e=meta["e_mode"] == "relative")
 
 
@@ -253,7 +261,7 @@ class _State:
         self.meta = dict(filament_diameter_mm_file=None, layer_height_setting_mm=None, slicer=None,
                          selfshape={}, e_mode=None, n_retractions=0, n_firmware_retractions=0,
                          n_travels=0, n_arcs=0, stationary_extrusion_mm=0.0, layer_change_hints=0,
-                         ignored_codes=set(), settings={})
+                         ignored_codes=set(), settings={}, header_lines={})
 
     def comment(self, c, lineno):
         c = c.strip()
@@ -273,11 +281,13 @@ class _State:
         elif c.startswith("selfshape "):
             k, _, v = c[10:].partition("=")
             self.meta["selfshape"][k.strip()] = v.strip()
+            self.meta["header_lines"][("selfshape", k.strip())] = lineno
         else:
             if "=" in c:
                 m = _SETTING_RE.fullmatch(c)
                 if m:
                     self.meta["settings"][m.group(1)] = m.group(2).strip()
+                    self.meta["header_lines"][("setting", m.group(1))] = lineno
             low = c.lower()
             if "diameter" in low and "nozzle" not in low[:20]:
                 m = _DIAMETER_RE.search(c)
@@ -294,9 +304,9 @@ class _State:
         try:
             v = float(text)
         except ValueError:
-            _fail(self.name, lineno, f";{what}: hint is not a number: {text.strip()!r}")
-        if not (math.isfinite(v) and v > 0):
-            _fail(self.name, lineno, f";{what}: hint must be > 0, got {v:g}")
+            _fail(self.name, lineno, f";{what}: hint is not a number")
+        if not (math.isfinite(v) and 0 < v <= 100.0):
+            _fail(self.name, lineno, f";{what}: hint must be in (0, 100] mm, got {v:.4g}")
         return v
 
     def move(self, nx, ny, nz, de, lineno):
@@ -309,12 +319,17 @@ class _State:
             self.pending -= used
             deposit = de - used
         moved = nx != self.x or ny != self.y
+        if max(abs(nx), abs(ny), abs(nz)) > COORD_MAX_MM:
+            _fail(self.name, lineno, f"a move beyond +-{COORD_MAX_MM:g} mm (10 m) from the bed origin")
         if moved and deposit > 1e-12:
             if abs(nz - self.z) > 1e-6:
                 _fail(self.name, lineno, "extruding move changes Z (spiral/non-planar printing is not supported)")
             if not self.in_path:
                 self.path += 1
                 self.in_path = True
+            if len(self.segs) >= MAX_SEGMENTS:
+                _fail(self.name, lineno, f"more than {MAX_SEGMENTS:,} extruded segments (arcs linearised); "
+                                         f"selfshape reads prints of at most that many")
             self.segs.append((self.x, self.y, nx, ny, nz, deposit, 0, self.width, self.height,
                               self.path, lineno, self.type))
         else:
@@ -369,6 +384,8 @@ class _State:
         rad = math.hypot(x0 - cx, y0 - cy)
         if rad == 0:
             _fail(self.name, lineno, "arc has zero radius")
+        if not rad <= COORD_MAX_MM:          # also nan: the linearisation would never end
+            _fail(self.name, lineno, f"arc radius beyond {COORD_MAX_MM:g} mm (10 m)")
         a0 = math.atan2(y0 - cy, x0 - cx)
         a1 = math.atan2(ny - cy, nx - cx)
         sweep = (a0 - a1) if clockwise else (a1 - a0)
@@ -402,15 +419,18 @@ def _params(rest, name, lineno, flags_ok=False):
             out[c] = float(tok[1:])
         except ValueError:
             break
+        if not math.isfinite(out[c]):       # "Xinf", "Ynan", "X1e999"
+            _fail(name, lineno, f"parameter {c} is not a finite number")
     else:
         return out
     if not _PARAMS_FULL_RE.fullmatch(rest):
-        _fail(name, lineno, f"malformed parameters {rest.strip()!r}")
+        _fail(name, lineno, "malformed parameters")
     out = {k: (float(v) if v else math.nan) for k, v in _PARAMS_RE.findall(rest)}
-    if not flags_ok:
-        for k, v in out.items():
-            if v != v:
-                _fail(name, lineno, f"parameter {k} has no value in {rest.strip()!r}")
+    for k, v in out.items():
+        if math.isinf(v):                   # a few hundred digits
+            _fail(name, lineno, f"parameter {k} is not a finite number")
+        if v != v and not flags_ok:
+            _fail(name, lineno, f"parameter {k} has no value")
     return out
 
 
@@ -444,8 +464,8 @@ def _parse(path):
             m = _CMD_RE.match(code)
             if m is None:
                 if code[0] in "XYZEF":
-                    _fail(name, lineno, f"move without a command word: {raw.strip()[:40]!r}")
-                _fail(name, lineno, f"not a G-code command: {raw.strip()[:40]!r}")
+                    _fail(name, lineno, "move without a command word (G0/G1)")
+                _fail(name, lineno, "not a G-code command (the file is not G-code, or not plain G-code)")
             letter, num = m.group(1), m.group(2)
             head = letter + (num.lstrip("0") or "0") if "." not in num else letter + num
             rest = code[m.end():]
@@ -509,6 +529,10 @@ def _parse(path):
     if len(seg):
         zr = np.round(seg["z"], 4)
         levels, seg["layer"] = np.unique(zr, return_inverse=True)
+        if len(levels) > MAX_LAYERS:
+            first = int(seg["line"][np.flatnonzero(seg["layer"] == MAX_LAYERS)[0]])
+            _fail(name, first, f"more than {MAX_LAYERS} extrusion heights (layers); selfshape reads prints of at "
+                               f"most that many (a print on fabric has a few)")
     else:
         levels = np.zeros(0)
     meta = st.meta
@@ -531,9 +555,13 @@ def _header_float(meta, key, lineno_name):
     if v is None:
         return None
     try:
-        return [float(t) for t in v.split(",")]
+        vals = [float(t) for t in v.split(",")]
     except ValueError:
-        raise SelfshapeError(f"{lineno_name}: selfshape header {key} = {v!r} is not a number") from None
+        raise SelfshapeError(f"{lineno_name}: selfshape header {key} is not a number") from None
+    if not all(abs(x) <= COORD_MAX_MM for x in vals):     # also inf and nan
+        raise SelfshapeError(f"{lineno_name}: selfshape header {key} is not a finite length within "
+                             f"+-{COORD_MAX_MM:g} mm")
+    return vals
 
 
 def _finite(what, v):
@@ -592,8 +620,9 @@ def read_gcode(path, *, side=None, mirror_axis_x=None, filament_diameter_mm=None
     else:
         d_f, d_src = DEFAULT_FILAMENT_DIAMETER_MM, "default"
         warnings.append(f"{name}: filament diameter not stated in the file, assuming {d_f:g} mm")
-    if not (math.isfinite(d_f) and d_f > 0):
-        raise SelfshapeError(f"{name}: filament diameter must be > 0, got {d_f:g}")
+    spec = PRINTER_NUMBERS["filament_diameter_mm"]
+    if not (spec.lo <= d_f <= spec.hi):
+        raise SelfshapeError(f"{name}: filament diameter ({d_src}) must be in {spec.describe()}, got {d_f:.4g}")
     hdr_origin = _header_float(meta, "origin_mm", name)
     origin = np.asarray(origin_mm if origin_mm is not None else (hdr_origin or (0.0, 0.0)), float)
     if origin.shape != (2,) or not np.isfinite(origin).all():
@@ -635,6 +664,10 @@ def read_gcode(path, *, side=None, mirror_axis_x=None, filament_diameter_mm=None
 
 
 # ---------------------------------------------------------------- writer
+
+#: a G-code word whose number is not finite (what Python formats for inf/nan)
+_NON_FINITE_WORD = re.compile(r"(?:^|\s)[A-Za-z][+-]?(?:inf|nan)(?![A-Za-z])", re.I)
+
 
 class GcodeWriter:
     """The text of one print, line by line, with the tool position and print statistics.
@@ -732,19 +765,12 @@ class GcodeWriter:
         self.lines += ["M104 S0", "M140 S0", "M107", "M84", "; end of selfshape print"]
 
     def write(self, path):
-        """Write the lines to ``path`` atomically (a temporary file in the same folder, renamed)."""
-        path = os.fspath(path)
-        text = "\n".join(self.lines) + "\n"
-        folder = os.path.dirname(os.path.abspath(path))
-        try:
-            fd, tmp = tempfile.mkstemp(prefix=".selfshape-", suffix=".gcode", dir=folder)
-        except OSError as e:
-            raise SelfshapeError(f"cannot write {path}: {e.strerror}") from None
-        try:
-            with os.fdopen(fd, "w") as f:
-                f.write(text)
-            os.replace(tmp, path)
-        except OSError as e:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise SelfshapeError(f"cannot write {path}: {e.strerror}") from None
+        """Write the lines to ``path`` atomically (a temporary file in the same folder, renamed;
+        removed on any failure, Ctrl-C included: shellfem.outfiles.write_text_file)."""
+        from shellfem.outfiles import NonFiniteOutput, write_text_file
+        for k, line in enumerate(self.lines, 1):     # G-code drives hardware: never "Einf" or "Xnan"
+            word = _NON_FINITE_WORD.search(line.split(";", 1)[0])
+            if word:
+                raise NonFiniteOutput(f"{os.path.basename(os.fspath(path))}: line {k}: {word.group().strip()} "
+                                      f"is not a finite number; nothing is written")
+        write_text_file(path, "\n".join(self.lines) + "\n")

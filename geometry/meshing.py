@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 import time
 
 import numpy as np
@@ -33,6 +32,7 @@ from shapely.geometry import Polygon
 from geometry.arrangement import GRID, arrangement, feature_width, piece_regions, printed_pieces
 from geometry.mesh_quality import mesh_quality
 from geometry.msh import add_physical_groups, write_msh
+from geometry.schema import MAX_TRIANGLES
 from shellfem.errors import SelfshapeError
 from shellfem.sheet import Sheet
 
@@ -77,6 +77,29 @@ def quantise_size(h, size_mm: float, base: float | None = None) -> np.ndarray:
     base = float(h.min()) if base is None else min(float(base), size_mm)
     k = np.floor(np.log(h / base) / math.log(SIZE_STEP) + 1e-9)
     return np.where(h >= size_mm, size_mm, np.minimum(base * SIZE_STEP ** np.maximum(k, 0), size_mm))
+
+
+def estimate_triangles(outline_area: float, piece_areas, piece_perimeters, piece_h, size_mm: float,
+                       grading: float = GRADING) -> float:
+    """Triangles a mesh will have, estimated before meshing (equilateral triangles of edge h
+    cover sqrt(3)/4 h^2 each): the fabric at ``size_mm``, each printed piece at its size h_p,
+    and the graded band around each piece, where the size grows as h_p + grading * d, which
+    adds perimeter / grading * (1 / h_p - 1 / size_mm) per unit density. Overlaps are
+    counted twice (an upper estimate); a Gmsh mesh has 0.5-2x this (0.5 where a print covers the whole fabric, up to 2 for small stars)."""
+    c = 4.0 / math.sqrt(3.0)
+    hp = np.minimum(np.asarray(piece_h, float), size_mm)
+    n = outline_area / size_mm ** 2
+    n += float(np.sum(np.asarray(piece_areas, float) / hp ** 2))
+    n += float(np.sum(np.asarray(piece_perimeters, float) / grading * (1.0 / hp - 1.0 / size_mm)))
+    return c * n
+
+
+def check_mesh_budget(where: str, n_estimate: float, size_mm: float) -> None:
+    """Refuse a mesh estimated above MAX_TRIANGLES, in one line, before Gmsh runs for hours."""
+    if n_estimate > MAX_TRIANGLES:
+        raise SelfshapeError(f"{where}: mesh size {size_mm:g} mm would need about {n_estimate:.3g} triangles, "
+                             f"more than the {MAX_TRIANGLES:,} selfshape meshes; use a larger [mesh] size_mm "
+                             f"(or --size) or a smaller [mesh] across")
 
 
 # ---------------------------------------------------------------- gmsh model
@@ -233,15 +256,16 @@ def _mesh_model(gmsh, pattern, size_mm, across, grading, algorithm, kernel):
     across = float(getattr(pattern, "mesh_across", ACROSS) if across is None else across)
     if not (math.isfinite(size) and size > 0):
         raise SelfshapeError(f"{pattern.source}: mesh size must be > 0 mm, got {size_mm!r}")
-    scale = math.sqrt(pattern.outline.area)
-    if scale / size > 5e3:
-        raise SelfshapeError(f"{pattern.source}: mesh size {size:g} mm is too small for a {scale:.4g} mm fabric")
+    if not (math.isfinite(across) and across > 0):
+        raise SelfshapeError(f"{pattern.source}: mesh across must be > 0, got {across!r}")
     if kernel not in ("geo", "occ"):
         raise ValueError(f"kernel must be 'geo' or 'occ', got {kernel!r}")
     geoms, thick, side, _ = printed_pieces(pattern.elements)
-    regions = piece_regions(geoms)
     floor = size * 1e-3
     piece_h = np.maximum(feature_width(geoms) / across, floor)
+    check_mesh_budget(pattern.source, estimate_triangles(pattern.outline.area, shapely.area(geoms),
+                                                         shapely.length(geoms), piece_h, size, grading), size)
+    regions = piece_regions(geoms)
     faces = _build_geo(gmsh, pattern.outline, geoms) if kernel == "geo" else \
         _build_occ(gmsh, pattern.outline, geoms, size)
     printed = [f for f, face in faces.items() if len(face.pieces)]
@@ -313,29 +337,19 @@ def coarse_meshes(pattern, n_fine: int, size_mm: float | None = None, levels: in
 
 def mesh_pattern_file(pattern_path, out_msh, size_mm: float | None = None) -> dict:
     """Mesh a pattern file (.toml, or .gcode: see geometry.patterns) and write a Gmsh .msh
-    (geometry.msh: physical groups per region, element data region and thickness). Written
-    atomically.
+    (geometry.msh: physical groups per region, element data region and thickness). The output
+    is checked before meshing and written atomically (shellfem.outfiles.check_output_file).
     Returns dict(n_vertices, n_triangles, n_regions, min_angle_deg, time_s).
     """
     from geometry.patterns import load_pattern
     t0 = time.perf_counter()
     pattern = load_pattern(pattern_path)
-    out_msh = os.fspath(out_msh)
-    root, ext = os.path.splitext(out_msh)
-    if ext.lower() != ".msh":
-        raise SelfshapeError(f"{out_msh}: the mesh output must be a .msh file")
-    d = os.path.dirname(os.path.abspath(out_msh))
-    if not os.path.isdir(d):
-        raise SelfshapeError(f"{out_msh}: directory {d} does not exist")
-    tmp = f"{root}.partial{os.getpid()}.msh"
-    try:
-        with gmsh_session() as gmsh:
-            sheet, etags = _mesh_model(gmsh, pattern, size_mm, None, GRADING, ALGORITHM, KERNEL)
-            write_msh(gmsh, tmp, sheet, etags)
-        os.replace(tmp, out_msh)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    from shellfem.outfiles import check_output_file, write_atomic
+    out_msh = check_output_file(out_msh, inputs=[pattern_path], suffix=".msh", create_parents=False,
+                                what="mesh output")
+    with gmsh_session() as gmsh:
+        sheet, etags = _mesh_model(gmsh, pattern, size_mm, None, GRADING, ALGORITHM, KERNEL)
+        write_atomic(out_msh, lambda tmp: write_msh(gmsh, tmp, sheet, etags))
     q = mesh_quality(sheet)
     return dict(n_vertices=q["n_vertices"], n_triangles=q["n_triangles"], n_regions=q["n_regions"],
                 min_angle_deg=q["min_angle_deg"], time_s=time.perf_counter() - t0)

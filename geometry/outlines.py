@@ -14,6 +14,7 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon
 
+from geometry.schema import COORD_MAX_MM
 from shellfem.errors import SelfshapeError
 
 
@@ -52,12 +53,14 @@ def _location(reason: str) -> str:
 
 
 def as_points(value, where: str, min_points: int = 1, dim: int = 2) -> np.ndarray:
-    """A list of [x, y] pairs (or [x, y, z] with dim=3) as a finite (k, dim) float array."""
+    """A list of [x, y] pairs (or [x, y, z] with dim=3) as a finite (k, dim) float array,
+    every coordinate within +-COORD_MAX_MM (10 m: a larger value is a typo, and 1e300 would
+    overflow areas and mesh sizes downstream). Bools and strings are never coordinates."""
     try:
         if isinstance(value, (str, bytes)) or any(isinstance(v, (str, bytes, bool)) for row in value for v in row):
             raise TypeError
         a = np.array(value, dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise SelfshapeError(f"{where} must be a list of [{', '.join('xyz'[:dim])}] points, got {value!r:.80}") from None
     if a.ndim != 2 or a.shape[1] != dim:
         raise SelfshapeError(f"{where} must be a list of [{', '.join('xyz'[:dim])}] points, got {value!r:.80}")
@@ -66,7 +69,12 @@ def as_points(value, where: str, min_points: int = 1, dim: int = 2) -> np.ndarra
     bad = ~np.isfinite(a).all(axis=1)
     if bad.any():
         i = int(np.argmax(bad))
-        raise SelfshapeError(f"{where}: point {i + 1} {value[i]!r} is not finite")
+        raise SelfshapeError(f"{where}: point {i + 1} {value[i]!r:.80} is not finite")
+    far = np.abs(a).max(axis=1) > COORD_MAX_MM
+    if far.any():
+        i = int(np.argmax(far))
+        raise SelfshapeError(f"{where}: point {i + 1} has a coordinate {np.abs(a[i]).max():.3g} mm beyond "
+                             f"+-{COORD_MAX_MM:g} mm (10 m)")
     return a
 
 
@@ -76,7 +84,7 @@ def polygon(points, where: str = "polygon") -> Polygon:
     Raises SelfshapeError naming ``where`` if there are fewer than 3 distinct points, a
     non-finite coordinate, zero area or a self-intersection (with its location).
     """
-    p = as_points(points, where, min_points=1)
+    p = as_points(points, f"{where}: polygon", min_points=1)
     keep = np.ones(len(p), bool)
     keep[1:] = np.any(p[1:] != p[:-1], axis=1)      # drop consecutive duplicates
     p = p[keep]

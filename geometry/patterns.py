@@ -14,6 +14,10 @@ This module owns the format both ways: :func:`fabric_table` and :func:`plastic_t
 the inverses of the [fabric] and [plastic] parse (every field), :func:`write_pattern`
 writes a pattern dict as TOML. [fabric.<model>] tables are those of the membrane models
 registered in shellfem.materials, validated against each model's parameter schema.
+
+Every numeric key is checked strictly (no bools, no strings) against its physical range in
+geometry.schema, unknown keys are errors suggesting the closest valid one, and a pattern read
+from a file may only name [print] files inside its folder and must print something.
 """
 from __future__ import annotations
 
@@ -29,8 +33,10 @@ from shapely.geometry import LineString, Polygon
 from geometry import outlines
 from geometry.elements import PrintedElement, Support
 from geometry.expressions import compile_field
+from geometry.schema import (MIN_FABRIC_WIDTH_MM, MIN_FEATURE_MM, PATTERN_NUMBERS, check_keys, model_parameter_spec,
+                             number)
 from geometry.stars import star_elements
-from shellfem.errors import SelfshapeError, check_number
+from shellfem.errors import SelfshapeError
 from geometry.tomlfile import read_toml
 from shellfem.materials import MEMBRANE_MODELS, Fabric, Plastic
 
@@ -49,7 +55,8 @@ KEYS = {
     "mesh": {"size_mm", "across"},
     "print": {"gcode", "side", "origin_mm"},
 }
-#: (key, Fabric attribute, lower bound, bound exclusive) of the numeric [fabric] entries
+#: (key, Fabric attribute, lower bound, bound exclusive) of the numeric [fabric] entries; the
+#: reader checks them against the (tighter) physical ranges of geometry.schema.PATTERN_NUMBERS
 FABRIC_FIELDS = (("thickness_mm", "thickness", 0.0, True), ("young_modulus_mpa", "young_modulus", 0.0, True),
                  ("poisson", "poisson", None, False), ("bending_stiffness_nmm", "bending_stiffness", 0.0, False),
                  ("course_angle_deg", "course_angle_deg", None, False),
@@ -96,29 +103,32 @@ class Pattern:
 
 # ---------------------------------------------------------------- small validators
 
-def _num(table: dict, key: str, where: str, default=None, lo=None, lo_open=False, hi=None):
-    """table[key] as a finite float (bools and strings rejected), with optional bounds."""
+def _num(table: dict, key: str, where: str, default=None, section: str | None = None, spec=None):
+    """table[key] strictly checked against its schema range (geometry.schema.PATTERN_NUMBERS
+    [section][key], ``section`` parsed from ``where`` when not given; or ``spec``): a finite
+    number, never a bool or a string. ``default`` when absent (None: the key is required)."""
     if key not in table:
         if default is None:
             raise SelfshapeError(f"{where}: missing {key}")
         return default
-    v = table[key]
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise SelfshapeError(f"{where}: {key} must be a number, got {v!r:.60}")
-    return check_number(f"{where}: {key}", v, lo=lo, hi=hi, lo_open=lo_open)
+    if spec is None:
+        spec = PATTERN_NUMBERS[section or _section(where)][key]
+    return number(table[key], f"{where}: {key}", spec)
+
+
+def _section(where: str) -> str:
+    """The table name in a message prefix such as "file.toml: [[ribbon]] #2" -> "ribbon"."""
+    inner = where.rsplit("[", 1)[-1]
+    return inner.split("]", 1)[0].split(" ")[0].split(".")[0]
 
 
 def solver_options(solver: dict, where: str) -> tuple[int, int, float | None]:
     """(seed, max_iterations, metric_floor) of a [solver] table, defaults 0, 300 and None (the
     solver's own default); a one-line SelfshapeError naming ``where`` for a bad value. Unknown
     keys are left to the caller."""
-    seed = solver.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise SelfshapeError(f"{where}: seed must be an integer, got {seed!r:.40}")
-    cap = solver.get("max_iterations", 300)
-    if isinstance(cap, bool) or not isinstance(cap, int) or cap < 1:
-        raise SelfshapeError(f"{where}: max_iterations must be a positive integer, got {cap!r:.40}")
-    floor = _num(solver, "metric_floor", where, lo=0.0) if "metric_floor" in solver else None
+    seed = _num(solver, "seed", where, 0, "solver")
+    cap = _num(solver, "max_iterations", where, 300, "solver")
+    floor = _num(solver, "metric_floor", where, section="solver") if "metric_floor" in solver else None
     return seed, cap, floor
 
 
@@ -127,9 +137,9 @@ def coarse_levels_option(solver: dict, where: str) -> int | str:
     v = solver.get("coarse_levels", "auto")
     if v == "auto":
         return v
-    if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+    if isinstance(v, str):
         raise SelfshapeError(f"{where}: coarse_levels must be \"auto\" or an integer >= 0, got {v!r:.40}")
-    return v
+    return _num(solver, "coarse_levels", where, section="solver")
 
 
 def _choice(table: dict, key: str, where: str, options: tuple, default: str):
@@ -143,9 +153,7 @@ def _table(value, where: str, allowed: set | None) -> dict:
     if not isinstance(value, dict):
         raise SelfshapeError(f"{where} must be a table, got {type(value).__name__}")
     if allowed is not None:
-        unknown = [k for k in value if k not in allowed]
-        if unknown:
-            raise SelfshapeError(f"{where}: unknown key {unknown[0]!r} (allowed: {', '.join(sorted(allowed))})")
+        check_keys(value, allowed, where)
     return value
 
 
@@ -189,31 +197,38 @@ def _fabric(raw: dict, src: str, mesh_size: float):
     if kind == "rectangle":
         wh = outlines.as_points([t["rectangle"]], f"{where} rectangle", 1)[0]
         if not (wh > 0).all():
-            raise SelfshapeError(f"{where}: rectangle width and height must be > 0, got {t['rectangle']!r}")
+            raise SelfshapeError(f"{where}: rectangle width and height must be > 0, got {t['rectangle']!r:.60}")
         outline = outlines.rectangle(*wh)
     elif kind == "disk":
-        outline = outlines.disk(_num(t, "disk", where, lo=0.0, lo_open=True), mesh_size)
+        outline = outlines.disk(_num(t, "disk", where), mesh_size)
     elif kind == "hexagon":
-        outline = outlines.hexagon(_num(t, "hexagon", where, lo=0.0, lo_open=True))
+        outline = outlines.hexagon(_num(t, "hexagon", where))
     else:
         outline = outlines.polygon(t["outline"], f"{where} outline")
+    width = 2.0 * outline.area / outline.length
+    if width < MIN_FABRIC_WIDTH_MM:
+        raise SelfshapeError(f"{where}: {kind}: the fabric is {width:.3g} mm wide (2 area / perimeter); "
+                             f"at least {MIN_FABRIC_WIDTH_MM:g} mm is needed")
 
     s = t.get("stretch", 1.35)
     if isinstance(s, list):
         if len(s) != 2:
             raise SelfshapeError(f"{where}: stretch must be a number or [sx, sy], got {s!r:.60}")
-        s = tuple(_num({"stretch": v}, "stretch", where, lo=1.0) for v in s)
+        s = tuple(_num({"stretch": v}, "stretch", where, section="fabric") for v in s)
     else:
-        s = _num(t, "stretch", where, 1.35, lo=1.0)
+        s = _num(t, "stretch", where, 1.35, "fabric")
     params = {}
     for name, membrane in MEMBRANE_MODELS.items():      # bounds: the model's schema, via Fabric
         if name in t:
             o = _table(t[name], f"{where} {name}", {p.name for p in membrane.parameters})
-            params[name] = {k: _num(o, k, f"{where} {name}") for k in o}
+            specs = {p.name: model_parameter_spec(p) for p in membrane.parameters}
+            params[name] = {k: _num(o, k, f"{where} {name}", spec=specs[k]) for k in o}
     kw = dict(stretch=s, model=t.get("model", "neo-hookean"), parameters=params)
-    for key, attr, lo, lo_open in FABRIC_FIELDS:
+    if "model" in t and not isinstance(t["model"], str):
+        raise SelfshapeError(f"{where}: model must be a string, one of {', '.join(sorted(MEMBRANE_MODELS))}")
+    for key, attr, _, _ in FABRIC_FIELDS:
         if key in t:
-            kw[attr] = _num(t, key, where, lo=lo, lo_open=lo_open)
+            kw[attr] = _num(t, key, where, section="fabric")
     return _rewrap(src, Fabric, **kw), outline
 
 
@@ -223,7 +238,7 @@ def _plastic(raw: dict, src: str) -> Plastic:
     kw = {}
     for key, attr in PLASTIC_FIELDS:
         if key in t:
-            kw[attr] = _num(t, key, where)
+            kw[attr] = _num(t, key, where, section="plastic")
     return _rewrap(src, Plastic, **kw)
 
 
@@ -231,8 +246,12 @@ def _regions(raw, src, outline) -> list[PrintedElement]:
     out = []
     for i, where, t in _entries(raw, "region", src, "polygon"):
         poly = outlines.polygon(t["polygon"], where)
-        h = _num(t, "thickness_mm", where, lo=0.0, lo_open=True)
+        h = _num(t, "thickness_mm", where, section="region")
         side = _choice(t, "side", where, ("front", "back"), "front")
+        width = 2.0 * poly.area / poly.length
+        if width < MIN_FEATURE_MM:
+            raise SelfshapeError(f"{where}: polygon is a {width:.3g} mm sliver (2 area / perimeter); the narrowest "
+                                 f"printable feature is {MIN_FEATURE_MM:g} mm")
         outlines.check_inside(outline, poly, where)
         out.append(PrintedElement(poly, h, side, "region", f"region #{i}"))
     return out
@@ -260,8 +279,8 @@ def _ribbons(raw, src, outline) -> list[PrintedElement]:
         path = path[keep]
         if len(path) < 2:
             raise SelfshapeError(f"{where}: path needs at least 2 distinct points")
-        w = _num(t, "width_mm", where, 1.5, lo=0.0, lo_open=True)
-        h = _num(t, "thickness_mm", where, 0.4, lo=0.0, lo_open=True)
+        w = _num(t, "width_mm", where, 1.5, "ribbon")
+        h = _num(t, "thickness_mm", where, 0.4, "ribbon")
         side = _choice(t, "side", where, ("front", "back"), "front")
         ends = _choice(t, "ends", where, ("square", "round"), "square")
         geom = ribbon_polygon(path, w, ends)
@@ -288,12 +307,14 @@ def _stars(raw, src, outline) -> list[PrintedElement]:
         return []
     where = f"{src}: [stars]"
     t = _table(raw["stars"], where, KEYS["stars"])
-    spacing = _num(t, "spacing_mm", where, lo=0.0, lo_open=True)
-    fields = {k: compile_field(t.get(k, d), f"{where} {k}")
-              for k, d in (("arm_length", 0.7), ("thickness_mm", 0.3), ("arm_width_mm", 0.8))}
+    spacing = _num(t, "spacing_mm", where, section="stars")
+    fields = {}
+    for k, d in (("arm_length", 0.7), ("thickness_mm", 0.3), ("arm_width_mm", 0.8)):
+        f = compile_field(t.get(k, d), f"{where} {k}")
+        fields[k] = number(f, f"{where}: {k}", PATTERN_NUMBERS["stars"][k]) if isinstance(f, float) else f
     side = _choice(t, "side", where, ("front", "back"), "front")
     origin = outlines.as_points([t["origin"]], f"{where} origin")[0] if "origin" in t else None
-    angle = _num(t, "angle_deg", where, 0.0)
+    angle = _num(t, "angle_deg", where, 0.0, "stars")
     return star_elements(outline, spacing, fields["arm_length"], fields["thickness_mm"], fields["arm_width_mm"],
                          side, origin=origin, angle_deg=angle, where=where)
 
@@ -308,9 +329,29 @@ def _read_gcode(path: str, where: str, **options) -> list[PrintedElement]:
     return list(read_gcode(path, **options))
 
 
-def _print(raw, src, outline, base_dir) -> list[PrintedElement]:
+def gcode_path(name: str, base_dir: str, where: str, confine: bool) -> str:
+    """The file a [print] gcode entry names: relative to ``base_dir`` (the pattern file's
+    folder). With ``confine`` (a pattern read from a file) the resolved path (symlinks
+    followed) must stay inside that folder: a pattern file is data that may come from
+    anyone, and must not make selfshape read /etc/passwd or ../../secrets. A file elsewhere
+    is given on the command line instead (``selfshape simulate path/to/print.gcode``)."""
+    if "\x00" in name:
+        raise SelfshapeError(f"{where}: gcode file name contains a NUL character")
+    path = name if os.path.isabs(name) else os.path.join(base_dir, name)
+    if confine:
+        root = os.path.realpath(base_dir)
+        real = os.path.realpath(path)
+        if os.path.commonpath([root, real]) != root:
+            raise SelfshapeError(f"{where}: gcode {name!r:.80} is outside the pattern's folder; [print] files must be "
+                                 f"in the pattern file's folder or below it (give another file on the command line)")
+    return path
+
+
+def _print(raw, src, outline, base_dir, confine=False) -> list[PrintedElement]:
     """[print] gcode = "file" or ["front.gcode", "back.gcode"]; optional side and origin_mm
-    (bed position of pattern (0, 0)) are passed to geometry.gcode.read_gcode."""
+    (bed position of pattern (0, 0)) are passed to geometry.gcode.read_gcode. Files resolve
+    by :func:`gcode_path`; a file none of whose print lies on the fabric is an error (it
+    would otherwise be dropped silently)."""
     if "print" not in raw:
         return []
     where = f"{src}: [print]"
@@ -326,11 +367,26 @@ def _print(raw, src, outline, base_dir) -> list[PrintedElement]:
         options["origin_mm"] = tuple(outlines.as_points([t["origin_mm"]], f"{where} origin_mm")[0])
     out = []
     for f in files:
-        path = f if os.path.isabs(f) else os.path.join(base_dir, f)
-        for e in _read_gcode(path, f"{where} {f}", **options):
+        path = gcode_path(f, base_dir, f"{where} gcode", confine)
+        n0, bounds = len(out), None
+        try:
+            read = _read_gcode(path, f"{where} gcode {f}", **options)
+        except SelfshapeError as err:          # "print.gcode: line 3: ...": say which pattern asked for it
+            msg = str(err)
+            raise SelfshapeError(msg if msg.startswith(where) else f"{where} gcode {msg}") from None
+        for e in read:
             g = _polygonal(e.geometry.intersection(outline))
+            b = e.geometry.bounds
+            bounds = b if bounds is None else (min(bounds[0], b[0]), min(bounds[1], b[1]),
+                                               max(bounds[2], b[2]), max(bounds[3], b[3]))
             if not g.is_empty and g.area > 0:
                 out.append(PrintedElement(g, e.thickness_mm, e.side, e.kind or "gcode", e.label or f))
+        if len(out) == n0:
+            fx0, fy0, fx1, fy1 = outline.bounds
+            raise SelfshapeError(
+                f"{where} {f}: the print lies entirely outside the fabric (print x {bounds[0]:.4g}..{bounds[2]:.4g}, "
+                f"y {bounds[1]:.4g}..{bounds[3]:.4g} mm; fabric x {fx0:.4g}..{fx1:.4g}, y {fy0:.4g}..{fy1:.4g} mm); "
+                f"set [print] origin_mm to the bed position of pattern (0, 0)")
     return out
 
 
@@ -369,29 +425,45 @@ def _supports(raw, src, outline) -> list[Support]:
 
 # ---------------------------------------------------------------- entry points
 
-def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".") -> Pattern:
-    """Validate a parsed pattern dict; ``src`` names it in messages, ``base_dir`` resolves [print] files."""
+def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".", from_file: bool = False) -> Pattern:
+    """Validate a parsed pattern dict; ``src`` names it in messages, ``base_dir`` resolves [print] files.
+
+    ``from_file``: the dict is a pattern file's content (load_pattern of a path): its [print]
+    files must then lie inside ``base_dir`` (:func:`gcode_path`), and a pattern that prints
+    nothing is an error (:func:`check_printed`). Python callers passing a dict are trusted."""
     if not isinstance(raw, dict):
         raise SelfshapeError(f"{src}: a pattern must be a table, got {type(raw).__name__}")
-    unknown = [k for k in raw if k not in TOP_LEVEL]
-    if unknown:
-        raise SelfshapeError(f"{src}: unknown key {unknown[0]!r} (allowed: {', '.join(sorted(TOP_LEVEL))})")
+    check_keys(raw, TOP_LEVEL, src)
     mesh = _table(raw.get("mesh", {}), f"{src}: [mesh]", KEYS["mesh"])
-    mesh_size = _num(mesh, "size_mm", f"{src}: [mesh]", 1.0, lo=0.0, lo_open=True)
-    across = _num(mesh, "across", f"{src}: [mesh]", 2.0, lo=0.5, hi=10.0)
-    solver = _table(raw.get("solver", {}), f"{src}: [solver]", None)
+    mesh_size = _num(mesh, "size_mm", f"{src}: [mesh]", 1.0, "mesh")
+    across = _num(mesh, "across", f"{src}: [mesh]", 2.0, "mesh")
+    solver = _table(raw.get("solver", {}), f"{src}: [solver]", set(PATTERN_NUMBERS["solver"]))
     seed, cap, floor = solver_options(solver, f"{src}: [solver]")
     levels = coarse_levels_option(solver, f"{src}: [solver]")
     _table(raw.get("meta", {}), f"{src}: [meta]", None)
     fabric, outline = _fabric(raw, src, mesh_size)
     plastic = _plastic(raw, src)
     elements = (_regions(raw, src, outline) + _ribbons(raw, src, outline) + _stars(raw, src, outline)
-                + _print(raw, src, outline, base_dir))
+                + _print(raw, src, outline, base_dir, confine=from_file))
     supports = _supports(raw, src, outline)
+    if from_file:
+        check_printed(elements, fabric, src)
     return Pattern(fabric=fabric, plastic=plastic, outline=outline, elements=elements, supports=supports,
                    mesh_size=mesh_size, seed=seed, mesh_across=across, max_iterations=cap,
                    metric_floor=floor, coarse_levels=levels, source=src,
                    raw=raw)
+
+
+def check_printed(elements, fabric, src: str) -> None:
+    """A pattern file must print something: a bare sheet released from its pre-stretch only
+    shrinks, flat, to (x / sx, y / sy), so simulating it is a mistake (a forgotten
+    [[ribbon]], a misspelt table). The explicit opt-in is gravity: with
+    ``[fabric] areal_weight_n_per_mm2 > 0`` (and a [[support]]) a bare sheet drapes, which is
+    a simulation."""
+    if not elements and not fabric.areal_weight > 0:
+        raise SelfshapeError(f"{src}: nothing is printed (no [[region]], [[ribbon]], [stars] or [print]); a bare "
+                             f"sheet only shrinks flat (set [fabric] areal_weight_n_per_mm2 > 0 to simulate a "
+                             f"draping sheet)")
 
 
 def pattern_from_gcode(path: str) -> Pattern:
@@ -417,7 +489,7 @@ def load_pattern(source) -> Pattern:
     if src.lower().endswith((".gcode", ".gco", ".g")):
         return pattern_from_gcode(src)
     raw = read_toml(src)
-    return parse_pattern(raw, src, os.path.dirname(os.path.abspath(src)))
+    return parse_pattern(raw, src, os.path.dirname(os.path.abspath(src)), from_file=True)
 
 
 # ---------------------------------------------------------------- writing

@@ -19,6 +19,7 @@ from shapely.geometry import Polygon
 
 from geometry.elements import PrintedElement
 from geometry.expressions import evaluate_field
+from geometry.schema import MIN_ARM_MM, PATTERN_NUMBERS
 from shellfem.errors import SelfshapeError
 
 SQRT3 = math.sqrt(3.0)
@@ -95,8 +96,9 @@ def star_elements(outline: Polygon, spacing: float, arm_length, thickness, arm_w
     if spacing < 1e-3 * math.sqrt(outline.area) and outline.area / (spacing * spacing) > 2e6:
         raise SelfshapeError(f"{where} spacing_mm = {spacing:g} gives more than a million stars")
     centres, idx = lattice_points(outline, spacing, origin, angle_deg)
-    if len(centres) == 0:
-        return []
+    if len(centres) == 0:          # never a silent empty print
+        raise SelfshapeError(f"{where} no lattice node lies inside the fabric (spacing_mm = {spacing:g}); "
+                             f"use a smaller spacing or move origin")
     c = outline.centroid
     x, y = centres[:, 0], centres[:, 1]
     xr, yr = np.round(x, 9) + 0.0, np.round(y, 9) + 0.0        # for messages
@@ -110,11 +112,19 @@ def star_elements(outline: Polygon, spacing: float, arm_length, thickness, arm_w
         raise SelfshapeError(f"{where} arm_length is {frac[k]:.4g} at the star centred at ({xr[k]:.4g}, {yr[k]:.4g});"
                              " it must be a fraction of spacing_mm in [0, 1]")
     keep = frac > 0
+    short = keep & (frac * spacing < MIN_ARM_MM)
+    if short.any():
+        k = int(np.argmax(short))
+        raise SelfshapeError(f"{where} arm_length gives a {frac[k] * spacing:.3g} mm arm at the star centred at "
+                             f"({xr[k]:.4g}, {yr[k]:.4g}); a printed arm is at least {MIN_ARM_MM:g} mm "
+                             f"(0 omits the star)")
     for name, v in (("thickness_mm", h), ("arm_width_mm", w)):
-        bad = keep & ~(v > 0)
+        spec = PATTERN_NUMBERS["stars"][name]          # the schema's physical range (geometry.schema)
+        bad = keep & ~((v >= spec.lo) & (v <= spec.hi))
         if bad.any():
             k = int(np.argmax(bad))
-            raise SelfshapeError(f"{where} {name} is {v[k]:.4g} at the star centred at ({xr[k]:.4g}, {yr[k]:.4g}); it must be > 0")
+            raise SelfshapeError(f"{where} {name} is {v[k]:.4g} at the star centred at ({xr[k]:.4g}, {yr[k]:.4g}); "
+                                 f"it must be in {spec.describe()}")
     centres, idx, frac, h, w = centres[keep], idx[keep], frac[keep], h[keep], w[keep]
     geoms = star_polygons(centres, frac * spacing, w, angle_deg)
     inside = shapely.within(geoms, outline)

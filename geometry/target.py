@@ -16,6 +16,11 @@ from shellfem.errors import SelfshapeError
 
 #: A face whose area is below this fraction of the squared bounding-box diagonal is "zero area".
 ZERO_AREA_REL = 1e-12
+#: Largest |coordinate| of a target vertex in its file's units: beyond it squared lengths
+#: overflow (1e300 would make every face "zero area"); any unit from nm to km fits.
+MAX_COORD = 1e15
+#: Largest face index an input may hold (int64, what the mesh arrays use).
+MAX_INDEX = np.iinfo(np.int64).max
 
 
 # ----------------------------------------------------------------------------- reading
@@ -33,6 +38,8 @@ def read_obj(path) -> tuple[np.ndarray, np.ndarray]:
                     idx = [int(tok.split("/")[0]) for tok in line.split()[1:]]
                 except ValueError:
                     raise SelfshapeError(f"{name}: line {lineno}: malformed face record") from None
+                if any(abs(i) > MAX_INDEX for i in idx):
+                    raise SelfshapeError(f"{name}: line {lineno}: a face index is beyond the int64 range")
                 if len(idx) < 3:
                     raise SelfshapeError(f"{name}: line {lineno}: face with fewer than 3 vertices")
                 nv = len(verts)  # OBJ negative indices count back from the current vertex
@@ -41,14 +48,20 @@ def read_obj(path) -> tuple[np.ndarray, np.ndarray]:
         V = np.asarray(verts, dtype=float).reshape(-1, 3)
     except ValueError:
         raise SelfshapeError(f"{name}: malformed vertex record") from None
-    return V, _fan_triangulate(polys)
+    try:
+        return V, _fan_triangulate(polys)
+    except SelfshapeError as e:
+        raise SelfshapeError(f"{name}: {e}") from None
 
 
 def _fan_triangulate(polys) -> np.ndarray:
     tris = []
     sizes = np.array([len(p) for p in polys], dtype=int)
     for k in np.unique(sizes):
-        P = np.array([p for p, s in zip(polys, sizes) if s == k], dtype=np.int64)
+        try:
+            P = np.array([p for p, s in zip(polys, sizes) if s == k], dtype=np.int64)
+        except OverflowError:          # unsigned 64-bit indices from a binary file
+            raise SelfshapeError("a face index is beyond the int64 range") from None
         for j in range(1, k - 1):  # fan around the first corner, vectorised per polygon size
             tris.append(P[:, [0, j, j + 1]])
     if not tris:
@@ -80,7 +93,10 @@ def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
     for block in mesh.cells:
         if block.type in ("triangle", "quad") or block.type.startswith("polygon"):
             polys.extend(np.asarray(block.data).tolist())
-    F = _fan_triangulate(polys)
+    try:
+        F = _fan_triangulate(polys)
+    except SelfshapeError as e:
+        raise SelfshapeError(f"{name}: {e}") from None
     if str(path).lower().endswith(".stl") and len(F):
         # STL stores every triangle with its own corners: weld identical positions
         V, inverse = np.unique(V, axis=0, return_inverse=True)
@@ -98,7 +114,10 @@ def check_disk(V: np.ndarray, F: np.ndarray, where: str = "mesh") -> tuple[np.nd
     or a non-disk Euler characteristic.
     """
     V = np.asarray(V, dtype=float)
-    F = np.asarray(F)
+    try:
+        F = np.asarray(F)
+    except OverflowError:
+        raise SelfshapeError(f"{where}: a face index is beyond the int64 range") from None
     if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
         raise SelfshapeError(f"{where}: no triangle faces")
     if V.ndim != 2 or V.shape[1] != 3 or len(V) < 3:
@@ -106,7 +125,18 @@ def check_disk(V: np.ndarray, F: np.ndarray, where: str = "mesh") -> tuple[np.nd
     bad = ~np.isfinite(V).all(axis=1)
     if bad.any():
         raise SelfshapeError(f"{where}: vertex {int(np.flatnonzero(bad)[0])} has a non-finite coordinate")
-    F = F.astype(np.int64)
+    far = np.abs(V).max(axis=1) > MAX_COORD
+    if far.any():
+        raise SelfshapeError(f"{where}: vertex {int(np.flatnonzero(far)[0])} has a coordinate beyond "
+                             f"+-{MAX_COORD:g} (squared lengths would overflow)")
+    if F.dtype.kind not in "iu" and F.dtype != object:
+        raise SelfshapeError(f"{where}: face indices must be integers, got {F.dtype}")
+    if F.dtype.kind == "u" and F.size and int(F.max()) > MAX_INDEX:
+        raise SelfshapeError(f"{where}: a face index is beyond the int64 range")
+    try:
+        F = F.astype(np.int64)
+    except (OverflowError, TypeError, ValueError):
+        raise SelfshapeError(f"{where}: face indices must be integers within the int64 range") from None
     out = (F < 0) | (F >= len(V))
     if out.any():
         f = int(np.flatnonzero(out.any(axis=1))[0])

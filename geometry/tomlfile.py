@@ -6,13 +6,38 @@ import tomllib
 from shellfem.errors import SelfshapeError
 
 
+#: Deepest nesting of arrays and tables a selfshape TOML file may have: patterns need 4
+#: ([fabric.orthotropic], a list of [x, y] points); deeper input only risks recursion later.
+MAX_DEPTH = 32
+
+
+def nesting_depth(value) -> int:
+    """Depth of nested dicts/lists (a scalar is 0), walked iteratively."""
+    depth, stack = 0, [(value, 0)]
+    while stack:
+        v, d = stack.pop()
+        if isinstance(v, dict):
+            v = list(v.values())
+        if isinstance(v, list):
+            depth = max(depth, d + 1)
+            stack.extend((x, d + 1) for x in v)
+    return depth
+
+
 def read_toml(path: str, label: str | None = None) -> dict:
     """Parsed TOML of ``path``; any failure is a SelfshapeError of one line starting with
-    ``label`` (default: the path): file not found, a directory, unreadable, not UTF-8, malformed."""
+    ``label`` (default: the path): file not found, a directory, unreadable, not UTF-8,
+    malformed, nested deeper than MAX_DEPTH (tomllib itself recurses: thousands of ``[``
+    raise RecursionError)."""
     label = label or str(path)
     try:
         with open(path, "rb") as f:
-            return tomllib.load(f)
+            data = tomllib.load(f)
+        if nesting_depth(data) > MAX_DEPTH:
+            raise RecursionError
+        return data
+    except RecursionError:
+        raise SelfshapeError(f"{label}: arrays or tables nested deeper than {MAX_DEPTH} levels") from None
     except FileNotFoundError:
         raise SelfshapeError(f"{label}: file not found") from None
     except IsADirectoryError:

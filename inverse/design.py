@@ -34,7 +34,6 @@ Units: mm, 1/mm; the flat pattern is in printed (pre-stretched) mm.
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 import time
@@ -50,7 +49,7 @@ from inverse.separation import separate_ribbons, simplify_paths
 from inverse.to_pattern import pattern_dict
 from inverse.verify import verify_design
 from inverse.vtu import write_flat_vtu
-from shellfem.errors import SelfshapeError, check_number
+from shellfem.errors import SelfshapeError
 
 RIBBON_LENGTH_MM, RIBBON_WIDTH_MM = 15.0, 1.5
 #: Every file design_file may write (removed from the output directory before a new run writes).
@@ -167,10 +166,11 @@ def coarsen_for_layout(F0, levels: int, coarse_levels: int, uv, area, dir1, sigm
 class DesignOptions:
     """The choices of an inverse design (mm, 1/mm).
 
-    stretch: fabric pre-stretch s (> 1). diagonal_mm: scale the target to this bounding-box
+    stretch: fabric pre-stretch s (> 1; "auto" in `design_file`: `choose_stretch`). diagonal_mm: scale the target to this bounding-box
     diagonal (None: V is already in mm). printer: inverse.printer.Printer (its layer height
     rounds the thickness; None: the default printer). lam: the seed's line-field lambda
-    (<= 0, 1/mm^2). thickness_law: a ThicknessLaw, a CSV path or None (the shipped law).
+    (<= 0, 1/mm^2). thickness_law: a ThicknessLaw, a CSV path or None (the shipped law made at
+    ``stretch``; a law stating another stretch is refused).
     edge_mm: Loop-refine until the mean edge is below it (None: no refinement), while the
     face count stays <= max_faces. bounds: (s1min, s1max, s2min, s2max), default
     stretch_bounds(stretch, ribbon_length, ribbon_width). ribbon_length, ribbon_width: the
@@ -198,6 +198,25 @@ class DesignOptions:
     layout_edge_mm: float | None = 2.0
 
 
+#: A target whose vertices all lie within this fraction of its bounding-box diagonal of one
+#: plane is flat: there is no curvature to design for (0.11 mm at the default 110 mm).
+FLAT_REL = 1e-3
+
+
+def _check_curved(V, where: str) -> None:
+    """Refuse a flat target (a single triangle is one) in one line: its curvature is zero
+    everywhere, so the layout would print arbitrary ribbons that curl it away from flat;
+    the design of a flat sheet is to print nothing."""
+    c = V - V.mean(axis=0)
+    diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    normal = np.linalg.svd(c, full_matrices=False)[2][-1]
+    off = float(np.abs(c @ normal).max())
+    if off <= FLAT_REL * diag:
+        raise SelfshapeError(f"{where}: the target is flat ({len(V)} vertices within {off:.2g} mm of a plane, "
+                             f"{FLAT_REL:g} of its {diag:.4g} mm diagonal): a flat sheet has no curvature to "
+                             f"design for")
+
+
 def design(V, F, options: DesignOptions | None = None, *, where: str = "target", **overrides) -> Design:
     """Inverse design of a disk-topology target (V (n, 3), F (m, 3)); see the module doc.
 
@@ -209,7 +228,8 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     from geometry.target import check_disk, normalize, refine
     from inverse.layout import ribbon_layout
     from inverse.printer import Printer
-    from inverse.thickness_law import ThicknessLaw, load_thickness_law
+    from inverse.thickness_law import (ThicknessLaw, check_law_stretch, curvature_reach, law_for_stretch,
+                                       load_thickness_law, reach_warning)
 
     o = replace(options or DesignOptions(), **overrides)
     stretch, printer, thickness_law, bounds = o.stretch, o.printer, o.thickness_law, o.bounds
@@ -226,13 +246,18 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     if not (isinstance(stretch, (int, float)) and math.isfinite(stretch) and stretch > 1.0):
         raise SelfshapeError(f"design: fabric stretch must be a number > 1, got {stretch!r}")
     printer = Printer() if printer is None else printer
-    law = thickness_law if isinstance(thickness_law, ThicknessLaw) else load_thickness_law(thickness_law)
+    if isinstance(thickness_law, ThicknessLaw):
+        law = thickness_law
+    else:
+        law = law_for_stretch(stretch) if thickness_law is None else load_thickness_law(thickness_law)
+    check_law_stretch(law, stretch)
     bounds = stretch_bounds(stretch, ribbon_length, ribbon_width) if bounds is None else tuple(bounds)
     V0, F0 = check_disk(V, F, where=where)
     V0 = normalize(V0, o.diagonal_mm)
     total_area = float(face_areas(V0, F0).sum())
     if not total_area > 0:
         raise SelfshapeError(f"{where}: zero total area")
+    _check_curved(V0, where)
     levels = 0 if o.edge_mm is None else refine_levels_for_edge(V0, F0, o.edge_mm, o.max_faces)
     Vf, Ff = refine(V0, F0, levels) if levels else (V0, F0)
     Ff = np.ascontiguousarray(Ff, dtype=np.int64)
@@ -276,13 +301,65 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
         raise SelfshapeError(f"{where}: no ribbon is left after keeping them {gap_mm:g} mm apart")
     lap("layout")
     tinfo = assign_thickness(ribbons, law, printer.layer_height_mm)
+    reach = curvature_reach(law, [r.meta["kappa_mean_abs"] for r in ribbons], [r.meta["mu2"] for r in ribbons],
+                            [r.side for r in ribbons],
+                            [float(np.linalg.norm(np.diff(r.path, axis=0), axis=1).sum()) for r in ribbons],
+                            printer.layer_height_mm, diagonal_mm=float(np.linalg.norm(np.ptp(V0, axis=0))),
+                            min_diagonal_mm=4.0 * ribbon_length)
+    reach["warning"] = reach_warning(reach)
     lap("thickness")
     return Design(V=Vf, F=Ff, V_input=V0, F_input=F0, curvature=curv, field=lf, flat=flat, kappa1=kappa1,
                   outline=outline, ribbons=ribbons, stretch=float(stretch), bounds=tuple(bounds),
                   refine_levels=levels, layout_levels=lay_levels, lam=float(o.lam), stop=stop, thickness_info=tinfo,
                   law_source=law.source, law_plastic_mpa=law.plastic_young_modulus_mpa,
-                  times=times, cpu_times=cpu, separation=sep,
+                  times=times, cpu_times=cpu, separation=sep, curvature_reach=reach,
                   coarse_iterations=coarse.iterations if coarse is not None else 0)
+
+
+def reach_score(d: Design) -> dict:
+    """How well a design's law and flattening fit its target, for ranking stretches: the
+    length-weighted ``log_excess`` of the asked curvature over both sides
+    (inverse.thickness_law.curvature_reach), the flattening's mean out-of-bounds area fraction,
+    and their sum ``score`` (lower is better; a factor e off in curvature on average costs as much
+    as all of the area out of the stretch bounds)."""
+    reach = d.curvature_reach or {}
+    ex, wsum = 0.0, 0.0
+    for side in ("front", "back"):
+        r = reach.get(side)
+        if r:
+            n = sum(rb.side == side for rb in d.ribbons)
+            ex, wsum = ex + n * r["log_excess"], wsum + n
+    ex = ex / wsum if wsum else 0.0
+    oob = float(np.mean(d.flat.sigma_out_of_bounds_pct)) / 100.0
+    return {"stretch": d.stretch, "log_excess": round(ex, 4), "out_of_bounds": round(oob, 4),
+            "score": round(ex + oob, 4)}
+
+
+def choose_stretch(V, F, options: DesignOptions | None = None, *, where: str = "target", **overrides):
+    """`design --stretch auto`: the design at each stretch a law exists for, and the best by
+    `reach_score`. With no thickness_law, the candidates are the shipped laws' stretches
+    (inverse.thickness_law.shipped_laws); with a law that states its stretch, that one only; a law
+    that does not state it cannot choose (one-line error). Ties go to the larger stretch (more
+    contraction for the flattening). Returns (Design, {"candidates": [...], "chosen": s})."""
+    from inverse.thickness_law import ThicknessLaw, load_thickness_law, shipped_laws
+
+    o = replace(options or DesignOptions(), **overrides)
+    if o.thickness_law is None:
+        candidates = sorted(shipped_laws(), reverse=True)
+    else:
+        law = o.thickness_law if isinstance(o.thickness_law, ThicknessLaw) else load_thickness_law(o.thickness_law)
+        if law.stretch is None:
+            raise SelfshapeError(f"{law.source}: --stretch auto needs a law that states its fabric stretch "
+                                 f"(a '# fabric_stretch = s' line); give --stretch instead")
+        candidates = [law.stretch]
+    best, rows = None, []
+    for s in candidates:
+        d = design(V, F, o, where=where, stretch=s)
+        row = reach_score(d)
+        rows.append(row)
+        if best is None or row["score"] < best[1]["score"] - 1e-9:
+            best = (d, row)
+    return best[0], {"candidates": rows, "chosen": best[1]["stretch"]}
 
 
 # ----------------------------------------------------------------------------- the verb
@@ -291,14 +368,27 @@ VERIFY_KEYS = ("verify_converged", "verify_reason", "verify_newton_iterations", 
                "deviation_p99_pct_bbox", "icp_iterations", "verify_note")
 
 
-def _refine_and_rewrite(d, o, rep, pattern, sims, name, raw, out_dir, written, refine_options, smoothness, verbose,
-                        pattern_kw):
-    """The --refine stage of design_file: refine, then rewrite pattern.toml, G-code, pattern.png
-    and the verification for the rounded refined thicknesses; on failure keep the open-loop
-    design and record why (report "refine": {"ok": false, "reason": ...})."""
-    from geometry.patterns import parse_pattern, write_pattern
-    from inverse.design_refine import refine_design
+def _write_design_files(out, d, raw, printer, title):
+    """pattern.toml, flat.vtu, front.gcode (back.gcode when a ribbon is on the back) and
+    pattern.png of design d into the OutputDir ``out``, each atomically; pattern.toml's
+    numbers must be finite (shellfem.outfiles.NonFiniteOutput)."""
+    from geometry.patterns import write_pattern
     from inverse.gcode import ribbons_to_gcode_files
+    from shellfem.outfiles import check_finite
+
+    check_finite(raw, "pattern.toml")
+    out.write("pattern.toml", lambda tmp: write_pattern(tmp, raw))
+    out.write("flat.vtu", lambda tmp: write_flat_vtu(d, tmp))
+    out.written += ribbons_to_gcode_files(d.ribbons, out.makedirs(), printer)   # atomic on their own
+    out.write("pattern.png", lambda tmp: plot_pattern(d, tmp, title=title))
+
+
+def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smoothness, verbose, pattern_kw):
+    """The --refine stage of design_file: refine, then rewrite pattern.toml, G-code, pattern.png
+    and the verification (into the OutputDir ``out``) for the rounded refined thicknesses; on
+    failure keep the open-loop design and record why (report "refine": {"ok": false, "reason": ...})."""
+    from geometry.patterns import parse_pattern
+    from inverse.design_refine import refine_design
     from inverse.printer import Printer
 
     t = time.perf_counter()
@@ -318,16 +408,14 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, raw, out_dir, written, r
         return
     rep["open_loop"] = {k: rep[k] for k in VERIFY_KEYS if k in rep}
     rep["open_loop"]["thickness_histogram"] = rep.get("thickness_histogram")
-    p_toml = os.path.join(out_dir, "pattern.toml")
+    p_toml = out.file("pattern.toml")
     raw2 = pattern_dict(d, seed=o.seed, target_name=name, **pattern_kw)
-    write_pattern(p_toml, raw2)
-    ribbons_to_gcode_files(d.ribbons, out_dir, o.printer)
-    plot_pattern(d, os.path.join(out_dir, "pattern.png"), title=name + " (refined)")
+    _write_design_files(out, d, raw2, o.printer, name + " (refined)")
     rep.update(report_dict(d))
     for k in VERIFY_KEYS:
         rep.pop(k, None)
     pattern2 = parse_pattern(raw2, p_toml, os.path.dirname(os.path.abspath(p_toml)))
-    rep.update(verify_design(d, pattern2, out_dir, written))
+    rep.update(verify_design(d, pattern2, out))
     near, rel = block.get("rounded", {}), rep.get("deviation_pct_bbox")
     if near.get("deviation_pct_bbox") and rel:
         # release from flat reaches the refined state if its deviations match the state nearest the target
@@ -347,7 +435,7 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, raw, out_dir, written, r
 def design_file(target_path, out_dir, options: DesignOptions | None = None, *, verify: bool = False,
                 mesh_size_mm: float = 2.0, mesh_across: float | None = None, verify_iterations: int | None = None,
                 metric_floor: float | None = None, refine: bool = False, refine_options=None,
-                refine_smoothness: float = 0.05, verbose: bool = False, **overrides) -> dict:
+                refine_smoothness: float = 0.05, verbose: bool = False, inputs=(), **overrides) -> dict:
     """`selfshape design TARGET -o DIR`: writes DIR/pattern.toml, flat.vtu, front.gcode (and
     back.gcode when a ribbon is on the back), pattern.png and report.json (last); with
     ``verify`` also deployed.vtu and verify.png and the deviation in report.json.
@@ -364,78 +452,60 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
     the open-loop verification and "refine" the iteration. A refinement that fails keeps the
     open-loop design and says why in "refine". time_s is the
     design time (read to written outputs, Table 5.1's "Time"), total_time_s includes the
-    verification. Outputs of an earlier run in the directory are removed first; on failure
-    every file this run wrote is removed. Returns the report dict."""
+    verification. The output folder is checked before the design runs and the outputs of an
+    earlier run there (OUTPUTS, no other file) are removed first; every file is written
+    atomically, none with a non-finite number; on failure (Ctrl-C included) every file this run
+    wrote is removed (shellfem.outfiles.OutputDir). ``inputs``: other input files the outputs
+    must not overwrite (the CLI's --printer TOML). Returns the report dict."""
     from geometry.target import read_mesh
-    from inverse.gcode import ribbons_to_gcode_files
+    from shellfem.outfiles import OutputDir
 
     t_start = time.perf_counter()
-    from geometry.patterns import parse_pattern, solver_options, write_pattern
+    from geometry.patterns import parse_pattern, solver_options
     # the values go to pattern.toml's [solver]: checked as load_pattern will check them
     solver_options({k: v for k, v in (("max_iterations", verify_iterations), ("metric_floor", metric_floor))
                     if v is not None}, "verification [solver] (--verify-iterations, --metric-floor)")
     # [mesh] of the written pattern, checked before the design runs (named as the caller gave them)
-    check_number("design: mesh size (--mesh-size, mesh_size_mm)", mesh_size_mm, 0.0, lo_open=True)
+    from geometry.schema import PATTERN_NUMBERS, number
+    number(mesh_size_mm, "design: mesh size (--mesh-size, mesh_size_mm)", PATTERN_NUMBERS["mesh"]["size_mm"])
     if mesh_across is not None:
-        check_number("design: rows across a ribbon (--mesh-across, mesh_across)", mesh_across, 0.0, lo_open=True)
+        number(mesh_across, "design: rows across a ribbon (--mesh-across, mesh_across)", PATTERN_NUMBERS["mesh"]["across"])
     name = os.path.basename(str(target_path))
     V, F = read_mesh(target_path)
-    out_dir = os.fspath(out_dir)
-    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
-        raise SelfshapeError(f"{out_dir}: exists and is not a directory")
-    created = not os.path.isdir(out_dir)
-    written: list = []
-    try:
-        o = replace(options or DesignOptions(), **overrides)
-        d = design(V, F, o, where=name)
+    o = replace(options or DesignOptions(), **overrides)
+    law = o.thickness_law if isinstance(o.thickness_law, (str, os.PathLike)) else None
+    # checked before the design runs; an earlier run's files are removed first (shellfem.outfiles)
+    out = OutputDir(out_dir, OUTPUTS, inputs=[target_path, law, *inputs])
+    with out:
+        choice = None
+        if o.stretch == "auto":
+            d, choice = choose_stretch(V, F, o, where=name)
+        else:
+            d = design(V, F, o, where=name)
         t = time.perf_counter()
-        os.makedirs(out_dir, exist_ok=True)
-        for stale in OUTPUTS:                 # an earlier run's files must not mix with this run's
-            if os.path.isfile(os.path.join(out_dir, stale)):
-                os.remove(os.path.join(out_dir, stale))
-        p = p_toml = os.path.join(out_dir, "pattern.toml")
-        written.append(p)
         raw = pattern_dict(d, mesh_size_mm=mesh_size_mm, mesh_across=mesh_across, seed=o.seed, target_name=name,
                            max_iterations=verify_iterations, metric_floor=metric_floor)
-        write_pattern(p, raw)
-        p = os.path.join(out_dir, "flat.vtu")
-        written.append(p)
-        write_flat_vtu(d, p)
-        for side in ("front", "back"):
-            written.append(os.path.join(out_dir, f"{side}.gcode"))
-        ribbons_to_gcode_files(d.ribbons, out_dir, o.printer)
-        p = os.path.join(out_dir, "pattern.png")
-        written.append(p)
-        plot_pattern(d, p, title=name)
+        _write_design_files(out, d, raw, o.printer, name)
         d.times["write"] = time.perf_counter() - t
         rep = {"target": os.path.abspath(str(target_path)), "time_s": None}
         rep.update(report_dict(d))
+        if choice is not None:
+            rep["stretch_choice"] = choice
         rep["stages_s"] = {k: round(v, 3) for k, v in d.times.items()}
         rep["stages_cpu_s"] = {k: round(v, 3) for k, v in d.cpu_times.items()}
         rep["time_s"] = round(time.perf_counter() - t_start, 3)
         if verify or refine:
             t = time.perf_counter()
+            p_toml = out.file("pattern.toml")
             pattern = parse_pattern(raw, p_toml, os.path.dirname(os.path.abspath(p_toml)))
             sims = []
-            rep.update(verify_design(d, pattern, out_dir, written, sims=sims))
+            rep.update(verify_design(d, pattern, out, sims=sims))
             rep["stages_s"]["verify"] = round(time.perf_counter() - t, 3)
             if refine:
-                _refine_and_rewrite(d, o, rep, pattern, sims, name, raw, out_dir, written, refine_options,
-                                    refine_smoothness, verbose, dict(mesh_size_mm=mesh_size_mm, mesh_across=mesh_across,
-                                    max_iterations=verify_iterations, metric_floor=metric_floor))
+                _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, refine_smoothness, verbose,
+                                    dict(mesh_size_mm=mesh_size_mm, mesh_across=mesh_across,
+                                         max_iterations=verify_iterations, metric_floor=metric_floor))
         rep["total_time_s"] = round(time.perf_counter() - t_start, 3)
-        rep["files"] = sorted(os.path.basename(p) for p in written if os.path.exists(p)) + ["report.json"]
-        p = os.path.join(out_dir, "report.json")
-        written.append(p)
-        tmp = p + ".tmp"
-        with open(tmp, "w") as f:
-            json.dump(rep, f, indent=2)
-        os.replace(tmp, p)
+        rep["files"] = sorted({os.path.basename(p) for p in out.written if os.path.exists(p)} | {"report.json"})
+        out.write_json("report.json", rep)          # last: a folder with a report.json is complete
         return rep
-    except BaseException:
-        for p in written + [os.path.join(out_dir, "report.json.tmp")]:
-            if os.path.exists(p):
-                os.remove(p)
-        if created and os.path.isdir(out_dir) and not os.listdir(out_dir):
-            os.rmdir(out_dir)
-        raise

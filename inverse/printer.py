@@ -13,19 +13,25 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from shellfem.errors import SelfshapeError, check_number
+from geometry.schema import PRINTER_NUMBERS, check_keys, number
+from shellfem.errors import SelfshapeError
 
 
-def _number(name, value, lo=None, lo_open=False, hi=None):
-    return check_number(f"printer.{name}", value, lo=lo, hi=hi, lo_open=lo_open)
+def _number(name, value):
+    """A printer field strictly checked against its physical range (geometry.schema.PRINTER_NUMBERS):
+    G-code goes to real hardware, so no value is accepted on type alone."""
+    return number(value, f"printer.{name}", PRINTER_NUMBERS[name])
 
 
-def _pair(name, value, lo=None, lo_open=False):
+def _pair(name, value):
+    if isinstance(value, (str, bytes, dict)):
+        raise SelfshapeError(f"printer.{name} must be a pair [x, y], got {value!r:.40}")
     try:
         a, b = value
     except (TypeError, ValueError):
-        raise SelfshapeError(f"printer.{name} must be a pair (x, y), got {value!r}") from None
-    return (_number(f"{name}[0]", a, lo, lo_open), _number(f"{name}[1]", b, lo, lo_open))
+        raise SelfshapeError(f"printer.{name} must be a pair [x, y], got {value!r:.40}") from None
+    spec = PRINTER_NUMBERS[name]
+    return (number(a, f"printer.{name}[0]", spec), number(b, f"printer.{name}[1]", spec))
 
 
 @dataclass
@@ -59,26 +65,27 @@ class Printer:
     relative_e: bool = True
 
     def __post_init__(self):
-        self.bed_size = _pair("bed_size", self.bed_size, 0.0, lo_open=True)
+        """Every field against its range in geometry.schema.PRINTER_NUMBERS (bools and strings
+        are never numbers), then the relations: layer height <= nozzle (the bead model needs
+        h <= w and a bead is at least a nozzle wide), mirror axis on the bed."""
+        self.bed_size = _pair("bed_size", self.bed_size)
         if self.origin is not None:
             self.origin = _pair("origin", self.origin)
-        self.nozzle_mm = _number("nozzle_mm", self.nozzle_mm, 0.0, lo_open=True)
-        self.filament_diameter_mm = _number("filament_diameter_mm", self.filament_diameter_mm, 0.0, lo_open=True)
-        self.layer_height_mm = _number("layer_height_mm", self.layer_height_mm, 0.0, lo_open=True)
+        for name in ("nozzle_mm", "filament_diameter_mm", "layer_height_mm", "print_speed_mm_s",
+                     "travel_speed_mm_s", "z_speed_mm_s", "retraction_speed_mm_s", "extrusion_multiplier",
+                     "retraction_mm", "retract_min_travel_mm", "z_hop_mm", "bed_offset_z_mm",
+                     "nozzle_temperature_c", "bed_temperature_c"):
+            setattr(self, name, _number(name, getattr(self, name)))
         if self.layer_height_mm > self.nozzle_mm:
             raise SelfshapeError(f"printer.layer_height_mm ({self.layer_height_mm:g}) must not exceed "
                                  f"the nozzle diameter ({self.nozzle_mm:g})")
-        for name in ("print_speed_mm_s", "travel_speed_mm_s", "z_speed_mm_s", "retraction_speed_mm_s",
-                     "extrusion_multiplier"):
-            setattr(self, name, _number(name, getattr(self, name), 0.0, lo_open=True))
-        for name in ("retraction_mm", "retract_min_travel_mm", "z_hop_mm", "bed_offset_z_mm"):
-            setattr(self, name, _number(name, getattr(self, name), 0.0))
-        self.nozzle_temperature_c = _number("nozzle_temperature_c", self.nozzle_temperature_c, 0.0, hi=350.0)
-        self.bed_temperature_c = _number("bed_temperature_c", self.bed_temperature_c, 0.0, hi=150.0)
         if self.mirror_axis_x is not None:
             self.mirror_axis_x = _number("mirror_axis_x", self.mirror_axis_x)
+            if self.mirror_axis_x > self.bed_size[0]:
+                raise SelfshapeError(f"printer.mirror_axis_x ({self.mirror_axis_x:g}) must lie on the bed, "
+                                     f"0..{self.bed_size[0]:g} mm (bed_size[0])")
         if not isinstance(self.relative_e, bool):
-            raise SelfshapeError(f"printer.relative_e must be true or false, got {self.relative_e!r}")
+            raise SelfshapeError(f"printer.relative_e must be true or false, got {self.relative_e!r:.40}")
 
     @property
     def filament_area_mm2(self) -> float:
@@ -93,7 +100,9 @@ class Printer:
 
 def load_printer(path: str) -> Printer:
     """A :class:`Printer` from a TOML file: its keys are Printer's field names (mm, mm/s,
-    deg C), either at the top level or under ``[printer]``; missing keys keep the defaults.
+    deg C), either at the top level or under ``[printer]`` (then nothing else may be beside
+    it); missing keys keep the defaults, unknown keys are one-line errors naming the closest
+    field, every value is checked against its range (geometry.schema.PRINTER_NUMBERS).
 
         [printer]
         bed_size = [300, 300]
@@ -108,9 +117,12 @@ def load_printer(path: str) -> Printer:
     if not isinstance(table, dict):
         raise SelfshapeError(f"printer file {path}: [printer] must be a table")
     known = {f.name for f in dataclasses.fields(Printer)}
-    unknown = sorted(set(table) - known)
-    if unknown:
-        raise SelfshapeError(f"printer file {path}: unknown key {unknown[0]!r} (known: {', '.join(sorted(known))})")
+    if "printer" in raw:       # keys beside [printer] would be silently ignored
+        check_keys(raw, {"printer"}, f"printer file {path}")
+        where = f"printer file {path}: [printer]"
+    else:
+        where = f"printer file {path}"
+    check_keys(table, known, where)
     try:
         return Printer(**table)
     except SelfshapeError as e:

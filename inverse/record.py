@@ -38,3 +38,4 @@ class Design:
     cpu_times: dict = field(default_factory=dict)
     coarse_iterations: int = 0
     separation: dict = field(default_factory=dict)
+    curvature_reach: dict = field(default_factory=dict)   # inverse.thickness_law.curvature_reach

@@ -44,6 +44,7 @@ def report_dict(d: Design) -> dict:
         "printed_over_asked_area": round(printed_over_asked(d), 4),
         "thickness_clamped": d.thickness_info, "thickness_law": d.law_source,
         "plastic_young_modulus_mpa": d.law_plastic_mpa,
+        "curvature_reach": d.curvature_reach,
     }
 
 

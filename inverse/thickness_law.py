@@ -15,7 +15,11 @@ is strictly monotone in thickness, in the same direction for all spacings of a s
 bilinear interpolant is monotone in thickness at any spacing and can be inverted).
 One comment line may state the plastic the law holds for, ``# plastic_young_modulus_mpa = E``
 (MPa): `selfshape design` then writes that modulus into pattern.toml's [plastic], so that the
-pattern simulates with the material its thicknesses were chosen for.
+pattern simulates with the material its thicknesses were chosen for. Another may state the
+fabric pre-stretch it was made at, ``# fabric_stretch = s``: a law's curvatures hold only at
+that stretch (the misfit scales the curvature), so `design` refuses a law made at another
+stretch than the one it designs for. The shipped laws are ``inverse/data/thickness_law_s<s>.csv``
+(`shipped_laws`); `law_for_stretch` picks the one for a stretch.
 
 Interpolation is bilinear in (thickness, spacing); spacings outside the table are clamped to
 its range (counted). The inverse returns thicknesses rounded to multiples of the printer's
@@ -27,6 +31,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -36,8 +41,11 @@ from shellfem.errors import SelfshapeError, check_number
 COLUMNS = ("thickness_mm", "spacing_mm", "side", "kappa_per_mm")
 SIDES = ("front", "back")
 PLASTIC_KEY = "plastic_young_modulus_mpa"
-#: The law shipped with the project (see the file's provenance header).
-DEFAULT_LAW = os.path.join(os.path.dirname(__file__), "data", "thickness_law_s1.6.csv")
+STRETCH_KEY = "fabric_stretch"
+DATA_DIR = os.path.join(os.path.dirname(__file__), "data")
+#: The law shipped with the project for the default stretch 1.6 (see the file's provenance header).
+DEFAULT_LAW = os.path.join(DATA_DIR, "thickness_law_s1.6.csv")
+_SHIPPED = re.compile(r"^thickness_law_s(\d+(?:\.\d+)?)\.csv$")
 
 
 @dataclass
@@ -52,11 +60,13 @@ class SideTable:
 @dataclass
 class ThicknessLaw:
     """A loaded law: per side a SideTable; provenance = the comment lines; source = file;
-    plastic_young_modulus_mpa: the plastic the law holds for (MPa), None if not stated."""
+    plastic_young_modulus_mpa: the plastic the law holds for (MPa), None if not stated;
+    stretch: the fabric pre-stretch it was made at, None if not stated."""
     sides: dict
     provenance: list = field(default_factory=list)
     source: str = "<table>"
     plastic_young_modulus_mpa: float | None = None
+    stretch: float | None = None
 
     def table(self, side: str) -> SideTable:
         if side not in self.sides:
@@ -103,14 +113,18 @@ def parse_thickness_law(text: str, source: str = "<table>") -> ThicknessLaw:
     sides = {s: _grid(rows_, s, source) for s, rows_ in data.items() if rows_}
     if not sides:
         raise SelfshapeError(f"{source}: no data rows")
-    modulus = None
+    modulus = stretch = None
     for ln in provenance:
         key, eq, value = ln.partition("=")
         if eq and key.strip() == PLASTIC_KEY:
             modulus = _float(value.strip(), f"{source}: {PLASTIC_KEY}")
             if not modulus > 0:
                 raise SelfshapeError(f"{source}: {PLASTIC_KEY} must be > 0, got {modulus:g}")
-    return ThicknessLaw(sides, provenance, source, modulus)
+        if eq and key.strip() == STRETCH_KEY:
+            stretch = _float(value.strip(), f"{source}: {STRETCH_KEY}")
+            if not 1.0 < stretch < 10.0:
+                raise SelfshapeError(f"{source}: {STRETCH_KEY} must be in (1, 10), got {stretch:g}")
+    return ThicknessLaw(sides, provenance, source, modulus, stretch)
 
 
 def _grid(rows, side, source) -> SideTable:
@@ -156,6 +170,37 @@ def load_thickness_law(path=None) -> ThicknessLaw:
     except UnicodeDecodeError:
         raise SelfshapeError(f"{path}: not a UTF-8 text file") from None
     return parse_thickness_law(text, path)
+
+
+def shipped_laws() -> dict:
+    """{fabric stretch: path} of the laws shipped in ``inverse/data`` (thickness_law_s<s>.csv)."""
+    out = {}
+    for name in sorted(os.listdir(DATA_DIR)):
+        m = _SHIPPED.match(name)
+        if m:
+            out[float(m.group(1))] = os.path.join(DATA_DIR, name)
+    return out
+
+
+def law_for_stretch(stretch: float) -> ThicknessLaw:
+    """The shipped law made at fabric stretch ``stretch`` (to 1e-6); a one-line error naming the
+    stretches that are shipped otherwise."""
+    laws = shipped_laws()
+    for s, path in laws.items():
+        if abs(s - float(stretch)) <= 1e-6:
+            return load_thickness_law(path)
+    have = ", ".join(f"{s:g}" for s in laws)
+    raise SelfshapeError(f"no shipped thickness law for fabric stretch {float(stretch):g} (shipped: {have}); "
+                         f"pass --law FILE made at that stretch (studies/thickness_law_sim.py --stretch "
+                         f"{float(stretch):g}) or use a shipped stretch")
+
+
+def check_law_stretch(law: ThicknessLaw, stretch: float) -> None:
+    """Refuse a law that states a fabric stretch other than ``stretch`` (one line naming both)."""
+    if law.stretch is not None and abs(law.stretch - float(stretch)) > 1e-6:
+        raise SelfshapeError(f"{law.source}: the law was made at fabric stretch {law.stretch:g}, the design asks "
+                             f"for {float(stretch):g}: its curvatures do not hold there (pass a law made at "
+                             f"{float(stretch):g}, or --stretch {law.stretch:g})")
 
 
 def format_thickness_law(rows, provenance_lines) -> str:
@@ -251,3 +296,79 @@ def thickness_for_curvature(law: ThicknessLaw, kappa, spacing_mm, side: str, lay
             "spacing_clamped": int(sclamp.sum()), "printable_range_mm": [lo, hi],
             "layer_height_mm": float(layer_height_mm)}
     return t.reshape(k.shape), info
+
+
+def curvature_reach(law: ThicknessLaw, kappa, spacing_mm, side, length_mm, layer_height_mm: float,
+                    diagonal_mm: float | None = None, min_diagonal_mm: float = 0.0) -> dict:
+    """How much of the curvature a design asks for the law can give, per side (1/mm, mm).
+
+    kappa, spacing_mm, side, length_mm: per ribbon, the asked |curvature| along it, its spacing
+    mu2, its side and its length (the weight). For each side: the length-weighted 10/50/90 %
+    quantiles of the asked curvature, the law's printable range [kappa at the thickest, at the
+    thinnest printable layer multiple] at the side's median spacing, and the fractions of ribbon
+    length asking for less than the law's lowest (curls too much) or more than its highest
+    curvature, and ``log_excess``, the length-weighted mean of |ln(asked / nearest reachable)|
+    (0 when all is in range; 0.69 = a factor 2 off on average), which ranks laws for a target. The asked curvature of a target scales as 1 / size, so with ``diagonal_mm`` (the
+    target's bounding-box diagonal) ``diagonal_in_range_mm`` is the range of diagonals at which
+    the median asked curvature of every side lies inside the law's range, cut below at
+    ``min_diagonal_mm`` (a pattern needs room for several ribbon periods for the law's
+    parallel-ribbon behaviour to hold); None if no such size."""
+    kappa, spacing_mm, length_mm = (np.asarray(v, float) for v in (kappa, spacing_mm, length_mm))
+    side = np.asarray(side)
+    out, lo_d, hi_d = {}, 0.0, np.inf
+    for s in SIDES:
+        m = side == s
+        if not m.any() or s not in law.sides:
+            continue
+        k, w = np.abs(kappa[m]), length_mm[m]
+        order = np.argsort(k)
+        cw = np.cumsum(w[order]) / w.sum()
+        q = {f"p{int(p * 100)}": float(k[order][min(np.searchsorted(cw, p), len(k) - 1)]) for p in (0.1, 0.5, 0.9)}
+        mu_med = float(np.median(spacing_mm[m]))
+        tab = law.table(s)
+        t_lo, t_hi = printable_range(tab, layer_height_mm)
+        k_ends = curvature(law, [t_lo, t_hi], [mu_med, mu_med], s)
+        k_min, k_max = float(k_ends.min()), float(k_ends.max())
+        kk = np.maximum(k, 1e-6)
+        excess = float(np.sum(w * np.abs(np.log(kk / np.clip(kk, k_min, k_max)))) / w.sum())
+        below = float(w[k < k_min].sum() / w.sum())
+        above = float(w[k > k_max].sum() / w.sum())
+        out[s] = {"asked_per_mm": q, "law_range_per_mm": [k_min, k_max], "at_spacing_mm": mu_med,
+                  "printable_thickness_mm": [t_lo, t_hi], "length_below_range": round(below, 4),
+                  "length_above_range": round(above, 4), "log_excess": round(excess, 4)}
+        if diagonal_mm is not None and q["p50"] > 0:
+            lo_d = max(lo_d, diagonal_mm * q["p50"] / k_max)
+            hi_d = min(hi_d, diagonal_mm * q["p50"] / k_min) if k_min > 0 else hi_d
+    if diagonal_mm is not None and out:
+        out["diagonal_mm"] = float(diagonal_mm)
+        lo_d = max(lo_d, float(min_diagonal_mm))
+        out["diagonal_in_range_mm"] = [float(lo_d), float(hi_d)] if lo_d <= hi_d and np.isfinite(hi_d) else None
+    return out
+
+
+def reach_warning(reach: dict, threshold: float = 0.5) -> str | None:
+    """One sentence when more than ``threshold`` of a side's ribbon length asks for curvature
+    outside the law's range (the deployed shape then curls more, or less, than the target), with
+    the size at which it would not; None otherwise."""
+    parts = []
+    for s in SIDES:
+        r = reach.get(s)
+        if not r:
+            continue
+        lo, hi = r["law_range_per_mm"]
+        if r["length_below_range"] > threshold:
+            parts.append(f"{s}: {100 * r['length_below_range']:.0f} % of the ribbon length asks for less curvature "
+                         f"(median {r['asked_per_mm']['p50']:.3g} 1/mm) than the law's lowest {lo:.3g} 1/mm, "
+                         f"so it will curl more than the target")
+        elif r["length_above_range"] > threshold:
+            parts.append(f"{s}: {100 * r['length_above_range']:.0f} % of the ribbon length asks for more curvature "
+                         f"(median {r['asked_per_mm']['p50']:.3g} 1/mm) than the law's highest {hi:.3g} 1/mm")
+    if not parts:
+        return None
+    rng = reach.get("diagonal_in_range_mm")
+    if rng:
+        hint = f"; at a diagonal of {rng[0]:.0f}-{rng[1]:.0f} mm (--diagonal) it would be in range"
+    else:
+        hint = ("; no size of this target is in range with these ribbons: a law that reaches it is needed "
+                "(another --stretch, or --law for a softer plastic)")
+    return "; ".join(parts) + hint

@@ -3,7 +3,6 @@ deployed surface rigidly to the target and measure closest-point distances both 
 the target's bounding-box diagonal (mm for the diagonal)."""
 from __future__ import annotations
 
-import os
 import time
 
 import numpy as np
@@ -33,9 +32,10 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
     surface to the target and return the report entries: verify_converged, verify_reason,
     Newton iterations, deviation_pct_bbox [mean, max] (deployed -> target),
     deviation_target_to_deployed_pct_bbox [mean, max], deviation_p99_pct_bbox. A simulation
-    that fails or does not converge reports no deviation. With ``out_dir``, deployed.vtu and
-    verify.png are written there and their paths appended to ``written``; the Simulation is
-    appended to ``sims`` if given (the refinement starts from it)."""
+    that fails or does not converge reports no deviation. With ``out_dir`` (a folder or the
+    design's shellfem.outfiles.OutputDir), deployed.vtu and verify.png are written there
+    atomically and their paths appended to ``written``; the Simulation is appended to ``sims``
+    if given (the refinement starts from it)."""
     from forward.simulate import simulate
     from inverse.plots import plot_verify
     from inverse.registration import flat_to_target
@@ -65,11 +65,10 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
                 "deviation_p99_pct_bbox": float(np.percentile(pct, 99)), "icp_iterations": int(icp_it),
                 "bbox_diagonal_mm": float(np.linalg.norm(d.V_input.max(0) - d.V_input.min(0)))})
     if out_dir is not None:
-        written = [] if written is None else written
-        p = os.path.join(out_dir, "deployed.vtu")
-        written.append(p)
-        write_deployed_vtu(p, Xr, sim.sheet, pct)
-        p = os.path.join(out_dir, "verify.png")
-        written.append(p)
-        plot_verify(d, Xr, sim.sheet.triangles, pct, p)
+        from shellfem.outfiles import OutputDir
+        files = out_dir if isinstance(out_dir, OutputDir) else OutputDir(out_dir, ("deployed.vtu", "verify.png"))
+        paths = [files.write("deployed.vtu", lambda tmp: write_deployed_vtu(tmp, Xr, sim.sheet, pct)),
+                 files.write("verify.png", lambda tmp: plot_verify(d, Xr, sim.sheet.triangles, pct, tmp))]
+        if written is not None:
+            written += paths
     return out

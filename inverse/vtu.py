@@ -1,11 +1,13 @@
 """The VTU files of a design (ParaView): flat.vtu, the flattened target with its stretches and
 curvature, and deployed.vtu, the registered simulated deployment with its distance to the
-target (mm, 1/mm, % of the bounding-box diagonal)."""
+target (mm, 1/mm, % of the bounding-box diagonal). A NaN or infinite value is never written
+(shellfem.outfiles.NonFiniteOutput)."""
 from __future__ import annotations
 
 import numpy as np
 
 from inverse.record import Design
+from shellfem.outfiles import check_finite_arrays
 
 
 def write_flat_vtu(d: Design, path: str):
@@ -14,6 +16,8 @@ def write_flat_vtu(d: Design, path: str):
     import meshio
 
     pts = np.column_stack([d.flat.uv, np.zeros(len(d.flat.uv))])
+    check_finite_arrays("flat.vtu", {"flat positions": pts, "target": d.V, "sigma1": d.flat.sigma1,
+                                     "sigma2": d.flat.sigma2, "kappa1_per_mm": d.kappa1})
     meshio.write(path, meshio.Mesh(pts, [("triangle", d.F)], point_data={"target": d.V},
                                    cell_data={"sigma1": [d.flat.sigma1], "sigma2": [d.flat.sigma2],
                                               "kappa1_per_mm": [d.kappa1]}))
@@ -25,6 +29,7 @@ def write_deployed_vtu(path: str, X: np.ndarray, sheet, pct: np.ndarray):
     target, % of its bounding-box diagonal), cell data side."""
     import meshio
 
+    check_finite_arrays("deployed.vtu", {"deployed positions": X, "distance_pct_bbox": pct})
     meshio.write(path, meshio.Mesh(X, [("triangle", sheet.triangles)],
                                    point_data={"reference": np.column_stack([sheet.points, np.zeros(len(X))]),
                                                "distance_pct_bbox": pct},

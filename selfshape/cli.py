@@ -3,12 +3,90 @@
 Every verb is a thin wrapper over a Python function (named in its help) so that
 scripts can call the same thing. Bad input exits with status 2 and one line on
 stderr naming the problem; an unexpected failure exits 3, also with one line.
+A usage error is one line too (no usage text: ``selfshape VERB --help`` shows it), and
+the warnings numpy, meshio, Gmsh or VTK print while a verb runs are kept from the
+terminal (shown with ``-v``), so that the error line is the only line on stderr.
+The verbs' files are checked before the work and written atomically, every number
+finite (shellfem.outfiles).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
+import math
 import os
 import sys
+import tempfile
+import warnings
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``selfshape VERB: error: MESSAGE`` and exit status 2,
+    without the usage text argparse prints first (the contract: one line on stderr)."""
+
+    def error(self, message):
+        msg = " ".join(str(message).split())
+        self.exit(2, f"{self.prog}: error: {msg} (see {self.prog} --help)\n")
+
+    def _get_values(self, action, arg_strings):
+        # Python 3.11's argparse turns "--size=--" into [] without calling the type
+        if action.option_strings and action.nargs is None and list(arg_strings) == ["--"]:
+            raise argparse.ArgumentError(action, "expected one argument, got '--'")
+        return super()._get_values(action, arg_strings)
+
+
+def _number(lo=None, lo_open=False, hi=None, integer=False):
+    """An argparse type: a finite number (an integer if ``integer``) within the bounds."""
+    what = "an integer" if integer else "a finite number"
+    rng = ((f" > {lo:g}" if lo_open else f" >= {lo:g}") if lo is not None else "") + \
+        (f" <= {hi:g}" if hi is not None else "")
+
+    def parse(text):
+        try:
+            v = int(text) if integer else float(text)
+        except ValueError:
+            v = None
+        if v is None or not math.isfinite(v) or (lo is not None and (v <= lo if lo_open else v < lo)) or \
+                (hi is not None and v > hi):
+            raise argparse.ArgumentTypeError(f"must be {what}{rng}, got {text!r}")
+        return v
+    return parse
+
+
+_POSITIVE = _number(0.0, lo_open=True)
+_COUNT = _number(1, integer=True)
+_SEED = _number(0, integer=True)
+
+
+@contextlib.contextmanager
+def _quiet(enabled: bool):
+    """Keep what libraries print to stderr while a verb runs (Python warnings, rich/meshio
+    notes, and C-level output of Gmsh, VTK or CHOLMOD on file descriptor 2) from the
+    terminal; ``enabled=False`` (``-v``) lets it through."""
+    if not enabled:
+        yield
+        return
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        saved = None
+        with tempfile.TemporaryFile() as sink:
+            try:
+                sys.stderr.flush()
+                saved = os.dup(2)
+            except (OSError, ValueError):       # no file descriptor 2 (embedded): Python level only
+                saved = None
+            if saved is not None:
+                os.dup2(sink.fileno(), 2)
+            try:
+                with contextlib.redirect_stderr(io.StringIO()):
+                    yield
+            finally:
+                if saved is not None:
+                    with contextlib.suppress(Exception):
+                        sys.stderr.flush()
+                    os.dup2(saved, 2)
+                    os.close(saved)
 
 
 def _cmd_mesh(a):
@@ -28,6 +106,16 @@ def _levels(text):
     if n < 0:
         raise argparse.ArgumentTypeError(f"must be 'auto' or an integer >= 0, got {text!r}")
     return n
+
+
+def _stretch(text):
+    """--stretch: 'auto' or a finite number > 1."""
+    if text == "auto":
+        return text
+    try:
+        return _number(1.0, lo_open=True)(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"must be a finite number > 1 or 'auto', got {text!r}") from None
 
 
 def _cmd_simulate(a):
@@ -50,8 +138,17 @@ def _cmd_design(a):
     printer = load_printer(a.printer) if a.printer else None
     r = design_file(a.target, a.output, verify=a.verify, diagonal_mm=a.diagonal, stretch=a.stretch,
                     thickness_law=a.law, lam=a.lam, printer=printer, verify_iterations=a.verify_iterations,
-                    refine=a.refine, mesh_size_mm=a.mesh_size, mesh_across=a.mesh_across, verbose=a.verbose)
+                    refine=a.refine, mesh_size_mm=a.mesh_size, mesh_across=a.mesh_across, verbose=a.verbose,
+                    inputs=[a.printer] if a.printer else ())
     print(f"design written to {a.output} in {r['time_s']:.1f} s")
+    if r.get("stretch_choice"):
+        c = r["stretch_choice"]
+        print("stretch auto: " + ", ".join(f"s {row['stretch']:g}: curvature off by x{math.exp(row['log_excess']):.2f}, "
+                                         f"{100 * row['out_of_bounds']:.1f} % out of bounds" for row in c["candidates"])
+              + f" -> {c['chosen']:g}")
+    warning = (r.get("curvature_reach") or {}).get("warning")
+    if warning:
+        print(f"warning: {warning}")
     if r.get("deviation_pct_bbox"):
         dev, back = r["deviation_pct_bbox"], r["deviation_target_to_deployed_pct_bbox"]
         print(f"deployed -> target {dev[0]:.2f} / {dev[1]:.2f} %, target -> deployed {back[0]:.2f} / {back[1]:.2f} % "
@@ -80,6 +177,8 @@ def _cmd_calibrate(a):
 
 
 def _cmd_validate(a):
+    from validation.strips import check_for_validation  # input contract (issue 19): checked before the loop
+    check_for_validation(a.data, [a.output])
     from validation.loop import validate_file
     r = validate_file(a.data, a.output, seed=a.seed)
     print(f"error before {r['error_before']:.4f}, after {r['error_after']:.4f}; "
@@ -87,27 +186,29 @@ def _cmd_validate(a):
 
 
 def _cmd_predict(a):
+    from validation.model_file import check_predict  # input contract (issue 19): model.json, rows, -o
+    check_predict(a.model, a.data, a.output)
     from validation.loop import predict_file
     n = predict_file(a.model, a.data, a.output)
     print(f"wrote {n} predictions to {a.output}")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="selfshape", description="Self-shaping textiles: simulate, design, calibrate.")
+    p = _Parser(prog="selfshape", description="Self-shaping textiles: simulate, design, calibrate.")
     sub = p.add_subparsers(dest="verb", required=True)
 
     m = sub.add_parser("mesh", help="conforming Gmsh mesh of a pattern (geometry.meshing.mesh_pattern_file)")
     m.add_argument("pattern", help="pattern .toml or .gcode")
     m.add_argument("-o", "--output", required=True, help="output .msh")
-    m.add_argument("--size", type=float, default=None, help="override [mesh] size_mm")
+    m.add_argument("--size", type=_POSITIVE, default=None, help="override [mesh] size_mm")
     m.set_defaults(fn=_cmd_mesh)
 
     s = sub.add_parser("simulate", help="released equilibrium of a pattern (forward.simulate.simulate_pattern_file)")
     s.add_argument("pattern")
     s.add_argument("-o", "--output", required=True, help="output directory")
-    s.add_argument("--size", type=float, default=None, help="override [mesh] size_mm")
-    s.add_argument("--seed", type=int, default=None, help="override [solver] seed")
-    s.add_argument("--max-iterations", type=int, default=None)
+    s.add_argument("--size", type=_POSITIVE, default=None, help="override [mesh] size_mm")
+    s.add_argument("--seed", type=_SEED, default=None, help="override [solver] seed")
+    s.add_argument("--max-iterations", type=_COUNT, default=None, help="override [solver] max_iterations")
     s.add_argument("--coarse-levels", type=_levels, default=None,
                    help="override [solver] coarse_levels: 'auto' or N >= 0 coarser meshes solved first (0: none)")
     s.add_argument("--no-png", action="store_true", help="skip deployed.png")
@@ -118,18 +219,19 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("target")
     d.add_argument("-o", "--output", required=True)
     d.add_argument("--verify", action="store_true", help="simulate the design and report its deviation")
-    d.add_argument("--verify-iterations", type=int, default=None,
+    d.add_argument("--verify-iterations", type=_COUNT, default=None,
                    help="Newton iteration cap of --verify, also written to pattern.toml [solver] (default 300)")
     d.add_argument("--refine", action="store_true",
                    help="refine the ribbon thicknesses with the shell in the loop (implies --verify)")
-    d.add_argument("--mesh-size", type=float, default=2.0, help="pattern.toml [mesh] size_mm of the verification, mm")
-    d.add_argument("--mesh-across", type=float, default=None,
+    d.add_argument("--mesh-size", type=_POSITIVE, default=2.0, help="pattern.toml [mesh] size_mm of the verification, mm")
+    d.add_argument("--mesh-across", type=_POSITIVE, default=None,
                    help="pattern.toml [mesh] across: triangle rows across a ribbon (default 2)")
     d.add_argument("-v", "--verbose", action="store_true")
-    d.add_argument("--diagonal", type=float, default=110.0, help="scale the target to this bounding-box diagonal, mm")
-    d.add_argument("--stretch", type=float, default=1.6, help="fabric pre-stretch s")
+    d.add_argument("--diagonal", type=_POSITIVE, default=110.0, help="scale the target to this bounding-box diagonal, mm")
+    d.add_argument("--stretch", type=_stretch, default=1.6,
+                   help="fabric pre-stretch s, or 'auto': the shipped law's stretch that fits the target best")
     d.add_argument("--law", default=None, help="curvature-law CSV (default: the shipped inverse/data table)")
-    d.add_argument("--lam", type=float, default=0.0, help="line-field lambda of the seed (<= 0, 1/mm^2)")
+    d.add_argument("--lam", type=_number(hi=0.0), default=0.0, help="line-field lambda of the seed (<= 0, 1/mm^2)")
     d.add_argument("--printer", default=None,
                    help="printer TOML (inverse.printer.Printer fields: bed_size, nozzle_mm, print_speed_mm_s, ...)")
     d.set_defaults(fn=_cmd_design)
@@ -143,7 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
     v = sub.add_parser("validate", help="the closed validation loop (validation.loop.validate_file)")
     v.add_argument("data")
     v.add_argument("-o", "--output", required=True)
-    v.add_argument("--seed", type=int, default=0, help="seed of the cross-validation splits")
+    v.add_argument("--seed", type=_SEED, default=0, help="seed of the cross-validation splits")
     v.set_defaults(fn=_cmd_validate)
 
     r = sub.add_parser("predict", help="apply a fitted model.json (validation.loop.predict_file)")
@@ -155,12 +257,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    """Run ``selfshape ARGV``; returns the exit status (0, 1 not converged, 2 bad input or
+    usage, 3 internal error, 130 interrupted) instead of exiting, so tests can call it."""
     from shellfem.errors import SelfshapeError
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as e:       # a usage error (one line, status 2) or --help (status 0)
+        return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
     from shellfem.memory import keep_freed_memory
     keep_freed_memory()
     try:
-        rc = args.fn(args)
+        with _quiet(not getattr(args, "verbose", False)):
+            rc = args.fn(args)
     except SelfshapeError as e:
         print(f"selfshape {args.verb}: error: {e}", file=sys.stderr)
         return 2

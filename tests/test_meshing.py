@@ -195,7 +195,7 @@ def test_msh_round_trip(tmp_path, case):
     front = sum(e.thickness_mm * shapely.contains_xy(e.geometry, c[:, 0], c[:, 1])
                 for e in p.elements if e.side == "front")
     np.testing.assert_allclose(back.thickness_front, front, atol=1e-12)
-    assert not list(tmp_path.glob("*partial*"))
+    assert not list(tmp_path.glob("*partial*")) and not list(tmp_path.glob(".*"))   # no temporary file left
 
 
 def _write(tmp_path, raw):

@@ -38,7 +38,7 @@ def test_reader_parses_and_allows_empty_rest(tmp_path):
     (lambda L: [L[0], L[1].replace("front", "top")], r"s.csv: row 1 \(specimen A1\), column side"),
     (lambda L: [L[0], L[1].replace("0.30", "abc")],
      r"row 1 \(specimen A1\), column plastic_thickness_mm: must be a number"),
-    (lambda L: [L[0], L[1].replace("0.30", "-0.3")], r"column plastic_thickness_mm: must be > 0"),
+    (lambda L: [L[0], L[1].replace("0.30", "-0.3")], r"column plastic_thickness_mm: must be >= 0.001"),
     (lambda L: [L[0], L[1].replace("1.35", "0.9")], r"column stretch: must be >= 1"),
     (lambda L: [L[0], L[1].replace("0.05,", "nan,")], r"column curvature_per_mm: must be finite"),
     (lambda L: [L[0], L[1].replace("0.05,", ",")], r"column curvature_per_mm: empty"),

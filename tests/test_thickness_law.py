@@ -293,3 +293,52 @@ def test_calibrated_plastic_is_named_in_the_provenance(tmp_path):
         assert word in str(e.value) and "\n" not in str(e.value)
     with pytest.raises(SystemExit, match="file not found"):
         read_modulus_ratio(str(tmp_path / "missing.json"))
+
+
+def test_law_states_its_stretch_and_design_refuses_another():
+    from inverse.design import design
+    from inverse.thickness_law import check_law_stretch, law_for_stretch, shipped_laws
+    from geometry.target import sphere_cap
+    law = parse_thickness_law(format_thickness_law([(t, mu, s, bilinear(t, mu, s)) for s in ("front", "back")
+                                                    for t in T for mu in MU], ["fabric_stretch = 1.4"]), "my.csv")
+    assert law.stretch == pytest.approx(1.4)
+    check_law_stretch(law, 1.4)
+    with pytest.raises(SelfshapeError, match=r"my.csv: the law was made at fabric stretch 1.4, the design asks for 1.6"):
+        check_law_stretch(law, 1.6)
+    with pytest.raises(SelfshapeError, match="fabric_stretch must be in"):
+        parse_thickness_law(table_text().replace("# test table", "# fabric_stretch = 0.9"))
+    shipped = shipped_laws()
+    assert 1.6 in shipped and law_for_stretch(1.6).stretch == pytest.approx(1.6)
+    # every shipped law states the stretch its file name says
+    for s, path in shipped.items():
+        assert load_thickness_law(path).stretch == pytest.approx(s)
+    # a stretch with no shipped law is a one-line error naming the shipped ones, before any work
+    V, F = sphere_cap(radius=40.0, half_angle_deg=30.0, n_radial=6)
+    with pytest.raises(SelfshapeError, match=r"no shipped thickness law for fabric stretch 1.37 \(shipped: .*1\.6"):
+        design(V, F, stretch=1.37, diagonal_mm=40.0)
+    # the 1.6 law given explicitly to a design at another stretch is refused (it was used silently before)
+    with pytest.raises(SelfshapeError, match="made at fabric stretch 1.6, the design asks for 1.37"):
+        design(V, F, stretch=1.37, diagonal_mm=40.0, thickness_law=shipped[1.6])
+
+
+def test_curvature_reach_fractions_and_size_hint():
+    from inverse.thickness_law import curvature_reach, reach_warning
+    law = parse_thickness_law(table_text())
+    # front at spacing 6: the printable range (0.2 mm layers, t 0.2..1.0) gives kappa 0.116 .. 0.284
+    lo, hi = sorted(curvature(law, [1.0, 0.2], [6.0, 6.0], "front"))
+    kappa = np.array([0.05, 0.06, 0.2, 0.3])             # two below the range, one inside, one above
+    length = np.array([10.0, 30.0, 40.0, 20.0])
+    r = curvature_reach(law, kappa, [6.0] * 4, ["front"] * 4, length, 0.2, diagonal_mm=100.0)
+    f = r["front"]
+    assert f["law_range_per_mm"] == pytest.approx([lo, hi])
+    assert f["length_below_range"] == pytest.approx(0.4) and f["length_above_range"] == pytest.approx(0.2)
+    assert f["asked_per_mm"]["p50"] == pytest.approx(0.2)      # length-weighted median
+    # curvature scales as 1/size: the median 0.2 is in range for diagonals 100 * 0.2 / [hi, lo]
+    assert r["diagonal_in_range_mm"] == pytest.approx([100 * 0.2 / hi, 100 * 0.2 / lo])
+    assert reach_warning(r) is None                            # 40 % below: not most of it
+    r = curvature_reach(law, kappa / 10, [6.0] * 4, ["front"] * 4, length, 0.2, diagonal_mm=100.0,
+                        min_diagonal_mm=60.0)
+    assert r["front"]["length_below_range"] == 1.0
+    assert r["diagonal_in_range_mm"] is None                   # it would need < 60 mm
+    assert "100 % of the ribbon length asks for less curvature" in reach_warning(r)
+    assert "no size of this target" in reach_warning(r)

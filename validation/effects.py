@@ -27,8 +27,9 @@ REFERENCE_THICKNESS = 0.4  # mm, centre of the seed's 0.3-0.45 mm strip range
 @dataclass(frozen=True)
 class Effect:
     """A candidate effect: name, parameter names, initial values, bounds (natural
-    units), which parameters are optimised in log space, the stage it acts on, and
-    the covariates that must vary in the data for it to be identifiable."""
+    units), which parameters are optimised in log space, the stage it acts on, the
+    covariates that must vary in the data for it to be identifiable, and alternative
+    starting values the loop also tries (validation.loop.fit_best)."""
     name: str
     params: tuple = ()
     init: tuple = ()
@@ -37,6 +38,7 @@ class Effect:
     stage: str = "inputs"
     order: int = 0
     varies: tuple = ()
+    starts: tuple = ()  # alternative initial values (tuples like init) for multi-start fits
 
     def applicable(self, rows):
         """(True, "") or (False, reason) for these rows."""
@@ -300,23 +302,29 @@ class PlasticSeeping(Effect):
 CATALOGUE = (
     PlasticSetMeasured("plastic_set_measured"),
     PlasticSetSmoothed("plastic_set_smoothed"),
-    PlasticSetConstant("plastic_set_constant", ("rest_curvature_per_mm",), (0.0,), ((-0.2, 0.2),)),
+    PlasticSetConstant("plastic_set_constant", ("rest_curvature_per_mm",), (0.0,), ((-0.2, 0.2),),
+                       starts=((0.01,), (-0.01,))),
     PlasticSetThickness("plastic_set_thickness", ("rest_curvature_per_mm", "slope_per_mm2"),
                         (0.0, 0.0), ((-0.2, 0.2), (-2.0, 2.0))),
-    ThicknessBias("thickness_bias", ("delta_mm",), (0.0,), ((-0.2, 0.4),)),
-    SideDeposition("side_deposition", ("back_extra_thickness_mm",), (0.0,), ((-0.2, 0.4),)),
+    ThicknessBias("thickness_bias", ("delta_mm",), (0.0,), ((-0.2, 0.4),), starts=((0.1,), (-0.05,))),
+    SideDeposition("side_deposition", ("back_extra_thickness_mm",), (0.0,), ((-0.2, 0.4),), starts=((0.1,), (-0.05,))),
     SideDepositionFactor("side_deposition_factor", ("back_thickness_factor",), (1.0,), ((0.4, 2.5),),
-                         log=(True,)),
+                         log=(True,), starts=((1.4,), (0.8,))),
     SideFabricStiffness("side_fabric_stiffness", ("back_fabric_modulus_factor",), (1.0,), ((0.1, 10.0),),
-                        log=(True,)),
-    StretchModulus("stretch_modulus", ("exponent",), (0.0,), ((-30.0, 30.0),), varies=("stretch",)),
-    PlasticPrestrain("plastic_prestrain", ("strain",), (0.0,), ((-0.3, 0.3),), varies=("stretch",)),
-    Orthotropy("orthotropy", ("cos2theta_amplitude",), (0.0,), ((-0.9, 0.9),), varies=("cos2theta",)),
-    Gravity("gravity", ("weight_over_fabric_modulus",), (1e-6,), ((0.0, 0.1),), stage="output", order=2),
+                        log=(True,), starts=((2.0,), (0.5,))),
+    StretchModulus("stretch_modulus", ("exponent",), (0.0,), ((-30.0, 30.0),), varies=("stretch",),
+                   starts=((5.0,), (-5.0,))),
+    PlasticPrestrain("plastic_prestrain", ("strain",), (0.0,), ((-0.3, 0.3),), varies=("stretch",),
+                     starts=((0.05,), (-0.05,))),
+    Orthotropy("orthotropy", ("cos2theta_amplitude",), (0.0,), ((-0.9, 0.9),), varies=("cos2theta",),
+               starts=((0.3,), (-0.3,))),
+    Gravity("gravity", ("weight_over_fabric_modulus",), (1e-6,), ((0.0, 0.1),), stage="output", order=2,
+            starts=((1e-4,), (1e-3,))),
     WidthTransition("width_transition", ("searle_number",), (10.0,), ((0.3, 1000.0),), log=(True,),
-                    stage="output", order=1, varies=("width_mm",)),
-    FabricCompression("fabric_compression", ("thickness_factor",), (1.0,), ((0.3, 2.0),), log=(True,)),
-    PlasticSeeping("plastic_seeping", ("depth_mm",), (0.02,), ((0.0, 0.6),)),
+                    stage="output", order=1, varies=("width_mm",), starts=((2.0,), (50.0,))),
+    FabricCompression("fabric_compression", ("thickness_factor",), (1.0,), ((0.3, 2.0),), log=(True,),
+                      starts=((0.7,), (1.4,))),
+    PlasticSeeping("plastic_seeping", ("depth_mm",), (0.02,), ((0.0, 0.6),), starts=((0.15,),)),
 )
 BY_NAME = {e.name: e for e in CATALOGUE}
 

@@ -16,7 +16,10 @@ Pipeline (``calibrate_fabric``):
   stress (Eq. 4.4) -> the seed's route: fit sigma = A e - b log(1 - e/g) (Eq. 4.6-4.7) on 0 and
   90 deg -> b1, g1, b2, g2 and a1, a2 from A1 = (a1 - sqrt(a1 a2) nu^2)/(1 - nu^2), A2 likewise
   ("orthotropic_seed_eq46"); then, from there, the model-consistent fit in which the model's own
-  uniaxial-stress response matches the 0 and 90 deg curves ("orthotropic", what the engine uses);
+  uniaxial-stress response matches the 0 and 90 deg curves ("orthotropic", what the engine uses).
+  The largest max stretch goes first (its curves reach nearest the barrier); lower ones also
+  start from its parameters, since far below the barrier the seed's route alone may define
+  nothing. What the curves do not determine is left out and named under "not_identifiable";
 - release (pseudo-Young) modulus: slope of each orientation's unloading curve at release,
   averaged over orientations, per max stretch;
 - a3: initial slope of shear stress vs shear strain, averaged over 0 and 90 deg;
@@ -27,13 +30,13 @@ Pipeline (``calibrate_fabric``):
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 
 import numpy as np
 
 from shellfem.errors import SelfshapeError
+from shellfem.outfiles import OutputDir
 from validation import elastica
 from validation.fabric_curves import (stiffness_with_se, barrier_curve, fit_barrier_curve, fit_shear_modulus,
                                       release_tangent, shear_stress_strain, stabilised_cycles,
@@ -42,15 +45,27 @@ from validation.fabric_files import (META_KEYS, number_key, find_test_files, rea
                                      read_tensile)
 from validation.fabric_law import fit_orthotropic_uniaxial, uniaxial_response
 from validation.plots import Series, plot_series
+from validation.textfiles import finite_json, refuse_overwrite
 
 PARAM_NAMES = ("a1", "a2", "a3", "b1", "b2", "g1", "g2")
+#: The files `selfshape calibrate fabric` writes: parameters.json, shear.png, master_curve.png and
+#: one tensile_<deg>deg.png per orientation (FABRIC_PLOTS); an earlier run's are removed first.
+FABRIC_OUTPUTS = ("shear.png", "master_curve.png", "parameters.json")
+FABRIC_PLOTS = (r"tensile_\d+(?:\.\d+)?(?:e[+-]?\d+)?deg\.png",)
+MAX_STRETCH_RATIO = 10.0   # tensile extension up to 10 x the gauge length (a 1000 % stretch)
+MAX_LOAD_N = 1e4           # N: a textile strip breaks long before
 
 
 # ----------------------------------------------------------------------------- calibration
 
-def _pair(v, se):
+def _pair(v, se, what="a fitted value"):
+    """[value, standard error] as finite floats; a non-finite one fails the calibration
+    (parameters.json holds finite numbers only)."""
     v, se = float(v), float(se)
-    return [v if math.isfinite(v) else None, se if math.isfinite(se) else None]
+    if not (math.isfinite(v) and math.isfinite(se)):
+        raise SelfshapeError(f"calibration produced a non-finite {what} ({v!r} +- {se!r}): "
+                             "the tests do not determine it")
+    return [v, se]
 
 
 def _mean_with_se(values, ses):
@@ -86,6 +101,14 @@ def _load_tensile(files: dict, meta: dict) -> dict:
             bad = np.flatnonzero(t["extension_mm"] <= -L)
             if bad.size:
                 raise SelfshapeError(f"{name}: row {bad[0] + 1}, column extension_mm: below minus the gauge length")
+            bad = np.flatnonzero(t["extension_mm"] > MAX_STRETCH_RATIO * L)
+            if bad.size:
+                raise SelfshapeError(f"{name}: row {bad[0] + 1}, column extension_mm: {t['extension_mm'][bad[0]]:g} mm is "
+                                     f"beyond {MAX_STRETCH_RATIO:g} x the gauge length {L:g} mm")
+            bad = np.flatnonzero(np.abs(t["load_N"]) > MAX_LOAD_N)
+            if bad.size:
+                raise SelfshapeError(f"{name}: row {bad[0] + 1}, column load_N: {t['load_N'][bad[0]]:g} N is beyond "
+                                     f"+-{MAX_LOAD_N:g} N (not a fabric strip's load)")
             if not np.any(t["branch"] == "unload"):
                 raise SelfshapeError(f"{name}: no unload rows (the calibration uses the unloading branch)")
             cycles, why = stabilised_cycles(t, meta, name)
@@ -101,8 +124,16 @@ def _shear_results(files: dict, meta: dict) -> dict:
     per = {}
     for deg, path in sorted(files.items(), key=lambda kv: float(kv[0])):
         t = read_shear(path)
+        for col, top in (("lateral_displacement_mm", 2.0 * side), ("lateral_load_N", MAX_LOAD_N)):
+            bad = np.flatnonzero(np.abs(t[col]) > top)
+            if bad.size:
+                raise SelfshapeError(f"{os.path.basename(path)}: row {bad[0] + 1}, column {col}: "
+                                     f"{t[col][bad[0]]:g} is beyond +-{top:g} (twice the sample side, mm / N)")
         g, tau = shear_stress_strain(t["lateral_displacement_mm"], t["lateral_load_N"], side, h)
-        per[deg] = {"gamma": g, "tau": tau, "fit": fit_shear_modulus(g, tau)}
+        try:
+            per[deg] = {"gamma": g, "tau": tau, "fit": fit_shear_modulus(g, tau)}
+        except SelfshapeError as e:
+            raise SelfshapeError(f"{os.path.basename(path)}: {e}") from None
     res = {"per": per}
     for key in ("odd_cubic", "linear"):
         vals = [p["fit"][key]["slope"] for p in per.values()]
@@ -123,8 +154,11 @@ def _cantilever_results(path: str) -> dict:
         key = f"{number_key(o)}/{f}"
         if np.sum(m) < 2:
             raise SelfshapeError(f"{name}: {key} has one free length; need >= 2 to fit k_B with an error")
-        fit = elastica.fit_bending_stiffness(t["free_length_mm"][m], t["areal_weight_N_per_mm2"][m],
-                                             t["height_over_width"][m])
+        try:
+            fit = elastica.fit_bending_stiffness(t["free_length_mm"][m], t["areal_weight_N_per_mm2"][m],
+                                                 t["height_over_width"][m])
+        except SelfshapeError as e:
+            raise SelfshapeError(f"{name}: rows of {key}: {e}") from None
         fit["L"], fit["w"], fit["h"] = t["free_length_mm"][m], t["areal_weight_N_per_mm2"][m], t["height_over_width"][m]
         groups[key] = fit
     return groups
@@ -194,47 +228,101 @@ def _plots(out_dir, tensile, fits, params_by_pct, nu, shear, cant) -> list:
     return paths
 
 
-def calibrate_fabric(folder: str, out_dir: str) -> dict:
+def calibrate_fabric(folder: str, out_dir: str, plots: bool = True) -> dict:
     """Fit the fabric model on a test folder (meta.json, tensile_*, shear_*, cantilever.csv).
 
     Writes out_dir/parameters.json (every parameter as [value, standard error]; mm, N, MPa)
-    and PNG plots; returns the same dict. Bad input raises SelfshapeError before anything
-    is written.
+    and PNG plots (unless ``plots`` is False: studies and tests that only need the numbers);
+    returns the same dict. Bad input, and tests that do not determine the parameters the
+    engine uses (the 0 and 90 deg curves at the largest stretch), raise SelfshapeError before
+    anything is written. Sets left undetermined at lower stretches, and the seed's route where
+    it defines no parameters, are left out and named under ``not_identifiable``.
     """
     if not os.path.isdir(folder):
         raise SelfshapeError(f"{folder}: not a directory (expected a fabric test folder)")
     meta = read_meta(folder)
     nu = meta["poisson"]
     files = find_test_files(folder)
+    refuse_overwrite(out_dir, [folder, os.path.join(folder, "meta.json"), files["cantilever"]]
+                     + list(files["shear"].values()) + [p for by in files["tensile"].values() for p in by.values()])
+    outs = OutputDir(out_dir, FABRIC_OUTPUTS, patterns=FABRIC_PLOTS).begin()   # checked, stale removed, first
     tensile = _load_tensile(files["tensile"], meta)
     shear = _shear_results(files["shear"], meta)
     cant = _cantilever_results(files["cantilever"])
     a3, a3_se = shear["odd_cubic"]
+    if not a3 > 0:
+        raise SelfshapeError(f"{', '.join(os.path.basename(p) for p in files['shear'].values())}: initial shear slope "
+                             f"a3 = {a3:.4g} MPa is not positive (the law needs a3 > 0)")
 
     fits, ortho_by, seed_by, params_by, seed_params_by = {}, {}, {}, {}, {}
     release, release_by, validation, seed_validation, rms, rms_model = {}, {}, {}, {}, {}, {}
-    for pct in sorted(tensile, key=float):
-        fits[pct] = {deg: fit_barrier_curve(c["e"], c["S"]) for deg, c in tensile[pct].items()}
+    not_identifiable = {}
+    top_params = None
+    # the largest max stretch first: its test reaches nearest the barrier and defines the
+    # engine's parameters; lower stretches start from it (far below the barrier, the seed's
+    # three-parameter curve alone does not pin A, b and g down: see fit_barrier_curve)
+    for pct in sorted(tensile, key=float, reverse=True):
+        fits[pct] = {}
+        for deg, c in tensile[pct].items():
+            try:
+                fits[pct][deg] = fit_barrier_curve(c["e"], c["S"])
+            except SelfshapeError as e:
+                raise SelfshapeError(f"{c['name']}: unloading branch of cycles {c['cycles']}: {e}") from None
         f1, f2 = fits[pct]["0"], fits[pct]["90"]
         # the seed's route: Eq. 4.6-4.7 with e22 = -nu e11, then the small system for a1, a2
-        (a1, a2), (se_a1, se_a2) = stiffness_with_se(f1["A"], f1["se"][0], f2["A"], f2["se"][0], nu)
-        seed_by[pct] = {"a1": _pair(a1, se_a1), "a2": _pair(a2, se_a2), "a3": _pair(a3, a3_se),
-                        "b1": _pair(f1["b"], f1["se"][1]), "b2": _pair(f2["b"], f2["se"][1]),
-                        "g1": _pair(f1["g"], f1["se"][2]), "g2": _pair(f2["g"], f2["se"][2])}
-        seed_params_by[pct] = _model_params(fits[pct], a3, nu)
+        why = None
+        if not (f1["barrier_found"] and f2["barrier_found"]):
+            why = "the barrier is not seen (b or g on its search bound: the test stays far below it)"
+        else:
+            try:
+                (a1, a2), (se_a1, se_a2) = stiffness_with_se(f1["A"], f1["se"][0], f2["A"], f2["se"][0], nu)
+            except SelfshapeError as e:
+                why = str(e)
+        if why is not None:
+            not_identifiable[f"orthotropic_seed_eq46_by_stretch.{pct}"] = (
+                f"the seed's route (Eq. 4.6-4.7 on 0 and 90 deg) at {pct} %: {why}")
+        else:
+            seed_by[pct] = {"a1": _pair(a1, se_a1), "a2": _pair(a2, se_a2), "a3": _pair(a3, a3_se),
+                            "b1": _pair(f1["b"], f1["se"][1]), "b2": _pair(f2["b"], f2["se"][1]),
+                            "g1": _pair(f1["g"], f1["se"][2]), "g2": _pair(f2["g"], f2["se"][2])}
+            seed_params_by[pct] = _model_params(fits[pct], a3, nu)
         # model-consistent refinement: the engine's own uniaxial response fits 0 and 90 deg
         c0, c9 = tensile[pct]["0"], tensile[pct]["90"]
-        cons = fit_orthotropic_uniaxial(c0["e"], c0["S"], c9["e"], c9["S"], nu, a3)
+        # starts: the Eq. 4.6 fits (always at the largest stretch; below it only where the seed's
+        # route is determined) and the largest stretch's parameters; the better fit is kept
+        starts = ([None] if (pct in seed_params_by or top_params is None) else []) + \
+                 ([top_params] if top_params is not None else [])
+        cons = None
+        for st in starts:
+            trial = fit_orthotropic_uniaxial(c0["e"], c0["S"], c9["e"], c9["S"], nu, a3, start=st)
+            if cons is None or trial["rms"] < cons["rms"]:
+                cons = trial
+        if cons["at_bound"]:
+            msg = (f"{', '.join(cons['at_bound'])} on the search bound: the 0 and 90 deg curves at {pct} % "
+                   f"({c0['name']}, {c9['name']}) do not determine them")
+            if top_params is None:
+                raise SelfshapeError(msg)
+            not_identifiable[f"orthotropic_by_stretch.{pct}"] = msg + " (left out of orthotropic_by_stretch)"
+        if top_params is None:
+            top_params = cons["params"]
         params_by[pct] = cons["params"]
-        ortho_by[pct] = {k: (_pair(a3, a3_se) if k == "a3" else _pair(cons["params"][k], cons["se"][k]))
+        ortho_by[pct] = {k: (_pair(a3, a3_se) if k == "a3" else _pair(cons["params"][k], cons["se"][k], k))
                          for k in PARAM_NAMES}
         rms_model[pct] = cons["rms"]
         tangents = {deg: release_tangent(f) for deg, f in sorted(fits[pct].items(), key=lambda kv: float(kv[0]))}
         release_by[pct] = {deg: _pair(*v) for deg, v in tangents.items()}
         release[pct] = _pair(*_mean_with_se([v[0] for v in tangents.values()], [v[1] for v in tangents.values()]))
         validation[pct] = _validation(tensile[pct], params_by[pct], nu)
-        seed_validation[pct] = _validation(tensile[pct], seed_params_by[pct], nu)
+        if pct in seed_params_by:
+            seed_validation[pct] = _validation(tensile[pct], seed_params_by[pct], nu)
         rms[pct] = {deg: f["rms"] for deg, f in fits[pct].items()}
+    for key in not_identifiable:
+        if key.startswith("orthotropic_by_stretch."):
+            ortho_by.pop(key.split(".", 1)[1], None)
+    order = sorted(tensile, key=float)
+    ortho_by, seed_by, release, release_by, validation, seed_validation, rms, rms_model = (
+        {p: d[p] for p in order if p in d}
+        for d in (ortho_by, seed_by, release, release_by, validation, seed_validation, rms, rms_model))
     top = max(tensile, key=float)
     kb = {k: _pair(f["k_b"], f["se"]) for k, f in cant.items()}
     kb_mean = _pair(*_mean_with_se([f["k_b"] for f in cant.values()], [f["se"] for f in cant.values()]))
@@ -245,7 +333,8 @@ def calibrate_fabric(folder: str, out_dir: str) -> dict:
         "orthotropic": ortho_by[top],
         "orthotropic_max_stretch_pct": float(top),
         "orthotropic_by_stretch": ortho_by,
-        "orthotropic_seed_eq46": seed_by[top],
+        "orthotropic_seed_eq46": seed_by.get(top),
+        "not_identifiable": not_identifiable,
         "orthotropic_seed_eq46_by_stretch": seed_by,
         "release_modulus_mpa": release,
         "release_modulus_by_orientation_mpa": release_by,
@@ -290,13 +379,13 @@ def calibrate_fabric(folder: str, out_dir: str) -> dict:
         },
         "meta": {k: meta[k] for k in META_KEYS},
     }
-    os.makedirs(out_dir, exist_ok=True)
-    result["plots"] = [os.path.basename(p) for p in _plots(out_dir, tensile, fits, params_by, nu, shear, cant)]
-    path = os.path.join(out_dir, "parameters.json")
-    tmp = path + ".tmp"
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(result, f, indent=1, allow_nan=False)
-    os.replace(tmp, path)
+    if result["orthotropic_seed_eq46"] is None:
+        del result["orthotropic_seed_eq46"]
+    result = finite_json(result)
+    with outs:                  # atomic (validation.plots.save_figure), parameters.json last
+        result["plots"] = ([os.path.basename(p) for p in _plots(outs.makedirs(), tensile, fits, params_by, nu, shear,
+                                                                  cant)] if plots else [])
+        outs.write_json("parameters.json", result, indent=1)
     return result
 
 

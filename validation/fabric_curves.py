@@ -6,11 +6,14 @@ the clamped-square test."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import least_squares, nnls
 
 from shellfem.errors import SelfshapeError
 
 # ----------------------------------------------------------------------------- tensile
+
+GAP_MAX = 1e2   # barrier strain searched up to e_max (1 + GAP_MAX) (fit_barrier_curve)
+B_MAX = 1e6     # barrier coefficient b searched up to B_MAX x the largest stress
 
 def green_strain(extension_mm, gauge_mm: float) -> np.ndarray:
     """Uniaxial Green strain e = d/L + d^2/(2 L^2) (Eq. 4.4)."""
@@ -34,11 +37,15 @@ def _barrier_jacobian(e, A, b, g):
 
 
 def fit_barrier_curve(e, S) -> dict:
-    """Least-squares fit of S = A e - b log(1 - e/g) with g > max(e) and b >= 0.
+    """Least-squares fit of S = A e - b log(1 - e/g) with A >= 0, b >= 0 and g > max(e).
 
     For fixed g the model is linear in (A, b): g is found on a profile grid first (robust
-    to the flat barrier of low stretches), then all three are refined together.
-    Returns A, b, g, cov (3x3 from the Jacobian, s^2 = SSR/(n-3)), se, rms, n.
+    to the flat barrier of low stretches; (A, b) by non-negative least squares), then all
+    three are refined together within the physical domain. The sign constraints matter
+    when the test stops far below the barrier: the curve is then nearly A e + (b/g) e, the
+    three parameters trade off, and an unconstrained fit wanders to a negative modulus.
+    Returns A, b, g, cov (3x3 from the Jacobian, s^2 = SSR/(n-3)), se, rms, n, e_max and
+    barrier_found (False when b or g ended on its search bound: the barrier is not seen).
     """
     e = np.asarray(e, dtype=float)
     S = np.asarray(S, dtype=float)
@@ -50,8 +57,7 @@ def fit_barrier_curve(e, S) -> dict:
 
     def linear_ab(g):
         X = np.column_stack([e, -np.log1p(-e / g)])
-        coef, *_ = np.linalg.lstsq(X, S, rcond=None)
-        coef[1] = max(coef[1], 0.0)
+        coef, _ = nnls(X, S)
         r = X @ coef - S
         return coef, float(r @ r)
 
@@ -59,7 +65,7 @@ def fit_barrier_curve(e, S) -> dict:
     ssr = [linear_ab(em + d)[1] for d in gaps]
     d0 = gaps[int(np.argmin(ssr))]
     (A0, b0), _ = linear_ab(em + d0)
-    # unknowns: A, log b, log(g - em): keeps b > 0 and g above the data
+    # unknowns: A >= 0, log b, log(g - em): keeps b > 0 and g above the data
     x0 = [A0, np.log(max(b0, 1e-12 * max(abs(S).max(), 1e-12))), np.log(d0)]
 
     def resid(x):
@@ -70,15 +76,23 @@ def fit_barrier_curve(e, S) -> dict:
         J = _barrier_jacobian(e, x[0], b, em + d)
         return np.column_stack([J[:, 0], J[:, 1] * b, J[:, 2] * d])
 
-    sol = least_squares(resid, x0, jac=jac, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000)
+    # the barrier searched up to GAP_MAX x e_max above the data, b up to B_MAX x the largest
+    # stress: beyond, the curve is a straight line and (b, g) are not determined
+    s_max = max(float(np.abs(S).max()), 1e-300)
+    lo = [0.0, -np.inf, np.log(1e-12 * em)]
+    hi = [np.inf, np.log(B_MAX * s_max), np.log(GAP_MAX * em)]
+    x0 = np.clip(x0, np.array(lo) + 1e-9, np.array(hi) - 1e-9)
+    sol = least_squares(resid, x0, jac=jac, bounds=(lo, hi),
+                        method="trf", x_scale="jac", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000)
     A, b, g = sol.x[0], float(np.exp(sol.x[1])), em + float(np.exp(sol.x[2]))
+    barrier_found = bool(sol.x[2] < hi[2] - 1e-6 and sol.x[1] < hi[1] - 1e-6)
     r = barrier_curve(e, A, b, g) - S
     J = _barrier_jacobian(e, A, b, g)
     dof = max(e.size - 3, 1)
     s2 = float(r @ r) / dof
     cov = s2 * np.linalg.pinv(J.T @ J)
     return {"A": float(A), "b": b, "g": g, "cov": cov, "se": np.sqrt(np.clip(np.diag(cov), 0, None)),
-            "rms": float(np.sqrt(np.mean(r * r))), "n": int(e.size), "e_max": em}
+            "rms": float(np.sqrt(np.mean(r * r))), "n": int(e.size), "e_max": em, "barrier_found": barrier_found}
 
 
 def release_tangent(fit: dict, e_release: float | None = None) -> tuple[float, float]:
@@ -145,7 +159,7 @@ def stiffness_from_uniaxial(A1: float, A2: float, nu: float) -> tuple[float, flo
         raise SelfshapeError(f"uniaxial slopes must be positive to define a1, a2 (got A1 = {A1:.4g}, A2 = {A2:.4g} MPa)")
     n2 = nu * nu
     r = (n2 * (P - Q) + np.sqrt(n2 * n2 * (P - Q) ** 2 + 4 * P * Q)) / (2 * P)
-    if 1 - n2 * r <= 0 or 1 - n2 / r <= 0:
+    if not (np.isfinite(r) and r > 0) or 1 - n2 * r <= 0 or 1 - n2 / r <= 0:
         raise SelfshapeError(f"uniaxial slopes A1 = {A1:.4g}, A2 = {A2:.4g} MPa admit no a1, a2 with nu = {nu:g}")
     a1 = P / (1 - n2 * r)
     return float(a1), float(r * r * a1)

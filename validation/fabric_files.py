@@ -3,8 +3,6 @@ shear_<deg>deg.csv and cantilever.csv, read and checked with one-line errors nam
 and column. Units: mm, N; see validation/data/README.md for the schemas."""
 from __future__ import annotations
 
-import csv
-import json
 import math
 import os
 import re
@@ -12,6 +10,7 @@ import re
 import numpy as np
 
 from shellfem.errors import SelfshapeError
+from validation.textfiles import read_csv_rows, read_json
 
 DEFAULT_POISSON = 0.3  # seed 4.3: measured from videos of a uniaxial test
 
@@ -21,6 +20,9 @@ SHEAR_COLUMNS = {"lateral_displacement_mm": "float", "lateral_load_N": "float"}
 CANTILEVER_COLUMNS = {"orientation_deg": "float", "face_up": ("front", "back"), "free_length_mm": "float",
                       "areal_weight_N_per_mm2": "float", "height_over_width": "float"}
 META_KEYS = ("fabric_thickness_mm", "tensile_width_mm", "tensile_gauge_length_mm", "shear_sample_side_mm")
+#: physical upper bounds of meta.json's sizes (mm): a fabric, a test-machine specimen
+META_MAX = {"fabric_thickness_mm": 20.0, "tensile_width_mm": 1000.0, "tensile_gauge_length_mm": 1000.0,
+            "shear_sample_side_mm": 1000.0}
 
 _TENSILE_RE = re.compile(r"^tensile_(\d+(?:\.\d+)?)deg_(\d+(?:\.\d+)?)pct\.csv$")
 _SHEAR_RE = re.compile(r"^shear_(\d+(?:\.\d+)?)deg\.csv$")
@@ -41,13 +43,7 @@ def read_table(path: str, columns: dict) -> dict:
     or long row, an empty or non-numeric cell, a non-finite number, an unknown label, or no rows.
     """
     name = os.path.basename(path)
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as f:
-            rows = [r for r in csv.reader(f)]
-    except OSError as e:
-        raise SelfshapeError(f"{path}: cannot read ({e.strerror or e})") from None
-    except (UnicodeDecodeError, csv.Error) as e:
-        raise SelfshapeError(f"{name}: not a readable CSV text file ({e})") from None
+    rows = read_csv_rows(path, "CSV table")
     rows = [r for r in rows if any(c.strip() for c in r)]
     if not rows:
         raise SelfshapeError(f"{name}: empty file (expected header {','.join(columns)})")
@@ -104,13 +100,9 @@ def read_meta(folder: str) -> dict:
     Optional "poisson" overrides the default Poisson's ratio 0.3.
     """
     path = os.path.join(folder, "meta.json")
-    try:
-        with open(path, encoding="utf-8") as f:
-            meta = json.load(f)
-    except FileNotFoundError:
-        raise SelfshapeError(f"{path}: missing (thickness and sample geometry are read from it)") from None
-    except json.JSONDecodeError as e:
-        raise SelfshapeError(f"{path}: invalid JSON at line {e.lineno}: {e.msg}") from None
+    if not os.path.exists(path):
+        raise SelfshapeError(f"{path}: missing (thickness and sample geometry are read from it)")
+    meta = read_json(path, "meta.json object")
     if not isinstance(meta, dict):
         raise SelfshapeError(f"{path}: expected a JSON object")
     out = dict(meta)
@@ -118,8 +110,9 @@ def read_meta(folder: str) -> dict:
         if k not in meta:
             raise SelfshapeError(f"{path}: missing key {k!r}")
         v = meta[k]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-            raise SelfshapeError(f"{path}: {k} must be a positive number, got {v!r}")
+        top = META_MAX[k]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not 0 < v <= top:
+            raise SelfshapeError(f"{path}: {k} must be a number in (0, {top:g}] mm, got {v!r}")
         out[k] = float(v)
     nu = meta.get("poisson", DEFAULT_POISSON)
     if isinstance(nu, bool) or not isinstance(nu, (int, float)) or not (-1.0 < nu < 1.0):
@@ -142,12 +135,23 @@ def read_shear(path: str) -> dict:
 
 
 def read_cantilever(path: str) -> dict:
+    """cantilever.csv: lengths, weights and aspect ratios > 0, aspect ratios within the heavy
+    elastica's tabulated range (a ribbon hanging nearly vertical does not measure k_B)."""
+    from validation.elastica import master_curve_table
     t = read_table(path, CANTILEVER_COLUMNS)
     name = os.path.basename(path)
-    for col in ("free_length_mm", "areal_weight_N_per_mm2", "height_over_width"):
+    for col, top in (("free_length_mm", 1e4), ("areal_weight_N_per_mm2", 1e-2), ("height_over_width", np.inf)):
         bad = np.flatnonzero(t[col] <= 0)
         if bad.size:
             raise SelfshapeError(f"{name}: row {bad[0] + 1}, column {col}: must be > 0")
+        bad = np.flatnonzero(t[col] > top)
+        if bad.size:
+            raise SelfshapeError(f"{name}: row {bad[0] + 1}, column {col}: {t[col][bad[0]]:g} is beyond {top:g}")
+    r_max = float(master_curve_table()[1][-1])
+    bad = np.flatnonzero(t["height_over_width"] > r_max)
+    if bad.size:
+        raise SelfshapeError(f"{name}: row {bad[0] + 1}, column height_over_width: {t['height_over_width'][bad[0]]:g} "
+                             f"is beyond the heavy elastica's range ({r_max:.4g}: the ribbon hangs vertically)")
     return t
 
 

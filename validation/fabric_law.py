@@ -8,7 +8,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from shellfem.materials.orthotropic import orthotropic_stress
-from validation.fabric_curves import fit_barrier_curve
+from validation.fabric_curves import B_MAX, GAP_MAX, fit_barrier_curve
 
 # ----------------------------------------------------------------------------- the model
 
@@ -20,31 +20,61 @@ def strain_rotation(angle_deg: float) -> np.ndarray:
     return np.array([[c * c, s * s, -c * s], [s * s, c * c, c * s], [2 * c * s, -2 * c * s, c * c - s * s]])
 
 
+def _central_free_strains(e, T, g):
+    """Free strains (transverse Green strain, 2 e12) of each row that put the course-frame
+    normal strains closest to zero relative to their barriers (least squares of e_ii / g_i):
+    the most interior point of the convex set the law admits (|e_ii| < g_i), so a start that
+    is feasible whenever any state at this axial strain is. Off-axis (0 < angle < 90 deg) it
+    makes both normal strains zero; at 0 or 90 deg the axial strain is the course (wale)
+    strain itself and the transverse one is zero."""
+    W = T[:2] / g[:, None]                              # scaled normal strains = W @ (e, x0, x1)
+    x, *_ = np.linalg.lstsq(W[:, 1:], -np.outer(W[:, 0], e), rcond=None)
+    return x.T
+
+
 def uniaxial_response(e_axial, angle_deg: float, params: dict, nu: float):
     """Model stress along a strip cut at angle_deg, stretched to axial Green strain(s) e_axial,
     in uniaxial stress (lateral and shear stress zero, solved by damped Newton; the problem
-    is the minimisation of a convex energy over the two free strains).
+    is the minimisation of a convex energy over the two free strains on the convex set the
+    barrier admits, |e_11|, |e_22| < g_1, g_2 in the course frame).
 
+    Start: the seed's uniaxial guess (transverse -nu e, no shear) pulled towards the most
+    interior admissible state until it is admissible, so every axial strain that any state
+    of the law admits gets a stress (the test data need not stay inside the barriers of the
+    starting guess: a strip cut off-axis reaches course strains beyond g through its shear).
     Returns (axial stress MPa (n,), free strains (n,2) = transverse Green strain and 2 e12).
-    NaN where the axial strain is beyond the model's barrier.
+    NaN only where no admissible state exists (the axial strain beyond the barrier at 0 or
+    90 deg).
     """
     e = np.atleast_1d(np.asarray(e_axial, dtype=float))
     T = strain_rotation(angle_deg)
-    g = np.array([params["g1"], params["g2"]])
-    x = np.zeros((e.size, 2))
-    x[:, 0] = -nu * e
+    g = np.array([params["g1"], params["g2"]], dtype=float)
 
-    def course(xx):
-        return np.column_stack([e, xx]) @ T.T
+    def course(ee, xx):
+        return np.column_stack([ee, xx]) @ T.T
 
-    def feasible(xx):
-        return np.all(np.abs(course(xx)[:, :2]) < g, axis=1)
+    def margin(ee, xx):
+        """Largest |e_ii| / g_i in the course frame (< 1: admissible)."""
+        return np.max(np.abs(course(ee, xx)[:, :2]) / g, axis=1)
 
-    ok = feasible(x)
-    x[~ok, 0] = 0.0
-    ok = feasible(x)
+    centre = _central_free_strains(e, T, g)
+    guess = np.column_stack([-nu * e, np.zeros_like(e)])
+    m0 = margin(e, centre)
+    ok = m0 < 1.0
+    # convex admissible set: the segment centre -> guess stays admissible up to its first exit
+    t = np.ones(e.size)
+    for _ in range(60):
+        bad = ok & (margin(e, centre + t[:, None] * (guess - centre)) >= 1.0 - 0.05 * (1.0 - m0))
+        if not bad.any():
+            break
+        t[bad] *= 0.5
+    x = centre + t[:, None] * (guess - centre)
+    eo = e[ok]
     for _ in range(100):
-        sig, K = orthotropic_stress(course(x[ok]), params, nu)
+        if not ok.any():
+            break
+        xo = x[ok]
+        sig, K = orthotropic_stress(course(eo, xo), params, nu)
         ss = sig @ T
         Ks = np.einsum("ji,njk,kl->nil", T, K, T)
         R = ss[:, 1:]
@@ -52,17 +82,16 @@ def uniaxial_response(e_axial, angle_deg: float, params: dict, nu: float):
             break
         dx = np.linalg.solve(Ks[:, 1:, 1:], -R[..., None])[..., 0]
         step = np.ones(dx.shape[0])
-        xo = x[ok]
         for _ in range(60):
-            trial = xo + step[:, None] * dx
-            bad = ~np.all(np.abs((np.column_stack([e[ok], trial]) @ T.T)[:, :2]) < g, axis=1)
+            bad = margin(eo, xo + step[:, None] * dx) >= 1.0
             if not bad.any():
                 break
             step[bad] *= 0.5
         x[ok] = xo + step[:, None] * dx
     out = np.full(e.size, np.nan)
-    sig, _ = orthotropic_stress(course(x[ok]), params, nu)
-    out[ok] = (sig @ T)[:, 0]
+    if ok.any():
+        sig, _ = orthotropic_stress(course(eo, x[ok]), params, nu)
+        out[ok] = (sig @ T)[:, 0]
     x[~ok] = np.nan
     return out, x
 
@@ -76,6 +105,7 @@ def fit_orthotropic_uniaxial(e0, S0, e90, S90, nu: float, a3: float, start: dict
     impose e22 = -nu e11, which is not the model's uniaxial state.) a3 does not enter at
     0/90 deg (no shear strain by symmetry). Start: the Eq. 4.6 fits (a1 ~ A1, a2 ~ A2, the
     small-strain uniaxial slopes of the model). SE from the Jacobian, s^2 = SSR/(n-6).
+    ``at_bound``: the parameters that ended on the search box (not determined by the curves).
     """
     e0, S0, e90, S90 = (np.asarray(v, dtype=float) for v in (e0, S0, e90, S90))
     em0, em9 = float(e0.max()), float(e90.max())
@@ -97,7 +127,16 @@ def fit_orthotropic_uniaxial(e0, S0, e90, S90, nu: float, a3: float, start: dict
 
     x0 = [np.log(max(start["a1"], tiny)), np.log(max(start["a2"], tiny)), np.log(max(start["b1"], tiny)),
           np.log(max(start["b2"], tiny)), np.log(max(start["g1"] - em0, 1e-6)), np.log(max(start["g2"] - em9, 1e-6))]
-    sol = least_squares(resid, x0, x_scale="jac", xtol=1e-12, ftol=1e-12, max_nfev=400)
+    # search box: moduli and barrier coefficients from `tiny` to B_MAX x the largest stress per
+    # unit strain, the barriers from 1e-12 to GAP_MAX x e_max above the data (beyond them the
+    # curves do not determine the parameter; a fit that ends there is reported, not trusted)
+    big = np.log(B_MAX * max(float(np.abs(S0).max()), float(np.abs(S90).max()), 1e-12) / min(em0, em9))
+    lo = np.array([np.log(tiny)] * 4 + [np.log(1e-12 * em0), np.log(1e-12 * em9)])
+    hi = np.array([big] * 4 + [np.log(GAP_MAX * em0), np.log(GAP_MAX * em9)])
+    x0 = np.clip(x0, lo + 1e-9, hi - 1e-9)
+    sol = least_squares(resid, x0, bounds=(lo, hi), x_scale="jac", xtol=1e-12, ftol=1e-12, max_nfev=400)
+    at_bound = [k for k, v, a, b in zip(("a1", "a2", "b1", "b2", "g1", "g2"), sol.x, lo, hi)
+                if v <= a + 1e-6 or v >= b - 1e-6]
     p = unpack(sol.x)
     r = sol.fun
     s2 = float(r @ r) / max(r.size - 6, 1)
@@ -106,4 +145,4 @@ def fit_orthotropic_uniaxial(e0, S0, e90, S90, nu: float, a3: float, start: dict
     se = np.sqrt(np.clip(np.diag(cov_x), 0, None)) * scale
     names = ("a1", "a2", "b1", "b2", "g1", "g2")
     return {"params": {k: float(v) for k, v in p.items()}, "se": dict(zip(names, map(float, se))),
-            "rms": float(np.sqrt(np.mean(r * r))), "converged": bool(sol.success)}
+            "rms": float(np.sqrt(np.mean(r * r))), "converged": bool(sol.success), "at_bound": at_bound}

@@ -41,7 +41,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from inverse.thickness_law import DEFAULT_LAW, PLASTIC_KEY, format_thickness_law, parse_thickness_law
+from inverse.thickness_law import DEFAULT_LAW, PLASTIC_KEY, STRETCH_KEY, format_thickness_law, parse_thickness_law
 from shellfem.errors import SelfshapeError
 from shellfem.materials import Fabric, Plastic
 
@@ -308,7 +308,8 @@ def main(argv=None):
             f"k_B {fabric.bending_stiffness:g} N mm ({fabric.model}); plastic: E {plastic.young_modulus:g} MPa, "
             f"nu {plastic.poisson:g}, rest curvature {plastic.rest_curvature:g} /mm ({plastic_source})",
             f"ribbons {RIBBON_LENGTH:g} x {RIBBON_WIDTH:g} mm",
-            f"{PLASTIC_KEY} = {plastic.young_modulus:.6g}"]
+            f"{PLASTIC_KEY} = {plastic.young_modulus:.6g}",
+            f"{STRETCH_KEY} = {a.stretch:g}"]
     dropped, log = [], []
     if a.model == "strip":
         rows = [r for r in strip_rows(a.thickness, a.spacing, a.stretch, fabric, plastic) if r[2] in a.sides]

@@ -41,11 +41,15 @@ def new_axes(title: str = "", xlabel: str = "", ylabel: str = "", size=(6.0, 4.2
 
 
 def save_figure(fig, path: str, dpi: int = 120) -> str:
-    """Write fig as PNG to path (directories created) and close it. Returns path."""
+    """Write fig as PNG to path (directories created; atomically, shellfem.outfiles.write_atomic)
+    and close it. Returns path."""
+    from shellfem.outfiles import write_atomic
     d = os.path.dirname(os.path.abspath(path))
     os.makedirs(d, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
+    try:
+        write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=dpi))
+    finally:
+        plt.close(fig)
     return path
 
 

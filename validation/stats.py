@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import optimize, stats
 
+from shellfem.errors import SelfshapeError
+
 # ---------------------------------------------------------------------------
 # splits and errors
 
@@ -20,7 +22,10 @@ def kfold(n, k, seed, groups=None):
     if groups is None:
         groups = np.arange(n)
     _, g = np.unique(np.asarray(groups).astype(str), return_inverse=True)
-    n_groups = g.max() + 1
+    n_groups = int(g.max()) + 1 if g.size else 0
+    if n_groups < 2:
+        raise SelfshapeError(f"a K-fold split needs at least 2 groups (specimens), got {n_groups} "
+                             f"in {n} row(s)")
     k = int(max(2, min(k, n_groups)))
     fold_of_group = np.empty(n_groups, int)
     fold_of_group[rng.permutation(n_groups)] = np.arange(n_groups) % k
@@ -56,7 +61,12 @@ def nls_fit(residual_fn, theta0, lower, upper, max_nfev=200, batch_fn=None):
     """Minimise sum(residual_fn(theta)^2) within bounds (scipy trf). ``batch_fn``
     (optional) maps a stack of parameter vectors (m, p) to residuals (m, n); the
     forward-difference Jacobian then costs one call. Returns dict: theta, se (from
-    sigma^2 (J^T J)^+), cov, ssr, n, dof, sigma, success, residuals."""
+    sigma^2 (J^T J)^+), cov, ssr, n, dof, sigma, success, residuals, at_bound.
+
+    Honest errors: dof = n - p; with no residual degrees of freedom (dof <= 0) sigma,
+    se and cov are NaN (not identifiable), never a number from a made-up dof. at_bound
+    (per parameter) marks an estimate within 1e-6 of its search range's width from a
+    bound: not a converged interior estimate (its se assumes one)."""
     lo, hi = np.asarray(lower, float), np.asarray(upper, float)
     t0 = np.clip(np.asarray(theta0, float), lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
     jac = "2-point"
@@ -79,26 +89,32 @@ def nls_fit(residual_fn, theta0, lower, upper, max_nfev=200, batch_fn=None):
                                max_nfev=max_nfev, xtol=1e-8, ftol=1e-8, gtol=1e-8)
     n, p = r.fun.size, t0.size
     ssr = float(r.fun @ r.fun)
-    dof = max(n - p, 1)
-    s2 = ssr / dof
+    dof = n - p
+    s2 = ssr / dof if dof > 0 else float("nan")
     cov = s2 * np.linalg.pinv(r.jac.T @ r.jac)
+    width = np.where(np.isfinite(hi - lo), hi - lo, np.maximum(1.0, np.abs(r.x)))
+    at_bound = (r.x <= lo + 1e-6 * width) | (r.x >= hi - 1e-6 * width)
     return {"theta": r.x, "cov": cov, "se": np.sqrt(np.maximum(np.diag(cov), 0.0)),
             "ssr": ssr, "n": n, "dof": dof, "sigma": float(np.sqrt(s2)), "success": bool(r.success),
-            "residuals": r.fun}
+            "residuals": r.fun, "at_bound": at_bound}
 
 
 def profile_interval(ssr_of, t_hat, ssr_min, n, p, lo, hi, level=0.95):
     """Profile-likelihood interval of one parameter: the t with
     ssr_of(t) <= ssr_min (1 + F(1, n-p; level) / (n-p)), searched in [lo, hi]
     (``ssr_of`` re-optimises any other parameters). Returns (low, high); an end
-    that does not close inside [lo, hi] is returned as that bound."""
-    dof = max(n - p, 1)
+    that does not close inside [lo, hi] is None (the data do not bound the parameter on
+    that side). Needs n > p (raises ValueError otherwise: no interval without residual
+    degrees of freedom)."""
+    dof = n - p
+    if dof <= 0:
+        raise ValueError(f"profile_interval: no residual degrees of freedom (n = {n}, p = {p})")
     limit = ssr_min * (1 + stats.f.ppf(level, 1, dof) / dof)
     g = lambda t: ssr_of(t) - limit  # noqa: E731
     ends = []
     for end in (lo, hi):
-        if g(end) <= 0:
-            ends.append(end)
+        if not g(end) > 0:
+            ends.append(None)
         else:
             ends.append(optimize.brentq(g, min(t_hat, end), max(t_hat, end), xtol=1e-10 * (1 + abs(t_hat))))
     return tuple(ends)

@@ -15,16 +15,18 @@ rest curvature) minimised over uniform states of a fully printed strip.
 """
 from __future__ import annotations
 
-import csv
-import json
 import os
 
 import numpy as np
 
 from shellfem.errors import SelfshapeError, check_number
+from shellfem.outfiles import OutputDir
+from validation.textfiles import finite_json, read_csv_rows, refuse_overwrite
 
 MEASURED = "curvature_per_mm"
 REST = "rest_curvature_per_mm"
+#: The files `selfshape calibrate strips` writes (an earlier run's are removed first).
+STRIPS_OUTPUTS = ("strips_fit.png", "parameters.json")
 NUMERIC = ("stretch", "orientation_deg", "plastic_thickness_mm", "fabric_thickness_mm",
            "width_mm", "length_mm")
 REQUIRED = ("specimen", "side") + NUMERIC
@@ -36,10 +38,19 @@ FABRIC_POISSON = 0.3
 # reading
 
 
-def _number(text, where, col, positive=False, at_least=None):
-    """The cell ``text`` of column ``col`` as a finite float (> 0 if ``positive``, >= ``at_least``),
-    else a SelfshapeError naming the row and the column."""
-    return check_number(f"{where}, column {col}:", text, lo=0.0 if positive else at_least, lo_open=positive)
+#: physical range of each numeric column (value within [lo, hi]): a strip a lab can print,
+#: a fabric it can stretch, a curvature a strip of these thicknesses can take (radius >= 0.1 mm)
+RANGES = {"stretch": (1.0, 5.0), "orientation_deg": (-360.0, 360.0),
+          "plastic_thickness_mm": (1e-3, 10.0), "fabric_thickness_mm": (1e-3, 10.0),
+          "width_mm": (1e-2, 1e4), "length_mm": (1e-2, 1e4),
+          MEASURED: (-10.0, 10.0), REST: (-10.0, 10.0)}
+
+
+def _number(text, where, col):
+    """The cell ``text`` of column ``col`` as a finite float within RANGES[col], else a
+    SelfshapeError naming the row and the column."""
+    lo, hi = RANGES[col]
+    return check_number(f"{where}, column {col}:", text, lo=lo, hi=hi)
 
 
 def read_strips(path, require_measured=True) -> dict:
@@ -47,13 +58,11 @@ def read_strips(path, require_measured=True) -> dict:
     specimen, side (str arrays), the numeric columns (float), ``curvature_per_mm``
     (NaN where absent when ``require_measured`` is False), ``rest_curvature_per_mm``
     (NaN where empty), plus ``_raw`` (header, raw rows) and ``_file``.
-    Raises SelfshapeError naming file, row and column on any bad entry."""
+    Raises SelfshapeError naming file, row and column on any bad entry (values outside
+    their physical RANGES included), and naming file and line for a file that is not CSV
+    text (binary, not UTF-8, a field over the csv module's limit)."""
     name = os.path.basename(str(path))
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as f:
-            table = list(csv.reader(f))
-    except (OSError, UnicodeDecodeError) as e:
-        raise SelfshapeError(f"{name}: cannot read strips CSV: {e}") from None
+    table = read_csv_rows(path, "strips CSV")
     table = [r for r in table if any(c.strip() for c in r)]
     if not table:
         raise SelfshapeError(f"{name}: empty file, expected a strips CSV header")
@@ -81,15 +90,13 @@ def read_strips(path, require_measured=True) -> dict:
         spec = get("specimen")
         if not spec:
             raise SelfshapeError(f"{where}, column specimen: empty")
-        where = f"{name}: row {i + 1} (specimen {spec})"
+        where = f"{name}: row {i + 1} (specimen {spec if len(spec) <= 40 else spec[:37] + '...'})"
         side = get("side").lower()
         if side not in SIDES:
             raise SelfshapeError(f"{where}, column side: must be front or back, got {get('side')!r}")
         out["specimen"][i], out["side"][i] = spec, side
-        out["stretch"][i] = _number(get("stretch"), where, "stretch", at_least=1.0)
-        out["orientation_deg"][i] = _number(get("orientation_deg"), where, "orientation_deg")
-        for c in ("plastic_thickness_mm", "fabric_thickness_mm", "width_mm", "length_mm"):
-            out[c][i] = _number(get(c), where, c, positive=True)
+        for c in NUMERIC:
+            out[c][i] = _number(get(c), where, c)
         if MEASURED in col:
             t = get(MEASURED)
             if t or require_measured:
@@ -146,17 +153,46 @@ def strip_model(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *,
 RATIO_RANGE = (1.0, 1e7)
 
 
-def fit_modulus_ratio(rows, rest_curvature=0.0):
+def specimen_count(rows) -> int:
+    """Distinct specimens: rows of one specimen are repeated measurements of it, not
+    independent strips, so they count once towards the residual degrees of freedom."""
+    if "specimen" not in rows:   # a rows dict built in code: every row its own strip
+        return int(np.asarray(rows[MEASURED]).size)
+    return int(np.unique(np.asarray(rows["specimen"]).astype(str)).size)
+
+
+def fit_modulus_ratio(rows, rest_curvature=0.0, what="modulus_ratio"):
     """Least-squares modulus ratio of the base model (narrow strip, plastic rest
     curvature ``rest_curvature``) to the measured curvatures. Returns dict: value,
-    se (delta method from log space), ci95 (profile likelihood, F-based), ssr,
-    residuals (measured - fitted), fitted."""
+    se (delta method from log space), ci95 (profile likelihood, F-based; an end that does
+    not close inside RATIO_RANGE is None), ssr, residuals (measured - fitted), fitted.
+
+    Raises SelfshapeError ("not identifiable", naming the file) when the rows cannot
+    determine the ratio or its standard error: fewer than two specimens (no residual
+    degrees of freedom), curvatures that do not change with the ratio (no misfit: stretch
+    1), or a least-squares optimum on a bound of RATIO_RANGE (e.g. curvatures <= 0, which
+    the bilayer reaches only as the ratio runs to 0 or infinity)."""
     from validation import stats
+    name = rows.get("_file", "data")
     y = rows[MEASURED]
+    n_spec = specimen_count(rows)
+    if n_spec < 2:
+        raise SelfshapeError(f"{name}: {y.size} row(s) from {n_spec} specimen: {what} has no residual degrees of "
+                             f"freedom, its standard error is not identifiable (need rows from >= 2 specimens)")
     args = (rows["plastic_thickness_mm"], rows["fabric_thickness_mm"], rows["stretch"])
     kb = np.asarray(rest_curvature, float)
     grid = np.exp(np.linspace(*np.log(RATIO_RANGE), 71))
     k = strip_model(*(a[None] for a in args), grid[:, None], rest_curvature=kb)
+    bad = ~np.all(np.isfinite(k), axis=0)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise SelfshapeError(f"{name}: row {i + 1} (specimen {rows['specimen'][i]}): the bilayer model has no "
+                             f"finite curvature for this strip")
+    span = np.ptp(k, axis=0)
+    scale = max(float(np.abs(y).max()), float(np.abs(k).max()), 1e-300)
+    if float(span.max()) <= 1e-9 * scale:
+        raise SelfshapeError(f"{name}: {what} is not identifiable: the model's curvatures do not change with it "
+                             f"over {RATIO_RANGE[0]:g}-{RATIO_RANGE[1]:g} (no misfit: every stretch is 1?)")
     t0 = np.log(grid[np.argmin(((k - y) ** 2).sum(1))])
 
     def res(t):  # t: (1,) or (m, 1) log ratio
@@ -166,24 +202,39 @@ def fit_modulus_ratio(rows, rest_curvature=0.0):
     lo, hi = np.log(RATIO_RANGE)
     r = stats.nls_fit(res, [t0], [lo], [hi], batch_fn=res)
     t_hat = float(r["theta"][0])
+    if r["at_bound"][0]:
+        end = RATIO_RANGE[int(t_hat > 0.5 * (lo + hi))]
+        raise SelfshapeError(f"{name}: {what} is not identifiable: the least-squares fit runs to the search bound "
+                             f"{end:g} (the curvatures do not determine it; e.g. all curvatures <= 0 or at the "
+                             f"model's limit)")
     ssr_of = lambda t: float((res(np.array([t])) ** 2).sum())  # noqa: E731
     ci = stats.profile_interval(ssr_of, t_hat, r["ssr"], y.size, 1, lo, hi)
     value = float(np.exp(t_hat))
     fitted = y + r["residuals"]
-    return {"value": value, "se": value * float(r["se"][0]), "ci95": [float(np.exp(ci[0])), float(np.exp(ci[1]))],
+    return {"value": value, "se": value * float(r["se"][0]),
+            "ci95": [None if c is None else float(np.exp(c)) for c in ci],
             "ssr": r["ssr"], "residuals": -r["residuals"], "fitted": fitted}
 
 
 def seed_linear_fit(rows):
     """The seed's calibration (section 3.3): linear regression through the origin
     of kappa - kbar on 6 h2 (h1 + h2)(1 - 1/s^2) / h1^3 (Eq. 3.17), slope E2/E1.
-    Missing rest curvatures count as 0. Returns (E1/E2, standard error)."""
+    Missing rest curvatures count as 0. Returns (E1/E2, standard error); raises
+    SelfshapeError when the regression defines no positive ratio with an error
+    (no misfit, a slope <= 0, fewer than 2 specimens)."""
     h1, h2, s = rows["plastic_thickness_mm"], rows["fabric_thickness_mm"], rows["stretch"]
     x = 6 * h2 * (h1 + h2) * (1 - 1 / s ** 2) / h1 ** 3
     y = rows[MEASURED] - np.nan_to_num(rows[REST], nan=0.0)
-    slope = float(x @ y / (x @ x))
-    dof = max(x.size - 1, 1)
-    se = float(np.sqrt(((y - slope * x) ** 2).sum() / dof / (x @ x)))
+    if specimen_count(rows) < 2:
+        raise SelfshapeError("fewer than 2 specimens: no residual degrees of freedom")
+    xx = float(x @ x)
+    if not xx > 0:
+        raise SelfshapeError("no misfit in any row (stretch 1)")
+    slope = float(x @ y) / xx
+    if not slope > 0:
+        raise SelfshapeError(f"slope {slope:.3g} <= 0 defines no modulus ratio")
+    dof = x.size - 1
+    se = float(np.sqrt(((y - slope * x) ** 2).sum() / dof / xx))
     return 1.0 / slope, se / slope ** 2
 
 
@@ -193,20 +244,45 @@ def calibrate_strips(csv_path, out_dir) -> dict:
     (``modulus_ratio`` [value, standard error], its 95 % profile-likelihood
     interval, the fit residuals; for comparison the ratio with the measured rest
     curvatures and the seed's Eq. 3.17 linear regression) and
-    out_dir/strips_fit.png. Returns the parameters dict."""
+    out_dir/strips_fit.png (checked before the fit, written atomically, parameters.json last,
+    every number finite: shellfem.outfiles). Returns the parameters dict.
+
+    A ratio the rows cannot determine, or determine without residual degrees of freedom,
+    is a SelfshapeError (see fit_modulus_ratio), written nowhere. The comparison fits are
+    left out, with the reason under ``not_identifiable``, when only they fail; an interval
+    end that does not close inside the search range is null, with the reason there too."""
+    refuse_overwrite(out_dir, [csv_path])
     rows = read_strips(csv_path)
+    outs = OutputDir(out_dir, STRIPS_OUTPUTS, inputs=[csv_path]).begin()   # checked, stale removed, before the fit
     base = fit_modulus_ratio(rows)
     out = {"modulus_ratio": [base["value"], base["se"]]}
+    not_identifiable = {}
     rest = rows[REST]
+    wr = None
     if np.isfinite(rest).all():
-        wr = fit_modulus_ratio(rows, rest_curvature=rest)
-        out["modulus_ratio_rest_measured"] = [wr["value"], wr["se"]]
-    out["modulus_ratio_seed_eq3_17"] = list(seed_linear_fit(rows))
+        try:
+            wr = fit_modulus_ratio(rows, rest_curvature=rest, what="modulus_ratio_rest_measured")
+        except SelfshapeError as e:
+            not_identifiable["modulus_ratio_rest_measured"] = str(e)
+        else:
+            out["modulus_ratio_rest_measured"] = [wr["value"], wr["se"]]
+    try:
+        out["modulus_ratio_seed_eq3_17"] = list(seed_linear_fit(rows))
+    except SelfshapeError as e:
+        not_identifiable["modulus_ratio_seed_eq3_17"] = f"the seed's Eq. 3.17 regression: {e}"
     n = n_rows(rows)
     out["confidence_intervals_95"] = {"modulus_ratio": base["ci95"]}
-    if "modulus_ratio_rest_measured" in out:
+    if wr is not None:
         out["confidence_intervals_95"]["modulus_ratio_rest_measured"] = wr["ci95"]
-    out["fit"] = {"data": rows["_file"], "n_rows": n, "model": model_source() + ", mode narrow",
+    for key, ci in out["confidence_intervals_95"].items():
+        for end, v, bound in (("lower", ci[0], RATIO_RANGE[0]), ("upper", ci[1], RATIO_RANGE[1])):
+            if v is None:
+                not_identifiable[f"confidence_intervals_95.{key}.{end}"] = (
+                    f"the 95 % interval does not close before the search bound {bound:g}: "
+                    f"the data do not bound {key} from this side")
+    out["not_identifiable"] = not_identifiable
+    out["fit"] = {"data": rows["_file"], "n_rows": n, "n_specimens": specimen_count(rows),
+                  "model": model_source() + ", mode narrow",
                   "base_model": "plastic flat at rest (rest curvature 0); only the modulus ratio is fitted",
                   "method": "nonlinear least squares on log(modulus_ratio); standard error by the delta "
                             "method; 95 % interval by profile likelihood (F test)",
@@ -217,11 +293,27 @@ def calibrate_strips(csv_path, out_dir) -> dict:
                         "measured_per_mm": [float(v) for v in rows[MEASURED]],
                         "fitted_per_mm": [float(v) for v in base["fitted"]],
                         "residual_per_mm": [float(v) for v in base["residuals"]]}
-    os.makedirs(out_dir, exist_ok=True)
-    _plot_fit(rows, base["value"], os.path.join(out_dir, "strips_fit.png"))
-    with open(os.path.join(out_dir, "parameters.json"), "w") as fh:
-        json.dump(out, fh, indent=2)
+    out = finite_json(out)
+    with outs:                  # atomic, parameters.json last; nothing left on failure
+        outs.write("strips_fit.png", lambda tmp: _plot_fit(rows, base["value"], tmp))
+        outs.write_json("parameters.json", out)
     return out
+
+
+def check_for_validation(csv_path, outputs=(), min_specimens=10) -> dict:
+    """The strips CSV of ``selfshape validate``, checked before the loop runs: readable, at
+    least ``min_specimens`` specimens (its 5-fold split is grouped by specimen, each outer
+    training part split again), a base model the rows determine (fit_modulus_ratio), and no
+    output path equal to the input. Returns the rows."""
+    for o in outputs:
+        refuse_overwrite(o, [csv_path])
+    rows = read_strips(csv_path)
+    n_spec = specimen_count(rows)
+    if n_spec < min_specimens:
+        raise SelfshapeError(f"{rows['_file']}: {n_rows(rows)} rows from {n_spec} specimen(s); validation splits by "
+                             f"specimen and needs at least {min_specimens}")
+    fit_modulus_ratio(rows)
+    return rows
 
 
 def _plot_fit(rows, ratio, path):

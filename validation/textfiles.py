@@ -1,0 +1,102 @@
+"""Reading the lab's text files (CSV tables, JSON) so that any bad file is a one-line
+SelfshapeError naming the file and the line, never a raw UnicodeDecodeError, csv.Error or
+RecursionError: binary or non-UTF-8 bytes, a field over the csv module's limit, malformed or
+absurdly nested JSON, a path that is a directory or cannot be read. Also the rule that an
+output path must not be one of the inputs (a verb refuses rather than overwrite data)."""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+
+import numpy as np
+
+from shellfem.errors import SelfshapeError
+
+MAX_BYTES = 256 * 1024 * 1024  # a lab table or JSON beyond this is not one
+
+
+def read_text(path, what: str = "text file") -> str:
+    """The file's text (UTF-8, an optional BOM removed). Errors name the file and, for bytes
+    that are not UTF-8, the line they are on."""
+    name = os.path.basename(str(path))
+    try:
+        size = os.path.getsize(path)
+        if size > MAX_BYTES:
+            raise SelfshapeError(f"{name}: {size} bytes, larger than any {what} ({MAX_BYTES} bytes)")
+        with open(path, "rb") as f:
+            data = f.read()
+    except IsADirectoryError:
+        raise SelfshapeError(f"{path}: is a directory, expected a {what}") from None
+    except OSError as e:
+        raise SelfshapeError(f"{path}: cannot read ({e.strerror or e})") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        line = data[:e.start].count(b"\n") + 1
+        raise SelfshapeError(f"{name}: line {line}: not UTF-8 text (byte 0x{data[e.start]:02x}); "
+                             f"expected a {what}") from None
+
+
+def read_csv_rows(path, what: str = "CSV table") -> list:
+    """All rows of a CSV file as lists of strings, with one-line errors naming file and line
+    (binary content, NUL bytes, a field over the csv module's limit, an open quote)."""
+    name = os.path.basename(str(path))
+    text = read_text(path, what)
+    if "\x00" in text:
+        line = text[:text.index("\x00")].count("\n") + 1
+        raise SelfshapeError(f"{name}: line {line}: NUL byte (binary content), expected a {what}")
+    reader = csv.reader(io.StringIO(text, newline=""))
+    rows = []
+    try:
+        for r in reader:
+            rows.append(r)
+    except csv.Error as e:
+        limit = csv.field_size_limit()
+        msg = str(e)
+        if "field larger than field limit" in msg:
+            msg = f"a field longer than {limit} characters (the csv module's limit)"
+        raise SelfshapeError(f"{name}: line {reader.line_num + (0 if rows else 1)}: {msg}") from None
+    return rows
+
+
+def read_json(path, what: str = "JSON file"):
+    """Parsed JSON, with errors naming file and line (invalid JSON, NaN/Infinity literals
+    are allowed by the parser and left to the caller's finiteness checks, nesting too deep)."""
+    name = os.path.basename(str(path))
+    text = read_text(path, what)
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise SelfshapeError(f"{name}: line {e.lineno}: invalid JSON ({e.msg})") from None
+    except RecursionError:
+        raise SelfshapeError(f"{name}: JSON nested too deeply to be a {what}") from None
+
+
+def refuse_overwrite(output, inputs, verb_option: str = "-o") -> None:
+    """SelfshapeError when ``output`` is (or resolves to) one of ``inputs``: a verb never
+    writes over its own input data."""
+    out = os.path.realpath(str(output))
+    for p in inputs:
+        if p is not None and os.path.realpath(str(p)) == out:
+            raise SelfshapeError(f"{output}: {verb_option} is the input file {os.path.basename(str(p))}; "
+                                 "refusing to overwrite input data (choose another output path)")
+
+
+def finite_json(o, where="parameters"):
+    """A JSON-ready copy of o (numpy scalars and arrays to Python) with every number checked
+    finite: a SelfshapeError naming the entry otherwise, so a verb fails with a reason rather
+    than write NaN or Infinity (which are not JSON)."""
+    if isinstance(o, dict):
+        return {k: finite_json(v, f"{where}.{k}") for k, v in o.items()}
+    if isinstance(o, np.ndarray):
+        o = o.tolist()
+    if isinstance(o, (list, tuple)):
+        return [finite_json(v, f"{where}[{i}]") for i, v in enumerate(o)]
+    if isinstance(o, np.generic):
+        o = o.item()
+    if isinstance(o, float) and not math.isfinite(o):
+        raise SelfshapeError(f"the calibration produced a non-finite {where} ({o!r}): the data do not determine it")
+    return o
