@@ -58,7 +58,7 @@ class ShellModel:
     # --- construction ---------------------------------------------------------------
     @classmethod
     def homogeneous(cls, sheet: Sheet, E: float, nu: float, h: float, rest_curvature=None,
-                    exact_metric: bool = True):
+                    exact_metric: bool = False):
         """Single-layer isotropic shell (MPa, mm), flat and stress-free in the sheet's
         coordinates unless ``rest_curvature`` (2x2 in the sheet's x, y; 1/mm) is given.
         exact_metric: the exact Kirchhoff-Love metric through the thickness (shellfem.layers;
@@ -77,7 +77,7 @@ class ShellModel:
 
     @classmethod
     def from_materials(cls, sheet: Sheet, fabric: Fabric, plastic: Plastic, gravity: bool = True,
-                       exact_metric: bool = True):
+                       exact_metric: bool = False):
         """The seed's model: bare fabric = the fabric's membrane model (Fabric.model, from the
         registry of shellfem.materials) + bending with k_B; printed triangles = fabric layer (E2, nu_f) + plastic layer(s)
         on the front (+z) and/or back (-z) face, plastic with rest curvature (plastic set).

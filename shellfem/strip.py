@@ -19,7 +19,7 @@ from shellfem.layers import QuadraticForm, layer_form
 
 
 def strip_state(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, plastic_poisson=0.5,
-                fabric_poisson=0.3, rest_curvature=0.0, mode="narrow", exact_metric=True):
+                fabric_poisson=0.3, rest_curvature=0.0, mode="narrow", exact_metric=False):
     """Uniform equilibrium (a11, a12, a22, b11, b12, b22) in printed Cartesian coordinates
     of a strip with plastic on the front (+z); arrays broadcast together.
 
@@ -50,7 +50,7 @@ def strip_state(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, 
 
 
 def strip_curvature(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, plastic_poisson=0.5,
-                    fabric_poisson=0.3, rest_curvature=0.0, mode="narrow", exact_metric=True):
+                    fabric_poisson=0.3, rest_curvature=0.0, mode="narrow", exact_metric=False):
     """Curvature (1/mm) of a released bilayer strip, > 0 when concave on the fabric side.
 
     plastic_thickness, fabric_thickness: mm; stretch: isotropic pre-stretch s >= 1;

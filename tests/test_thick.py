@@ -63,7 +63,7 @@ CASES = [(0.3, 1.35, 3200.0), (0.4, 1.6, 1000.0), (0.3, 1.35, 500.0)]
 @pytest.mark.parametrize("mode", ["narrow", "plate"])
 def test_strip_reduction_equals_the_through_thickness_integration(hp, s, ratio, mode):
     ref = reference_strip(hp, 0.8, s, ratio, mode=mode)
-    assert strip_curvature(hp, 0.8, s, ratio, mode=mode) == pytest.approx(ref, rel=1e-6)
+    assert strip_curvature(hp, 0.8, s, ratio, mode=mode, exact_metric=True) == pytest.approx(ref, rel=1e-6)
 
 
 def test_strip_reduction_with_a_plastic_set_equals_the_integration():
@@ -71,7 +71,7 @@ def test_strip_reduction_with_a_plastic_set_equals_the_integration():
     in the norm and mu(z) = 1 - 2 Hbar z + Kbar z^2 is what the 3D body integrates to."""
     for mode, kap in (("narrow", 0.02), ("plate", 0.05)):
         ref = reference_strip(0.3, 0.8, 1.35, 500.0, kappa_set=kap, mode=mode)
-        assert strip_curvature(0.3, 0.8, 1.35, 500.0, rest_curvature=kap, mode=mode) == pytest.approx(ref, rel=1e-6)
+        assert strip_curvature(0.3, 0.8, 1.35, 500.0, rest_curvature=kap, mode=mode, exact_metric=True) == pytest.approx(ref, rel=1e-6)
 
 
 def test_truncated_metric_is_off_in_proportion_to_kappa_h():
@@ -269,7 +269,7 @@ def test_edge_angle_problem_on_a_rolled_thick_sheet():
     """The angle subproblem's Hessian is state-dependent on exact-metric faces: it equals the full
     model's theta block and central differences of its gradient."""
     M = ShellModel.from_materials(_thick_sheet(2), Fabric(stretch=1.3, thickness=1.2), Plastic(young_modulus=20.0),
-                                  gravity=False)
+                                  gravity=False, exact_metric=True)
     q = _rolled_state(M, 4.0, 6)
     n, ne = M.n_vertices, M.n_edges
     P = M.edge_angle_problem(q)
@@ -304,7 +304,7 @@ def test_thickness_sensitivity_on_a_rolled_thick_sheet():
         tf = np.where(param == 0, t[0], 0.0)
         tb = np.where(param == 1, t[1], 0.0)
         return ShellModel.from_materials(Sheet(base.points, base.triangles, thickness_front=tf, thickness_back=tb),
-                                         fab, plastic, gravity=False)
+                                         fab, plastic, gravity=False, exact_metric=True)
 
     t = np.array([0.5, 0.7])
     model = build(t)
