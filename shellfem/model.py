@@ -15,14 +15,18 @@ from __future__ import annotations
 from functools import cached_property
 
 import numpy as np
+from numba import njit, prange
 
 from shellfem.bending.midedge_tan import coefficients, from_coefficients, inadmissible, second_fundamental_form
 from shellfem.face_energy import face_energy
 from shellfem.kinematics import (C_OUTER, build_topology, face_chain, face_metrics, hinge_angle_values,
                                  hinge_angles)
-from shellfem.layers import QuadraticForm, bending_quadratic, layer_quadratic, rest_area, sym_to_mat
+from shellfem.layers import (QuadraticForm, bending_quadratic, layer_form, layer_scratch, layer_terms, rest_area,
+                             sym_to_mat)
 from shellfem.materials import MEMBRANE_MODELS, Fabric, Plastic, RestState
 from shellfem.sheet import Sheet
+
+_CHUNK = 512   # faces per parallel task in compiled kernels
 
 
 def edge_metric(P: np.ndarray) -> np.ndarray:
@@ -53,9 +57,12 @@ class ShellModel:
 
     # --- construction ---------------------------------------------------------------
     @classmethod
-    def homogeneous(cls, sheet: Sheet, E: float, nu: float, h: float, rest_curvature=None):
+    def homogeneous(cls, sheet: Sheet, E: float, nu: float, h: float, rest_curvature=None,
+                    exact_metric: bool = False):
         """Single-layer isotropic shell (MPa, mm), flat and stress-free in the sheet's
-        coordinates unless ``rest_curvature`` (2x2 in the sheet's x, y; 1/mm) is given."""
+        coordinates unless ``rest_curvature`` (2x2 in the sheet's x, y; 1/mm) is given.
+        exact_metric: the exact Kirchhoff-Love metric through the thickness (shellfem.layers;
+        False: the truncated metric a - 2 z b)."""
         P = np.concatenate([sheet.points, np.zeros((sheet.n_vertices, 1))], 1)[sheet.triangles]
         abar = edge_metric(P)
         bbar = np.zeros_like(abar)
@@ -65,15 +72,18 @@ class ShellModel:
             Bm = np.einsum("mji,jk,mkl->mil", Em, np.asarray(rest_curvature, float), Em)
             bbar = np.stack([Bm[:, 0, 0], Bm[:, 0, 1], Bm[:, 1, 1]], 1)
         quad = QuadraticForm(sheet.n_triangles)
-        quad.add(*layer_quadratic(abar, bbar, E, nu, -h / 2, h / 2))
+        quad.add(*layer_form(abar, bbar, E, nu, -h / 2, h / 2, exact_metric=exact_metric))
         return cls(sheet, quad)
 
     @classmethod
-    def from_materials(cls, sheet: Sheet, fabric: Fabric, plastic: Plastic, gravity: bool = True):
+    def from_materials(cls, sheet: Sheet, fabric: Fabric, plastic: Plastic, gravity: bool = True,
+                       exact_metric: bool = False):
         """The seed's model: bare fabric = the fabric's membrane model (Fabric.model, from the
         registry of shellfem.materials) + bending with k_B; printed triangles = fabric layer (E2, nu_f) + plastic layer(s)
         on the front (+z) and/or back (-z) face, plastic with rest curvature (plastic set).
-        The fabric's rest metric is diag(1/sx^2, 1/sy^2) in printed coordinates."""
+        The fabric's rest metric is diag(1/sx^2, 1/sy^2) in printed coordinates. The layers
+        carry the exact Kirchhoff-Love metric (shellfem.layers; exact_metric=False: the
+        truncated a - 2 z b, O(kappa h) off for bilayers)."""
         m = sheet.n_triangles
         P2 = sheet.points[sheet.triangles]                      # (m, 3, 2) printed
         P3 = np.concatenate([P2, np.zeros((m, 3, 1))], 2)
@@ -87,10 +97,11 @@ class ShellModel:
         bare = ~printed
         quad = QuadraticForm(m)
         if printed.any():
-            quad.add(*layer_quadratic(abar_fab, np.zeros((m, 3)), fabric.young_modulus, fabric.poisson,
-                                         -hf / 2, hf / 2), mask=printed)
+            quad.add(*layer_form(abar_fab, np.zeros((m, 3)), fabric.young_modulus, fabric.poisson, -hf / 2, hf / 2,
+                                 exact_metric=exact_metric), mask=printed)
             for mask, bbar, z0, z1, _, _ in plastic_layers(sheet, fabric, plastic, abar_print):
-                quad.add(*layer_quadratic(abar_print, bbar, plastic.young_modulus, plastic.poisson, z0, z1), mask=mask)
+                quad.add(*layer_form(abar_print, bbar, plastic.young_modulus, plastic.poisson, z0, z1,
+                                     exact_metric=exact_metric), mask=mask)
         membrane = None
         if bare.any():
             if fabric.bending_stiffness > 0:
@@ -209,9 +220,10 @@ class ShellModel:
 
     @cached_property
     def edge_bending_form(self) -> np.ndarray:
-        """(m, 3, 3) sigma_i sigma_j c_i^T W_bb c_j per face: d2W/db2 is constant (the layered
-        energy is quadratic in b), so EdgeAngleProblem's Hessian is elementwise with it (the
-        einsum it replaces cost 8 of the 18 ms per evaluation at 21k faces)."""
+        """(m, 3, 3) sigma_i sigma_j c_i^T W_bb c_j per face with W_bb the quadratic part's
+        constant d2W/db2: EdgeAngleProblem's Hessian is elementwise with it (the einsum it
+        replaces cost 8 of the 18 ms per evaluation at 21k faces); on the exact-metric faces
+        (quad.thick) W_bb depends on the state and is recomputed there."""
         sign = self.topo.face_sign
         return (C_OUTER @ self.quad.Q[:, 3:, 3:] @ C_OUTER.T) * sign[:, :, None] * sign[:, None, :]
 
@@ -269,6 +281,8 @@ class EdgeAngleProblem:
         self.a, self.h = face_metrics(xf)
         self.half_phi = model._psi(x, np.zeros(model.n_edges), False)[0]     # psi at theta = 0
         self._CWC = model.edge_bending_form
+        self._thick = bool(model.quad.thick.any())
+        self._sign = model.topo.face_sign.astype(float)
 
     def evaluate(self, theta, order: int = 2):
         """(E, gradient, Hessian blocks (m, 3, 3) over each face's edges); E = inf where an
@@ -277,7 +291,14 @@ class EdgeAngleProblem:
         psi = topo.face_sign * theta[topo.face_edges] + self.half_phi
         h = self.h
         beta, _, b_psi, _, b_psipsi = coefficients(h, psi)
-        W, Wz, Wzz = quad.evaluate(np.concatenate([self.a, from_coefficients(beta)], 1))
+        z = np.concatenate([self.a, from_coefficients(beta)], 1)
+        CWC = self._CWC
+        if self._thick and order == 2:    # W_bb depends on the state on the exact-metric faces
+            CWC = CWC.copy()
+        W, Wz = np.empty(len(z)), np.empty((len(z), 6))
+        ptr, Qs, zbars, Rs, cbars, thick, zspan = quad.packed()
+        _edge_angle_kernel(z, ptr, Qs, zbars, Rs, cbars, thick, zspan, quad.Q, C_OUTER, self._sign, order, W, Wz,
+                           CWC)
         E = float(np.where(inadmissible(psi), np.inf, W).sum())
         if order == 0:
             return E, None, None
@@ -287,10 +308,41 @@ class EdgeAngleProblem:
                            minlength=self.model.n_edges)
         if order == 1:
             return E, grad, None
-        Hpsi = b_psi[:, :, None] * b_psi[:, None, :] * self._CWC
+        Hpsi = b_psi[:, :, None] * b_psi[:, None, :] * CWC
         idx = np.arange(3)
         Hpsi[:, idx, idx] += b_psipsi * gi                # face_sign^2 = 1 on the diagonal
         return E, grad, Hpsi
+
+
+@njit(cache=True, parallel=True)
+def _edge_angle_kernel(z, ptr, Qs, zbars, Rs, cbars, thick, zspan, Qtot, C, sign, order, W, Wz, CWC):
+    """The layered energy W (m,) and dW/dz (m, 6) (order >= 1) at z (m, 6) in one pass and, with
+    order 2, CWC[f] = sigma_i sigma_j c_i^T W_bb(z_f) c_j on the exact-metric faces (the
+    state-dependent counterpart of ShellModel.edge_bending_form; CWC holds that on entry)."""
+    m = z.shape[0]
+    for chunk in prange((m + _CHUNK - 1) // _CHUNK):
+        g = np.empty(6)
+        Z = np.empty((6, 6))
+        work = layer_scratch()
+        for f in range(chunk * _CHUNK, min(m, (chunk + 1) * _CHUNK)):
+            o = 2 if (order == 2 and thick[f]) else min(order, 1)
+            g[:] = 0.0
+            if o == 2:
+                for k in range(6):
+                    for l in range(6):
+                        Z[k, l] = Qtot[f, k, l]
+            W[f] = layer_terms(z[f], ptr[f], ptr[f + 1], Qs, zbars, Rs, cbars, thick[f], zspan[f, 0], zspan[f, 1], o,
+                               g, Z, work)
+            for k in range(6):
+                Wz[f, k] = g[k]
+            if o == 2:
+                for p in range(3):
+                    for r in range(3):
+                        s = 0.0
+                        for k in range(3):
+                            for l in range(3):
+                                s += C[p, k] * Z[3 + k, 3 + l] * C[r, l]
+                        CWC[f, p, r] = sign[f, p] * sign[f, r] * s
 
 
 def plastic_layers(sheet: Sheet, fabric: Fabric, plastic: Plastic, abar_print: np.ndarray):

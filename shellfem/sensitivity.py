@@ -2,10 +2,12 @@
 
 Parameters p_1..p_P are plastic thicknesses (mm), one per group of printed triangles (a
 ribbon, a region): ``parameter`` (m,) maps each triangle to its group (-1: not a
-parameter). The plastic layer of a printed triangle is a quadratic form of its fundamental
-forms whose matrix is polynomial in the layer's bounds (shellfem.layers), so
+parameter). The plastic layer of a printed triangle is W = 1/2 w^T Q9 w in the differences
+w = (a - abar, b - bbar, c - cbar) of its fundamental forms (exact metric, shellfem.layers),
+with Q9 linear in the through-thickness moments M_k = int z^k K mu dz, whose derivatives in
+the layer's bounds are the integrand at the bounds (exact), and w independent of t, so
 
-    dE/dp_j        = sum over j's triangles of 1/2 (z - zbar)^T dQ/dt (z - zbar)
+    dE/dp_j        = sum over j's triangles of 1/2 w^T dQ9/dt w
     d(dE/dq)/dp_j  = the gradient of that derivative form, chained to the DOFs like the
                      energy's own (shellfem.face_energy, shellfem.kinematics.face_chain)
 
@@ -21,11 +23,11 @@ import scipy.sparse as sp
 from shellfem.errors import SelfshapeError
 from shellfem.face_energy import face_energy
 from shellfem.kinematics import face_chain, face_metrics
-from shellfem.layers import QuadraticForm, layer_quadratic_derivative
+from shellfem.layers import QuadraticForm, layer_form_derivative
 from shellfem.model import ShellModel, edge_metric, plastic_layers
 
 
-def thickness_form(model: ShellModel, fabric, plastic) -> QuadraticForm:
+def thickness_form(model: ShellModel, fabric, plastic, exact_metric: bool | None = None) -> QuadraticForm:
     """The per-triangle derivative dW/dt of the plastic layers' energy with respect to the
     triangle's own plastic thickness t (mm), as a QuadraticForm (N mm per mm). A triangle
     printed on both faces cannot take one thickness parameter: SelfshapeError."""
@@ -36,10 +38,12 @@ def thickness_form(model: ShellModel, fabric, plastic) -> QuadraticForm:
     m = sheet.n_triangles
     P3 = np.concatenate([sheet.points[sheet.triangles], np.zeros((m, 3, 1))], 2)
     abar = edge_metric(P3)
+    if exact_metric is None:
+        exact_metric = bool(model.quad.thick.any())
     form = QuadraticForm(m)
     for mask, bbar, z0, z1, dz0, dz1 in plastic_layers(sheet, fabric, plastic, abar):
-        form.add(*layer_quadratic_derivative(abar, bbar, plastic.young_modulus, plastic.poisson, z0, z1, dz0, dz1),
-                 mask=mask)
+        form.add(*layer_form_derivative(abar, bbar, plastic.young_modulus, plastic.poisson, z0, z1, dz0, dz1,
+                                        exact_metric=exact_metric), mask=mask)
     return form
 
 

@@ -2,8 +2,10 @@
 
 A strip fully covered by plastic deforms (away from its ends) into a uniform state:
 constant first and second fundamental forms. The layered energy of
-:mod:`shellfem.layers` is quadratic in (a, b), so the uniform equilibrium is one small
-linear solve per strip, vectorised over any number of strips. tests/test_strip.py checks
+:mod:`shellfem.layers` (exact Kirchhoff-Love metric) is quadratic in (a, b) apart from the
+third fundamental form, so the uniform equilibrium is one small linear solve per strip
+(the truncated metric's minimiser) followed by a few Newton steps with the exact Hessian,
+vectorised over any number of strips. tests/test_strip.py checks
 that the full finite-element simulation of a strip reproduces these values, so the
 calibration and validation code may use them as "the project's own model".
 
@@ -13,17 +15,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from shellfem.layers import QuadraticForm, layer_quadratic
+from shellfem.layers import QuadraticForm, layer_form
 
 
 def strip_state(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, plastic_poisson=0.5,
-                fabric_poisson=0.3, rest_curvature=0.0, mode="narrow"):
+                fabric_poisson=0.3, rest_curvature=0.0, mode="narrow", exact_metric=False):
     """Uniform equilibrium (a11, a12, a22, b11, b12, b22) in printed Cartesian coordinates
     of a strip with plastic on the front (+z); arrays broadcast together.
 
     mode "narrow": no constraint (a narrow strip: transverse stress free, anticlastic
     freedom); "plate": transverse curvature b22 = 0 (a wide sheet rolling into a cylinder
-    about y)."""
+    about y). exact_metric=False: the truncated metric a - 2 z b (shellfem.layers)."""
     hp, hf, s, ratio, nup, nuf, kap = np.broadcast_arrays(*(np.asarray(v, float) for v in (
         plastic_thickness, fabric_thickness, stretch, modulus_ratio, plastic_poisson, fabric_poisson,
         rest_curvature)))
@@ -34,9 +36,10 @@ def strip_state(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, 
     quad = QuadraticForm(n)
     # energies per unit printed area; each layer is integrated over its own rest area
     # (seed Eq. 3.9: sqrt(det a_r) dx dy), which for the fabric is 1/s^2 of the printed one
-    quad.add(*layer_quadratic(eye / (s * s)[:, None], np.zeros((n, 3)), 1.0, nuf, -hf / 2, hf / 2,
-                              area=1.0 / (s * s)))
-    quad.add(*layer_quadratic(eye, -kap[:, None] * eye, ratio, nup, hf / 2, hf / 2 + hp, area=np.ones(n)))
+    quad.add(*layer_form(eye / (s * s)[:, None], np.zeros((n, 3)), 1.0, nuf, -hf / 2, hf / 2, area=1.0 / (s * s),
+                         exact_metric=exact_metric))
+    quad.add(*layer_form(eye, -kap[:, None] * eye, ratio, nup, hf / 2, hf / 2 + hp, area=np.ones(n),
+                         exact_metric=exact_metric))
     if mode == "narrow":
         z = quad.minimiser()
     elif mode == "plate":
@@ -47,7 +50,7 @@ def strip_state(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, 
 
 
 def strip_curvature(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, plastic_poisson=0.5,
-                    fabric_poisson=0.3, rest_curvature=0.0, mode="narrow"):
+                    fabric_poisson=0.3, rest_curvature=0.0, mode="narrow", exact_metric=False):
     """Curvature (1/mm) of a released bilayer strip, > 0 when concave on the fabric side.
 
     plastic_thickness, fabric_thickness: mm; stretch: isotropic pre-stretch s >= 1;
@@ -55,7 +58,8 @@ def strip_curvature(plastic_thickness, fabric_thickness, stretch, modulus_ratio,
     the bilayer bend). Arrays broadcast. The curvature is b11 / a11 of the uniform state
     (normal curvature per unit deformed length along the strip)."""
     z = strip_state(plastic_thickness, fabric_thickness, stretch, modulus_ratio, plastic_poisson=plastic_poisson,
-                    fabric_poisson=fabric_poisson, rest_curvature=rest_curvature, mode=mode)
+                    fabric_poisson=fabric_poisson, rest_curvature=rest_curvature, mode=mode,
+                    exact_metric=exact_metric)
     return -z[..., 3] / z[..., 0]
 
 

@@ -51,9 +51,8 @@ def test_sze_end_moment_rolls_into_a_full_circle():
         Mk = ShellModel.homogeneous(sh, E, 0.0, H, rest_curvature=[[-frac * Mmax / EI, 0], [0, 0]])
         flat = ShellModel.homogeneous(sh, E, 0.0, H)
         quad = QuadraticForm(sh.n_triangles)
-        for (idx, Q, zb), (_, Q0, zb0) in zip(Mk.quad._terms, flat.quad._terms):
-            quad.add(Q, zb, mask=inside)
-            quad.add(Q0, zb0, mask=~inside)
+        quad.add_form(Mk.quad, inside)
+        quad.add_form(flat.quad, ~inside)
         Mk.quad = quad
         models.append(Mk)
     free = free_x

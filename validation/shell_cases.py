@@ -172,9 +172,8 @@ def _with_rest_curvature_on(sheet: Sheet, mask: np.ndarray, kappa_xx: float, E: 
     curved = ShellModel.homogeneous(sheet, E, nu, h, rest_curvature=[[kappa_xx, 0.0], [0.0, 0.0]])
     flat = ShellModel.homogeneous(sheet, E, nu, h)
     quad = QuadraticForm(sheet.n_triangles)
-    for (_, Q, zb), (_, Q0, zb0) in zip(curved.quad._terms, flat.quad._terms):
-        quad.add(Q, zb, mask=mask)
-        quad.add(Q0, zb0, mask=~mask)
+    quad.add_form(curved.quad, mask)
+    quad.add_form(flat.quad, ~mask)
     curved.quad = quad
     return curved
 
