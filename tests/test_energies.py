@@ -2,6 +2,7 @@
 differences on random states, for every material term."""
 import numpy as np
 import pytest
+
 import scipy.sparse as sp
 
 from shellfem import layers
@@ -12,6 +13,7 @@ from shellfem.materials.neo_hookean import neo_hookean
 from shellfem.materials.orthotropic import orthotropic
 from shellfem.model import ShellModel
 from shellfem.sheet import Sheet
+from fd import central_difference   # tests/fd.py
 
 
 def _sheet(seed=1):
@@ -37,14 +39,7 @@ def test_total_energy_gradient_and_hessian(model_name):
     E, g, (Hf, Hh) = M.hessian_blocks(q)
     assert np.isfinite(E)
     H = BlockScatter([M.face_dofs, M.hinge_dofs], M.n_dofs, np.ones(M.n_dofs, bool)).matrix([Hf, Hh]).toarray()
-    eps = 1e-6
-    gn, Hn = np.zeros_like(g), np.zeros_like(H)
-    for d in range(M.n_dofs):
-        qp, qm = q.copy(), q.copy()
-        qp[d] += eps
-        qm[d] -= eps
-        gn[d] = (M.energy(qp) - M.energy(qm)) / (2 * eps)
-        Hn[:, d] = (M.gradient(qp) - M.gradient(qm)) / (2 * eps)
+    gn, Hn = central_difference(M.energy, q), central_difference(M.gradient, q)
     assert np.abs(g - gn).max() < 1e-6 * np.abs(g).max()
     assert np.abs(H - Hn).max() < 1e-6 * np.abs(H).max()
     assert np.abs(H - H.T).max() < 1e-10 * np.abs(H).max()
@@ -97,14 +92,8 @@ def test_edge_angle_problem_matches_the_full_model_and_finite_differences():
     q2 = q.copy()
     q2[3 * n:] += dth
     assert P.evaluate(th + dth, 0)[0] - e == pytest.approx(M.energy(q2) - M.energy(q), rel=1e-9)
-    eps = 1e-6
-    gn, Hn = np.zeros(ne), np.zeros((ne, ne))
-    for d in range(ne):
-        tp, tm = th.copy(), th.copy()
-        tp[d] += eps
-        tm[d] -= eps
-        gn[d] = (P.evaluate(tp, 0)[0] - P.evaluate(tm, 0)[0]) / (2 * eps)
-        Hn[:, d] = (P.evaluate(tp, 1)[1] - P.evaluate(tm, 1)[1]) / (2 * eps)
+    gn = central_difference(lambda t: P.evaluate(t, 0)[0], th)
+    Hn = central_difference(lambda t: P.evaluate(t, 1)[1], th)
     assert np.abs(g - gn).max() < 1e-6 * np.abs(g).max()
     assert np.abs(H - Hn).max() < 1e-6 * np.abs(H).max()
     assert P.evaluate(th + 2.0, 0)[0] == np.inf          # |psi| beyond 0.49 pi: inadmissible

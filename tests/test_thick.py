@@ -5,6 +5,7 @@ the third-form terms matter, and the strip reduction and the full shell against 
 through-thickness integration of the 3D St.Venant-Kirchhoff strip up to kappa h = 0.1."""
 import numpy as np
 import pytest
+
 from scipy.optimize import minimize
 
 from shellfem import layers
@@ -16,6 +17,7 @@ from shellfem.newton import newton
 from shellfem.sensitivity import thickness_form, thickness_gradient
 from shellfem.sheet import Sheet
 from shellfem.strip import strip_curvature
+from fd import central_difference   # tests/fd.py
 
 
 # --- an independent reference: the 3D strip integrated through the thickness ------------------
@@ -249,14 +251,7 @@ def test_total_energy_derivatives_on_a_rolled_thick_sheet(kind):
     E, g, (Hf, Hh) = M.hessian_blocks(q)
     scatter = BlockScatter([M.face_dofs, M.hinge_dofs], M.n_dofs, np.ones(M.n_dofs, bool))
     H = scatter.matrix([Hf, Hh]).toarray()
-    eps = 1e-6
-    gn, Hn = np.zeros_like(g), np.zeros_like(H)
-    for d in range(M.n_dofs):
-        qp, qm = q.copy(), q.copy()
-        qp[d] += eps
-        qm[d] -= eps
-        gn[d] = (M.energy(qp) - M.energy(qm)) / (2 * eps)
-        Hn[:, d] = (M.gradient(qp) - M.gradient(qm)) / (2 * eps)
+    gn, Hn = central_difference(M.energy, q), central_difference(M.gradient, q)
     assert np.abs(g - gn).max() < 1e-6 * np.abs(g).max()
     assert np.abs(H - Hn).max() < 1e-6 * np.abs(H).max()
     assert np.abs(H - H.T).max() < 1e-10 * np.abs(H).max()
@@ -282,13 +277,7 @@ def test_edge_angle_problem_on_a_rolled_thick_sheet():
     H_full = BlockScatter([M.face_dofs, M.hinge_dofs], M.n_dofs, free).matrix([Hf, Hh]).toarray()
     assert np.abs(g - g_full[3 * n:]).max() < 1e-12 * np.abs(g).max()
     assert np.abs(H - H_full).max() < 1e-12 * np.abs(H).max()
-    eps = 1e-6
-    Hn = np.zeros((ne, ne))
-    for d in range(ne):
-        tp, tm = th.copy(), th.copy()
-        tp[d] += eps
-        tm[d] -= eps
-        Hn[:, d] = (P.evaluate(tp, 1)[1] - P.evaluate(tm, 1)[1]) / (2 * eps)
+    Hn = central_difference(lambda t: P.evaluate(t, 1)[1], th)
     assert np.abs(H - Hn).max() < 1e-6 * np.abs(H).max()
 
 
