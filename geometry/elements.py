@@ -51,3 +51,8 @@ class Ribbon:
     side: str = "front"
     label: str = ""
     meta: dict = field(default_factory=dict)
+
+    @property
+    def length_mm(self) -> float:
+        """Length of the centre line (printed mm)."""
+        return float(np.linalg.norm(np.diff(np.asarray(self.path, float), axis=0), axis=1).sum())

@@ -303,7 +303,7 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     tinfo = assign_thickness(ribbons, law, printer.layer_height_mm)
     reach = curvature_reach(law, [r.meta["kappa_mean_abs"] for r in ribbons], [r.meta["mu2"] for r in ribbons],
                             [r.side for r in ribbons],
-                            [float(np.linalg.norm(np.diff(r.path, axis=0), axis=1).sum()) for r in ribbons],
+                            [r.length_mm for r in ribbons],
                             printer.layer_height_mm, diagonal_mm=float(np.linalg.norm(np.ptp(V0, axis=0))),
                             min_diagonal_mm=4.0 * ribbon_length)
     reach["warning"] = reach_warning(reach)
@@ -318,8 +318,8 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
 
 def reach_score(d: Design) -> dict:
     """How well a design's law and flattening fit its target, for ranking stretches: the
-    length-weighted ``log_excess`` of the asked curvature over both sides
-    (inverse.thickness_law.curvature_reach), the flattening's mean out-of-bounds area fraction,
+    ``log_excess`` of the asked curvature (inverse.thickness_law.curvature_reach: length-weighted
+    within a side; the sides averaged by their ribbon counts), the flattening's mean out-of-bounds area fraction,
     and their sum ``score`` (lower is better; a factor e off in curvature on average costs as much
     as all of the area out of the stretch bounds)."""
     reach = d.curvature_reach or {}
@@ -352,6 +352,7 @@ def choose_stretch(V, F, options: DesignOptions | None = None, *, where: str = "
             raise SelfshapeError(f"{law.source}: --stretch auto needs a law that states its fabric stretch "
                                  f"(a '# fabric_stretch = s' line); give --stretch instead")
         candidates = [law.stretch]
+        o = replace(o, thickness_law=law)         # read once, not again per design
     best, rows = None, []
     for s in candidates:
         d = design(V, F, o, where=where, stretch=s)

@@ -20,7 +20,7 @@ def thickness_histogram(ribbons) -> dict:
 
 def report_dict(d: Design) -> dict:
     f = d.flat
-    lengths = [float(np.linalg.norm(np.diff(r.path, axis=0), axis=1).sum()) for r in d.ribbons]
+    lengths = [r.length_mm for r in d.ribbons]
     return {
         "n_faces": int(len(d.F)), "n_faces_input": int(len(d.F_input)), "refine_levels": d.refine_levels,
         "n_faces_layout": int(len(d.F_input) * 4 ** d.layout_levels),

@@ -101,7 +101,7 @@ def main(argv=None):
     t3 = time.perf_counter()
     cpu = time.process_time() - c0
 
-    lengths = np.array([np.linalg.norm(np.diff(r.path, axis=0), axis=1).sum() for r in ribbons])
+    lengths = np.array([r.length_mm for r in ribbons])
     print(json.dumps({
         "bench": "stripes+layout", "n_vertices": int(len(V)), "n_faces": int(len(F)), "edge_mm": round(h, 3),
         "stripe_field_s": round(t1 - t0, 2), "stripe_iterations": theta.iterations,
