@@ -1,6 +1,8 @@
 """The files of a simulation: deployed.vtu (ParaView: deployed surface, printed-state reference,
-regions, thickness, side, curvatures; mm, 1/mm); summary.json is the Simulation.summary() dict
-written by shellfem.outfiles.write_json.
+regions, thickness, side, curvatures; mm, 1/mm); deployed.obj/.stl/.ply (the deployed surface
+for Rhino and slicers, mm) and pattern.dxf/.svg (the flat pattern: fabric outline and printed
+polygons per side and thickness, printed-state mm), all by geometry.cad; summary.json is the
+Simulation.summary() dict written by shellfem.outfiles.write_json.
 
 Neither takes a non-finite number (shellfem.outfiles.NonFiniteOutput, naming the array or key):
 a NaN or infinity in a result file is never written. ``simulate_pattern_file`` writes them
@@ -12,7 +14,10 @@ import numpy as np
 from shellfem.outfiles import check_finite_arrays
 
 #: The files `selfshape simulate` writes (an earlier run's are removed before a new run).
-OUTPUTS = ("deployed.vtu", "deployed.png", "summary.json")
+OUTPUTS = ("deployed.vtu", "deployed.obj", "deployed.stl", "deployed.ply", "pattern.dxf", "pattern.svg",
+           "deployed.png", "index.html", "summary.json")
+#: The deployed surface's CAD copies (geometry.cad.write_surface)
+SURFACES = ("deployed.obj", "deployed.stl", "deployed.ply")
 
 
 def write_vtu(sim, path: str):
@@ -32,3 +37,14 @@ def write_vtu(sim, path: str):
                                    point_data={"reference": ref},
                                    cell_data={name: [np.asarray(v)] for name, v in cells.items()}))
 
+
+
+def write_cad(out, sim, pattern):
+    """deployed.obj/.stl/.ply and pattern.dxf/.svg of a simulation into the OutputDir ``out``,
+    each atomically (geometry.cad; mm)."""
+    from geometry import cad
+    for name in SURFACES:
+        out.write(name, lambda tmp: cad.write_surface(tmp, sim.positions, sim.sheet.triangles))
+    drawing = cad.pattern_drawing(pattern)
+    out.write("pattern.dxf", lambda tmp: cad.write_dxf(tmp, drawing))
+    out.write("pattern.svg", lambda tmp: cad.write_svg(tmp, drawing))

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from shellfem.errors import SelfshapeError, check_number
-from forward.outputs import write_vtu
+from forward.outputs import write_cad, write_vtu
 from forward.supports import carry_support_motion, support_constraints
 from shellfem.boundary import gauge_dofs, gauge_reaction, smooth_perturbation
 from shellfem.model import ShellModel
@@ -228,7 +228,9 @@ def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=F
 
 def simulate_pattern_file(pattern_path, out_dir, *, size_mm=None, seed=None, render=True, max_iterations=None,
                           verbose=False, coarse_levels=None) -> dict:
-    """`selfshape simulate`: writes DIR/deployed.vtu, DIR/deployed.png (``render``), DIR/summary.json.
+    """`selfshape simulate`: writes DIR/deployed.vtu, deployed.obj/.stl/.ply, pattern.dxf/.svg
+    (forward.outputs.write_cad), deployed.png (``render``), index.html (forward.view: the page
+    to open in a browser), DIR/summary.json.
 
     The output folder is checked before the work (shellfem.outfiles.OutputDir: a file, an
     unwritable folder, a symbolic link at an output name or the pattern itself as an output
@@ -257,8 +259,11 @@ def simulate_pattern_file(pattern_path, out_dir, *, size_mm=None, seed=None, ren
         summary["pattern"] = os.path.abspath(str(pattern_path))
         summary["seed"] = pattern.seed if seed is None else seed
         out.write("deployed.vtu", lambda tmp: write_vtu(sim, tmp))
+        write_cad(out, sim, pattern)
         if render:
             from forward.render import render_deployed
             out.write("deployed.png", lambda tmp: render_deployed(sim, tmp, title=os.path.basename(str(pattern_path))))
+        from forward.view import folder_page
+        out.write_text("index.html", folder_page(out.path, summary, target=False))     # the 3D page (forward.view)
         out.write_json("summary.json", summary)          # last: the folder is complete
         return summary

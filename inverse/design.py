@@ -2,7 +2,8 @@
 
     design(V, F)            arrays in, a Design record out (no files)
     design_file(path, dir)  the CLI verb: writes pattern.toml, flat.vtu, front/back.gcode,
-                            pattern.png, report.json (and with verify deployed.vtu, verify.png)
+                            pattern.png, pattern.dxf/.svg, index.html, report.json (and with
+                            verify deployed.vtu/.obj/.stl/.ply, verify.png)
 
 Stages (times in Design.times / report.json "stages_s"):
  1. check (disk topology, one-line errors), centre and scale to a bounding-box diagonal
@@ -53,8 +54,8 @@ from shellfem.errors import SelfshapeError
 
 RIBBON_LENGTH_MM, RIBBON_WIDTH_MM = 15.0, 1.5
 #: Every file design_file may write (removed from the output directory before a new run writes).
-OUTPUTS = ("report.json", "pattern.toml", "flat.vtu", "front.gcode", "back.gcode", "pattern.png", "deployed.vtu",
-           "verify.png")
+OUTPUTS = ("report.json", "pattern.toml", "flat.vtu", "front.gcode", "back.gcode", "pattern.png", "pattern.dxf",
+           "pattern.svg", "deployed.vtu", "deployed.obj", "deployed.stl", "deployed.ply", "verify.png", "index.html")
 
 
 # ----------------------------------------------------------------------------- stages
@@ -370,10 +371,12 @@ VERIFY_KEYS = ("verify_converged", "verify_reason", "verify_newton_iterations", 
 
 
 def _write_design_files(out, d, raw, printer, title):
-    """pattern.toml, flat.vtu, front.gcode (back.gcode when a ribbon is on the back) and
-    pattern.png of design d into the OutputDir ``out``, each atomically; pattern.toml's
-    numbers must be finite (shellfem.outfiles.NonFiniteOutput)."""
-    from geometry.patterns import write_pattern
+    """pattern.toml, flat.vtu, front.gcode (back.gcode when a ribbon is on the back),
+    pattern.png and pattern.dxf/.svg (geometry.cad: the fabric outline and the ribbons as the
+    pattern clips them, a layer per side and thickness) of design d into the OutputDir ``out``,
+    each atomically; pattern.toml's numbers must be finite (shellfem.outfiles.NonFiniteOutput)."""
+    from geometry import cad
+    from geometry.patterns import parse_pattern, write_pattern
     from inverse.gcode import ribbons_to_gcode_files
     from shellfem.outfiles import check_finite
 
@@ -382,6 +385,10 @@ def _write_design_files(out, d, raw, printer, title):
     out.write("flat.vtu", lambda tmp: write_flat_vtu(d, tmp))
     out.written += ribbons_to_gcode_files(d.ribbons, out.makedirs(), printer)   # atomic on their own
     out.write("pattern.png", lambda tmp: plot_pattern(d, tmp, title=title))
+    p_toml = out.file("pattern.toml")
+    drawing = cad.pattern_drawing(parse_pattern(raw, p_toml, os.path.dirname(os.path.abspath(p_toml))))
+    out.write("pattern.dxf", lambda tmp: cad.write_dxf(tmp, drawing))
+    out.write("pattern.svg", lambda tmp: cad.write_svg(tmp, drawing))
 
 
 def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smoothness, verbose, pattern_kw):
@@ -439,7 +446,9 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
                 refine_smoothness: float = 0.05, verbose: bool = False, inputs=(), **overrides) -> dict:
     """`selfshape design TARGET -o DIR`: writes DIR/pattern.toml, flat.vtu, front.gcode (and
     back.gcode when a ribbon is on the back), pattern.png and report.json (last); with
-    ``verify`` also deployed.vtu and verify.png and the deviation in report.json.
+    ``verify`` also deployed.vtu, deployed.obj/.stl/.ply, verify.png and the deviation in
+    report.json; pattern.dxf/.svg (the flat pattern for CAD and laser cutting) and index.html
+    (forward.view: deployed surface, target ghost and flat pattern in a browser) always.
 
     ``options``/``overrides``: the design's DesignOptions, as for `design`. mesh_size_mm,
     mesh_across: pattern.toml's [mesh]. verify_iterations: Newton cap of the verification,
@@ -507,6 +516,8 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
                                     dict(mesh_size_mm=mesh_size_mm, mesh_across=mesh_across,
                                          max_iterations=verify_iterations, metric_floor=metric_floor))
         rep["total_time_s"] = round(time.perf_counter() - t_start, 3)
+        from forward.view import folder_page
+        out.write_text("index.html", folder_page(out.path, rep))        # the 3D page (forward.view)
         rep["files"] = sorted({os.path.basename(p) for p in out.written if os.path.exists(p)} | {"report.json"})
         out.write_json("report.json", rep)          # last: a folder with a report.json is complete
         return rep

@@ -33,7 +33,8 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
     Newton iterations, deviation_pct_bbox [mean, max] (deployed -> target),
     deviation_target_to_deployed_pct_bbox [mean, max], deviation_p99_pct_bbox. A simulation
     that fails or does not converge reports no deviation. With ``out_dir`` (a folder or the
-    design's shellfem.outfiles.OutputDir), deployed.vtu and verify.png are written there
+    design's shellfem.outfiles.OutputDir), deployed.vtu, deployed.obj/.stl/.ply (registered, mm)
+    and verify.png are written there
     atomically and their paths appended to ``written``; the Simulation is appended to ``sims``
     if given (the refinement starts from it)."""
     from forward.simulate import simulate
@@ -66,9 +67,13 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
                 "bbox_diagonal_mm": float(np.linalg.norm(d.V_input.max(0) - d.V_input.min(0)))})
     if out_dir is not None:
         from shellfem.outfiles import OutputDir
-        files = out_dir if isinstance(out_dir, OutputDir) else OutputDir(out_dir, ("deployed.vtu", "verify.png"))
-        paths = [files.write("deployed.vtu", lambda tmp: write_deployed_vtu(tmp, Xr, sim.sheet, pct)),
-                 files.write("verify.png", lambda tmp: plot_verify(d, Xr, sim.sheet.triangles, pct, tmp))]
+        from geometry.cad import write_surface
+        from forward.outputs import SURFACES
+        files = out_dir if isinstance(out_dir, OutputDir) else \
+            OutputDir(out_dir, ("deployed.vtu", *SURFACES, "verify.png"))
+        paths = [files.write("deployed.vtu", lambda tmp: write_deployed_vtu(tmp, Xr, sim.sheet, pct))]
+        paths += [files.write(n, lambda tmp: write_surface(tmp, Xr, sim.sheet.triangles)) for n in SURFACES]
+        paths.append(files.write("verify.png", lambda tmp: plot_verify(d, Xr, sim.sheet.triangles, pct, tmp)))
         if written is not None:
             written += paths
     return out

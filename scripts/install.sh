@@ -9,9 +9,10 @@ if command -v apt-get >/dev/null 2>&1; then
   export DEBIAN_FRONTEND=noninteractive
   # gmsh needs the GL/X client libraries even headless; libegl1 for off-screen pyvista
   # PNGs; OpenBLAS makes CHOLMOD 3-7x faster than reference BLAS; libsuitesparse-dev
-  # and a compiler build scikit-sparse (CHOLMOD) from source.
+  # and a compiler build scikit-sparse (CHOLMOD) from source; chromium (headless) draws the
+  # index.html page in tests/test_view.py (WebGL through SwiftShader, no GPU needed).
   pkgs="libgl1 libglu1-mesa libxrender1 libxcursor1 libxft2 libxinerama1 libgomp1 libegl1
-        libopenblas0-pthread libsuitesparse-dev gcc g++"
+        libopenblas0-pthread libsuitesparse-dev gcc g++ chromium"
   missing=$(for p in $pkgs; do dpkg -s "$p" >/dev/null 2>&1 || echo "$p"; done)
   if [ -n "$missing" ]; then
     $SUDO apt-get update -qq

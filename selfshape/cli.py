@@ -1,4 +1,4 @@
-"""The ``selfshape`` command: mesh, simulate, design, calibrate, validate, predict.
+"""The ``selfshape`` command: mesh, simulate, design, calibrate, validate, predict, view.
 
 Every verb is a thin wrapper over a Python function (named in its help) so that
 scripts can call the same thing. Bad input exits with status 2 and one line on
@@ -193,6 +193,15 @@ def _cmd_predict(a):
     print(f"wrote {n} predictions to {a.output}")
 
 
+def _cmd_view(a):
+    from forward.view import write_view
+    path = write_view(a.folder)
+    if a.open:
+        import webbrowser
+        webbrowser.open("file://" + os.path.abspath(path))
+    print(f"wrote {path}: open it in a browser (works offline)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="selfshape", description="Self-shaping textiles: simulate, design, calibrate.")
     sub = p.add_subparsers(dest="verb", required=True)
@@ -253,6 +262,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("data")
     r.add_argument("-o", "--output", required=True)
     r.set_defaults(fn=_cmd_predict)
+    w = sub.add_parser("view", help="DIR/index.html: the 3D page of a simulate or design folder (forward.view.write_view)")
+    w.add_argument("folder", help="an output folder of selfshape simulate or design")
+    w.add_argument("--open", action="store_true", help="also open it in the default browser")
+    w.set_defaults(fn=_cmd_view)
     return p
 
 

@@ -70,10 +70,12 @@ def inputs(tmp_path_factory):
 VERBS = {
     "mesh": (["mesh", "{pattern}", "-o", "OUT", "--size", "4"], "file", None, None),
     "simulate": (["simulate", "{pattern}", "-o", "OUT", "--size", "3", "--no-png"], "dir", "summary.json",
-                 ("deployed.vtu", "deployed.png", "summary.json")),
+                 ("deployed.vtu", "deployed.obj", "deployed.stl", "deployed.ply", "pattern.dxf", "pattern.svg",
+                  "deployed.png", "index.html", "summary.json")),
     "design": (["design", "{target}", "-o", "OUT"], "dir", "report.json",
                ("report.json", "pattern.toml", "flat.vtu", "front.gcode", "back.gcode", "pattern.png",
-                "deployed.vtu", "verify.png")),
+                "pattern.dxf", "pattern.svg", "deployed.vtu", "deployed.obj", "deployed.stl", "deployed.ply",
+                "verify.png", "index.html")),
     "calibrate strips": (["calibrate", "strips", "{csv}", "-o", "OUT"], "dir", "parameters.json",
                          ("strips_fit.png", "parameters.json")),
     "calibrate fabric": (["calibrate", "fabric", FABRIC, "-o", "OUT"], "dir", "parameters.json",
@@ -280,9 +282,11 @@ def test_simulate_rerun_clears_its_stale_outputs_and_writes_the_summary_last(inp
     order = _replace_order(monkeypatch)
     rc, so, err = run(argv_of("simulate", inputs, str(out)), capsys)
     assert rc == 0 and err == [] and len(so.splitlines()) == 1
-    assert sorted(os.listdir(out)) == sorted(["deployed.vtu", "summary.json", "notes.txt", "summary.json.bak",
-                                              "deployed.vtu.old", "Summary.json"])
-    assert order == ["deployed.vtu", "summary.json"]
+    written = ["deployed.vtu", "deployed.obj", "deployed.stl", "deployed.ply", "pattern.dxf", "pattern.svg",
+               "index.html", "summary.json"]
+    assert sorted(os.listdir(out)) == sorted(written + ["notes.txt", "summary.json.bak", "deployed.vtu.old",
+                                                        "Summary.json"])
+    assert order == written
     s = json.loads((out / "summary.json").read_text(), parse_constant=lambda c: pytest.fail(c))
     assert s["converged"] is True and s["n_vertices"] > 0
 
