@@ -180,7 +180,7 @@ header h1{font-size:16px;margin:0 12px 0 0;display:inline}
 <header><h1>@TITLE@</h1><span>@SUMMARY@</span></header>
 <div id="main"><div id="left"><canvas id="gl"></canvas>
 <div id="ui"><label>colour <select id="field"></select></label>
-<label id="ghostl"><input type="checkbox" id="ghost" checked> target</label></div>
+<label id="ghostl"><input type="checkbox" id="ghost" checked> target (green ghost)</label></div>
 <div id="legend"><canvas id="bar" width="200" height="10"></canvas><div id="range"></div></div></div>
 <div id="right"><b>flat pattern</b> (printed state, mm)<br>@SVG@</div></div>
 <script type="application/json" id="data">@DATA@</script>
@@ -257,7 +257,7 @@ function draw(){if(!gl||!first)return;const w=canvas.clientWidth,h=canvas.client
   gl.uniform1f(gl.getUniformLocation(prog,"alpha"),a);gl.drawArrays(gl.TRIANGLES,0,b.count);};
  if(bufs.dep)pass(bufs.dep,1.0);
  if(bufs.tgt&&(!dep||document.getElementById("ghost").checked)){gl.enable(gl.BLEND);gl.blendFunc(gl.SRC_ALPHA,gl.ONE_MINUS_SRC_ALPHA);gl.depthMask(false);
-  pass(bufs.tgt,dep?0.25:1.0);gl.depthMask(true);gl.disable(gl.BLEND);}}
+  pass(bufs.tgt,dep?0.35:1.0);gl.depthMask(true);gl.disable(gl.BLEND);}}
 function upload(M,name){const g=geometry(M);return {P:buf(g.P),N:buf(g.N),C:buf(colours(M,name)),count:3*M.m};}
 const sel=document.getElementById("field");
 if(dep){for(const k of Object.keys(dep.f).concat(["plain"])){const o=document.createElement("option");o.textContent=k;sel.appendChild(o);}}
@@ -265,7 +265,7 @@ else sel.parentNode.style.display="none";
 if(!tgt||!dep)document.getElementById("ghostl").style.display="none";
 if(gl&&first){prog=gl.createProgram();gl.attachShader(prog,sh(gl.VERTEX_SHADER,VS));gl.attachShader(prog,sh(gl.FRAGMENT_SHADER,FS));gl.linkProgram(prog);
  if(dep)bufs.dep=upload(dep,sel.value);
- if(tgt){const g=geometry(tgt),C=new Float32Array(tgt.m*9).fill(0.55);bufs.tgt={P:buf(g.P),N:buf(g.N),C:buf(C),count:3*tgt.m};}
+ if(tgt){const g=geometry(tgt),C=new Float32Array(tgt.m*9);for(let i=0;i<tgt.m*3;i++)C.set([0.15,0.55,0.35],3*i);bufs.tgt={P:buf(g.P),N:buf(g.N),C:buf(C),count:3*tgt.m};}
  sel.onchange=()=>{gl.bindBuffer(gl.ARRAY_BUFFER,bufs.dep.C);gl.bufferData(gl.ARRAY_BUFFER,colours(dep,sel.value),gl.STATIC_DRAW);draw();};
  document.getElementById("ghost").onchange=draw;
  let drag=null;canvas.onmousedown=e=>{drag=[e.clientX,e.clientY];};window.onmouseup=()=>{drag=null;};
