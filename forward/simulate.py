@@ -88,7 +88,7 @@ def _level_setup(sheet: Sheet, fabric, plastic, supports, seed: int, tol_support
     return model, q, fixed, values, gauge, free
 
 
-def _release(sheet, model, q, fixed, values, free, fabric, plastic, steps, newton_options, verbose):
+def _release(sheet, model, q, fixed, values, free, fabric, plastic, steps, newton_options, verbose, progress=None):
     """Continuation from the flat start q over ``steps`` release steps: (result, iterations)."""
     from dataclasses import replace
     start = q[fixed].copy()
@@ -98,6 +98,8 @@ def _release(sheet, model, q, fixed, values, free, fabric, plastic, steps, newto
     result = None
     for k in range(1, steps + 1):
         t = k / steps
+        if progress is not None and steps > 1:
+            progress({"stage": "release", "step": k, "steps": steps})
         fab_k = replace(fabric, stretch=(1 + (sx - 1) * t, 1 + (sy - 1) * t))
         pla_k = replace(plastic, rest_curvature=plastic.rest_curvature * t)
         model_k = model if k == steps else ShellModel.from_materials(sheet, fab_k, pla_k)
@@ -130,7 +132,8 @@ def _release(sheet, model, q, fixed, values, free, fabric, plastic, steps, newto
 
 def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0, max_iterations: int = 300,
                    release_steps: int = 1, tol_support: float | None = None, verbose: bool = False,
-                   rtol: float = 1e-8, metric_floor: float | None = None, coarse=(), start=None) -> Simulation:
+                   rtol: float = 1e-8, metric_floor: float | None = None, coarse=(), start=None,
+                   progress=None) -> Simulation:
     """Released equilibrium of a meshed sheet (printed-state mm) with the given materials.
 
     The start is the flat printed state with a smooth out-of-plane perturbation of 1 % of
@@ -152,7 +155,12 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
 
     ``start``: (n_vertices, 3) positions of the given sheet to start from instead of the
     perturbed flat state (a chosen branch of a multistable sheet, e.g. a slight roll); only
-    without ``coarse``."""
+    without ``coarse``.
+
+    ``progress``: called with a dict per event, for a progress display (the CLI's status line):
+    {"stage": "level", "level", "levels", "n_vertices"} as each mesh level starts, {"stage":
+    "release", "step", "steps"} per release step, {"stage": "newton", "iteration", "energy"
+    (N mm), "gradient_norm" (N)} per accepted Newton step."""
     if start is not None and len(coarse):
         raise SelfshapeError("simulate_sheet: a start state is for a single mesh (no coarse levels)")
     t0 = time.perf_counter()
@@ -169,6 +177,10 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
                                                             start=start if last else None)
         opts = dict(max_iterations=max_iterations, verbose=verbose, metric_floor=metric_floor,
                     rtol=rtol if last else COARSE_RTOL)
+        if progress is not None:
+            progress({"stage": "level", "level": j + 1, "levels": len(sheets), "n_vertices": int(sh.n_vertices)})
+            opts["callback"] = lambda h: progress({"stage": "newton", "iteration": h["iteration"],
+                                                   "energy": h["energy"], "gradient_norm": h["gradient_norm"]})
         guess = None
         if prev is not None:
             psheet, px = prev
@@ -178,7 +190,7 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
             if not np.isfinite(model.energy(guess)):
                 guess = None
         if guess is None:
-            result, its = _release(sh, model, q, fixed, values, free, fabric, plastic, steps, opts, verbose)
+            result, its = _release(sh, model, q, fixed, values, free, fabric, plastic, steps, opts, verbose, progress)
         else:
             result = newton(model, guess, free, **opts)
             its = result.iterations
@@ -211,23 +223,26 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
 
 
 def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=False,
-             coarse_levels=None) -> Simulation:
+             coarse_levels=None, progress=None) -> Simulation:
     """Mesh a geometry.patterns.Pattern and compute its released equilibrium.
 
     coarse_levels (default: the pattern's [solver] coarse_levels, "auto"): coarser meshes of the
-    pattern solved first (nested iteration, shellfem.multilevel); 0 solves the mesh alone."""
+    pattern solved first (nested iteration, shellfem.multilevel); 0 solves the mesh alone.
+    progress: as for simulate_sheet, and {"stage": "mesh"} before meshing."""
     from geometry.meshing import coarse_meshes, mesh_pattern
+    if progress is not None:
+        progress({"stage": "mesh"})
     sheet = mesh_pattern(pattern, size_mm=size_mm)
     levels = getattr(pattern, "coarse_levels", "auto") if coarse_levels is None else coarse_levels
     coarse = coarse_meshes(pattern, sheet.n_vertices, size_mm=size_mm, levels=levels)
     mi = max_iterations or pattern.max_iterations
     return simulate_sheet(sheet, pattern.fabric, pattern.plastic, pattern.supports,
                           seed=pattern.seed if seed is None else seed, max_iterations=mi, verbose=verbose,
-                          metric_floor=pattern.metric_floor, coarse=coarse)
+                          metric_floor=pattern.metric_floor, coarse=coarse, progress=progress)
 
 
 def simulate_pattern_file(pattern_path, out_dir, *, size_mm=None, seed=None, render=True, max_iterations=None,
-                          verbose=False, coarse_levels=None) -> dict:
+                          verbose=False, coarse_levels=None, progress=None) -> dict:
     """`selfshape simulate`: writes DIR/deployed.vtu, deployed.obj/.stl/.ply, pattern.dxf/.svg
     (forward.outputs.write_cad), deployed.png (``render``), index.html (forward.view: the page
     to open in a browser), DIR/summary.json.
@@ -239,7 +254,8 @@ def simulate_pattern_file(pattern_path, out_dir, *, size_mm=None, seed=None, ren
     Each file is written atomically and summary.json last: a folder with a summary.json is
     complete. A simulation whose numbers are not finite (e.g. a modulus of 1e300) is a
     SelfshapeError and writes nothing. On any failure, Ctrl-C included, nothing produced by
-    this run is left (nor the folder, if this run created it)."""
+    this run is left (nor the folder, if this run created it). ``progress``: see simulate_sheet;
+    also {"stage": "write"} before the files are written."""
     from geometry.patterns import load_pattern
     from forward.outputs import OUTPUTS
     from shellfem.outfiles import OutputDir
@@ -249,7 +265,7 @@ def simulate_pattern_file(pattern_path, out_dir, *, size_mm=None, seed=None, ren
     out = OutputDir(out_dir, OUTPUTS, inputs=[pattern_path])
     with out:
         sim = simulate(pattern, size_mm=size_mm, seed=seed, max_iterations=max_iterations, verbose=verbose,
-                       coarse_levels=coarse_levels)
+                       coarse_levels=coarse_levels, progress=progress)
         r = sim.result
         if not (np.isfinite(r.energy) and np.isfinite(r.gradient_norm) and np.isfinite(sim.positions).all()):
             raise SelfshapeError(f"{pattern_path}: the simulation gave non-finite numbers (energy {r.energy:g} N mm, "
@@ -258,6 +274,8 @@ def simulate_pattern_file(pattern_path, out_dir, *, size_mm=None, seed=None, ren
         summary = sim.summary()
         summary["pattern"] = os.path.abspath(str(pattern_path))
         summary["seed"] = pattern.seed if seed is None else seed
+        if progress is not None:
+            progress({"stage": "write"})
         out.write("deployed.vtu", lambda tmp: write_vtu(sim, tmp))
         write_cad(out, sim, pattern)
         if render:

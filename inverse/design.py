@@ -218,11 +218,18 @@ def _check_curved(V, where: str) -> None:
                              f"design for")
 
 
-def design(V, F, options: DesignOptions | None = None, *, where: str = "target", **overrides) -> Design:
+#: The stages of `design` in order, as its progress events name them (the stage that starts)
+DESIGN_STAGES = ("load and refine", "curvature", "line field", "flattening", "ribbon layout", "thickness")
+
+
+def design(V, F, options: DesignOptions | None = None, *, where: str = "target", progress=None,
+           **overrides) -> Design:
     """Inverse design of a disk-topology target (V (n, 3), F (m, 3)); see the module doc.
 
     ``options`` (default DesignOptions()) with any of its fields overridden by keyword, e.g.
-    ``design(V, F, stretch=1.4, edge_mm=None)``; ``where`` names the target in messages."""
+    ``design(V, F, stretch=1.4, edge_mm=None)``; ``where`` names the target in messages.
+    ``progress``: called with {"stage": "design", "step": name, "index": i, "steps": n} as each
+    of DESIGN_STAGES starts (the CLI's status line)."""
     from geometry.curvature import principal_curvature
     from geometry.fields import curvature_line_field
     from geometry.flattening import stretch_bounds
@@ -243,6 +250,16 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
         now, cnow = time.perf_counter(), time.process_time()
         times[name], cpu[name] = now - t, cnow - c
         t, c = now, cnow
+        done[0] += 1
+        stage(done[0])
+
+    done = [0]
+
+    def stage(i):
+        if progress is not None and i < len(DESIGN_STAGES):
+            progress({"stage": "design", "step": DESIGN_STAGES[i], "index": i + 1, "steps": len(DESIGN_STAGES)})
+
+    stage(0)
 
     if not (isinstance(stretch, (int, float)) and math.isfinite(stretch) and stretch > 1.0):
         raise SelfshapeError(f"design: fabric stretch must be a number > 1, got {stretch!r}")
@@ -336,12 +353,14 @@ def reach_score(d: Design) -> dict:
             "score": round(ex + oob, 4)}
 
 
-def choose_stretch(V, F, options: DesignOptions | None = None, *, where: str = "target", **overrides):
+def choose_stretch(V, F, options: DesignOptions | None = None, *, where: str = "target", progress=None,
+                   **overrides):
     """`design --stretch auto`: the design at each stretch a law exists for, and the best by
     `reach_score`. With no thickness_law, the candidates are the shipped laws' stretches
     (inverse.thickness_law.shipped_laws); with a law that states its stretch, that one only; a law
     that does not state it cannot choose (one-line error). Ties go to the larger stretch (more
-    contraction for the flattening). Returns (Design, {"candidates": [...], "chosen": s})."""
+    contraction for the flattening). Returns (Design, {"candidates": [...], "chosen": s}).
+    ``progress``: as for `design`, each event with "candidate": "stretch s (i/n)"."""
     from inverse.thickness_law import ThicknessLaw, load_thickness_law, shipped_laws
 
     o = replace(options or DesignOptions(), **overrides)
@@ -355,8 +374,10 @@ def choose_stretch(V, F, options: DesignOptions | None = None, *, where: str = "
         candidates = [law.stretch]
         o = replace(o, thickness_law=law)         # read once, not again per design
     best, rows = None, []
-    for s in candidates:
-        d = design(V, F, o, where=where, stretch=s)
+    for i, s in enumerate(candidates):
+        tag = f"stretch {s:g} ({i + 1}/{len(candidates)})"
+        each = None if progress is None else (lambda e, tag=tag: progress({**e, "candidate": tag}))
+        d = design(V, F, o, where=where, stretch=s, progress=each)
         row = reach_score(d)
         rows.append(row)
         if best is None or row["score"] < best[1]["score"] - 1e-9:
@@ -443,7 +464,8 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
 def design_file(target_path, out_dir, options: DesignOptions | None = None, *, verify: bool = False,
                 mesh_size_mm: float = 2.0, mesh_across: float | None = None, verify_iterations: int | None = None,
                 metric_floor: float | None = None, refine: bool = False, refine_options=None,
-                refine_smoothness: float = 0.05, verbose: bool = False, inputs=(), **overrides) -> dict:
+                refine_smoothness: float = 0.05, verbose: bool = False, inputs=(), progress=None,
+                **overrides) -> dict:
     """`selfshape design TARGET -o DIR`: writes DIR/pattern.toml, flat.vtu, front.gcode (and
     back.gcode when a ribbon is on the back), pattern.png and report.json (last); with
     ``verify`` also deployed.vtu, deployed.obj/.stl/.ply, verify.png and the deviation in
@@ -466,7 +488,10 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
     earlier run there (OUTPUTS, no other file) are removed first; every file is written
     atomically, none with a non-finite number; on failure (Ctrl-C included) every file this run
     wrote is removed (shellfem.outfiles.OutputDir). ``inputs``: other input files the outputs
-    must not overwrite (the CLI's --printer TOML). Returns the report dict."""
+    must not overwrite (the CLI's --printer TOML). ``progress``: called with a dict per event
+    (`design`'s stages, {"stage": "write"}, {"stage": "verify"} and then the simulation's,
+    forward.simulate.simulate_sheet; {"stage": "refine"}), for the CLI's status line. Returns
+    the report dict."""
     from geometry.target import read_mesh
     from shellfem.outfiles import OutputDir
 
@@ -489,10 +514,12 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
     with out:
         choice = None
         if o.stretch == "auto":
-            d, choice = choose_stretch(V, F, o, where=name)
+            d, choice = choose_stretch(V, F, o, where=name, progress=progress)
         else:
-            d = design(V, F, o, where=name)
+            d = design(V, F, o, where=name, progress=progress)
         t = time.perf_counter()
+        if progress is not None:
+            progress({"stage": "write"})
         raw = pattern_dict(d, mesh_size_mm=mesh_size_mm, mesh_across=mesh_across, seed=o.seed, target_name=name,
                            max_iterations=verify_iterations, metric_floor=metric_floor)
         _write_design_files(out, d, raw, o.printer, name)
@@ -509,9 +536,13 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
             p_toml = out.file("pattern.toml")
             pattern = parse_pattern(raw, p_toml, os.path.dirname(os.path.abspath(p_toml)))
             sims = []
-            rep.update(verify_design(d, pattern, out, sims=sims))
+            if progress is not None:
+                progress({"stage": "verify"})
+            rep.update(verify_design(d, pattern, out, sims=sims, progress=progress))
             rep["stages_s"]["verify"] = round(time.perf_counter() - t, 3)
             if refine:
+                if progress is not None:
+                    progress({"stage": "refine"})
                 _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, refine_smoothness, verbose,
                                     dict(mesh_size_mm=mesh_size_mm, mesh_across=mesh_across,
                                          max_iterations=verify_iterations, metric_floor=metric_floor))

@@ -27,7 +27,7 @@ def deviation_both_ways(d: Design, X: np.ndarray, triangles: np.ndarray, Y0: np.
 
 
 def verify_design(d: Design, pattern, out_dir: str | None = None, written: list | None = None,
-                  sims: list | None = None) -> dict:
+                  sims: list | None = None, progress=None) -> dict:
     """Simulate ``pattern`` (the geometry.patterns.Pattern of the design d), register the deployed
     surface to the target and return the report entries: verify_converged, verify_reason,
     Newton iterations, deviation_pct_bbox [mean, max] (deployed -> target),
@@ -36,7 +36,8 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
     design's shellfem.outfiles.OutputDir), deployed.vtu, deployed.obj/.stl/.ply (registered, mm)
     and verify.png are written there
     atomically and their paths appended to ``written``; the Simulation is appended to ``sims``
-    if given (the refinement starts from it)."""
+    if given (the refinement starts from it). ``progress``: the simulation's progress callback
+    (forward.simulate.simulate_sheet)."""
     from forward.simulate import simulate
     from inverse.plots import plot_verify
     from inverse.registration import flat_to_target
@@ -44,7 +45,7 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
 
     t0 = time.perf_counter()
     try:
-        sim = simulate(pattern)
+        sim = simulate(pattern, progress=progress)
     except SelfshapeError as e:      # the design stays valid; the verification could not run
         return {"verify_converged": False, "verify_reason": f"simulation failed: {e}", "deviation_pct_bbox": None,
                 "verify_note": "the simulation could not run; no deviation reported",

@@ -121,7 +121,9 @@ def _stretch(text):
 def _cmd_simulate(a):
     from forward.simulate import simulate_pattern_file
     s = simulate_pattern_file(a.pattern, a.output, size_mm=a.size, seed=a.seed, render=not a.no_png,
-                              max_iterations=a.max_iterations, verbose=a.verbose, coarse_levels=a.coarse_levels)
+                              max_iterations=a.max_iterations, verbose=a.verbose, coarse_levels=a.coarse_levels,
+                              progress=a.progress)
+    a.progress.close()
     state = "converged" if s["converged"] else "NOT converged"
     levels = s.get("timings_s", {}).get("levels") or []
     via = ""
@@ -139,7 +141,8 @@ def _cmd_design(a):
     r = design_file(a.target, a.output, verify=a.verify, diagonal_mm=a.diagonal, stretch=a.stretch,
                     thickness_law=a.law, lam=a.lam, printer=printer, verify_iterations=a.verify_iterations,
                     refine=a.refine, mesh_size_mm=a.mesh_size, mesh_across=a.mesh_across, verbose=a.verbose,
-                    inputs=[a.printer] if a.printer else ())
+                    inputs=[a.printer] if a.printer else (), progress=a.progress)
+    a.progress.close()
     print(f"design written to {a.output} in {r['time_s']:.1f} s")
     if r.get("stretch_choice"):
         c = r["stretch_choice"]
@@ -222,6 +225,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override [solver] coarse_levels: 'auto' or N >= 0 coarser meshes solved first (0: none)")
     s.add_argument("--no-png", action="store_true", help="skip deployed.png")
     s.add_argument("-v", "--verbose", action="store_true")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress line on a terminal")
     s.set_defaults(fn=_cmd_simulate)
 
     d = sub.add_parser("design", help="inverse design from a target surface (inverse.design.design_file)")
@@ -236,6 +240,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--mesh-across", type=_POSITIVE, default=None,
                    help="pattern.toml [mesh] across: triangle rows across a ribbon (default 2)")
     d.add_argument("-v", "--verbose", action="store_true")
+    d.add_argument("-q", "--quiet", action="store_true", help="no progress line on a terminal")
     d.add_argument("--diagonal", type=_POSITIVE, default=110.0, help="scale the target to this bounding-box diagonal, mm")
     d.add_argument("--stretch", type=_stretch, default=1.6,
                    help="fabric pre-stretch s, or 'auto': the shipped law's stretch that fits the target best")
@@ -279,9 +284,17 @@ def main(argv=None) -> int:
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
     from shellfem.memory import keep_freed_memory
     keep_freed_memory()
+    from selfshape.progress import StatusLine
+    # the status line of the long verbs (those with --quiet): a terminal's stderr only, erased
+    # before the result or error line (selfshape.progress)
+    args.progress = StatusLine.for_stderr(
+        args.verb, "quiet" in args and not args.quiet and not getattr(args, "verbose", False))
     try:
-        with _quiet(not getattr(args, "verbose", False)):
-            rc = args.fn(args)
+        try:
+            with _quiet(not getattr(args, "verbose", False)):
+                rc = args.fn(args)
+        finally:
+            args.progress.close()
     except SelfshapeError as e:
         print(f"selfshape {args.verb}: error: {e}", file=sys.stderr)
         return 2

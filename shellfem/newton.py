@@ -97,6 +97,9 @@ class NewtonOptions:
         defaults to the gradient norm at the start).
     max_iterations: the cap on outer iterations. backend: shellfem.linalg.SparseSPD's.
     verbose: one line per iteration on stdout.
+    callback: called after each accepted step with its history entry (a dict: iteration,
+        energy N mm and gradient_norm N before the step, lam the trust-region shift), so a
+        caller can show progress (the CLI's status line) without this layer printing.
     stability_shift: a LM shift up to this still counts as the exact Hessian factorising.
     step_tolerance: the Newton step's largest position change must be below this times the
         sheet's size; energy_tolerance: the energy the Newton step still promises (half the
@@ -127,6 +130,7 @@ class NewtonOptions:
     max_iterations: int = 300
     backend: str = "auto"
     verbose: bool = False
+    callback: object = None
     gradient_reference: float | None = None
     stability_shift: float = 1e-6
     step_tolerance: float = 1e-7
@@ -334,6 +338,8 @@ class _Newton:
         self.q = self._relaxed(q_try, E_new)
         self.timings["newton_steps"] += 1
         self.history.append(dict(iteration=it, energy=self.E, gradient_norm=self.gnorm, lam=0.0, step=a))
+        if self.opts.callback is not None:
+            self.opts.callback(self.history[-1])
         if self.opts.verbose:
             print(f"  newton {it:3d}  E {self.E:.10e}  |g| {self.gnorm:.3e}  Newton step x {note}", flush=True)
         self.lam = 0.0
@@ -484,6 +490,8 @@ class _Newton:
         timings["regularised_steps"] += 1
         lam = self.lam
         self.history.append(dict(iteration=it, energy=E, gradient_norm=gnorm, lam=lam, rho=rho))
+        if opts.callback is not None:
+            opts.callback(self.history[-1])
         if opts.verbose:
             print(f"  newton {it:3d}  E {E:.10e}  |g| {gnorm:.3e}  lambda {lam:.1e}  rho {rho:.2f}", flush=True)
         if rho > 0.75:

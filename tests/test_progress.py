@@ -1,0 +1,145 @@
+"""Progress of the long verbs (selfshape.progress): a status line on a terminal's stderr (levels,
+Newton iterations with energy and gradient norm), erased before the result or error line;
+nothing in a pipe, under CI or with --quiet. The lower layers report through callbacks."""
+import os
+import pty
+import re
+import select
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from selfshape.progress import StatusLine, wanted
+
+ROOT = os.path.join(os.path.dirname(__file__), "..")
+EXAMPLE = os.path.join(ROOT, "examples", "strip_narrow.toml")
+ERASE = b"\r\x1b[2K"
+
+
+def _env(**extra):
+    env = {k: v for k, v in os.environ.items() if k not in ("CI", "TERM")}
+    env.update(PYTHONPATH=os.path.abspath(ROOT), MPLBACKEND="Agg", TERM="xterm", **extra)
+    return env
+
+
+def _run_on_pty(argv_code, env):
+    """Run ``python -c argv_code`` with stderr on a pseudo-terminal and stdout in a pipe:
+    (exit status, stdout bytes, the bytes the terminal received)."""
+    master, slave = pty.openpty()
+    p = subprocess.Popen([sys.executable, "-c", argv_code], stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                         stderr=slave, env=env, cwd=ROOT)
+    os.close(slave)
+    got = b""
+    while True:
+        r, _, _ = select.select([master], [], [], 0.2)
+        if r:
+            try:
+                chunk = os.read(master, 65536)
+            except OSError:          # EIO: the child closed the terminal
+                chunk = b""
+            if not chunk:
+                break
+            got += chunk
+        elif p.poll() is not None:
+            break
+    out = p.stdout.read()
+    rc = p.wait(timeout=300)
+    os.close(master)
+    return rc, out, got
+
+
+def _visible(term: bytes) -> list:
+    """The lines a terminal shows at the end: each erase-line wipes the status line."""
+    text = term.replace(b"\r\n", b"\n").decode()
+    lines = [re.split(r"\r\x1b\[2K", line)[-1] for line in text.split("\n")]
+    return [x for x in lines if x]
+
+
+SIM = (f"import sys; from selfshape.cli import main; "
+       f"sys.exit(main(['simulate', {EXAMPLE!r}, '-o', sys.argv[1] if len(sys.argv) > 1 else 'OUT', "
+       f"'--size', '3', '--no-png'] + EXTRA))")
+
+
+def _sim_code(out, extra=()):
+    return SIM.replace("'OUT'", repr(str(out))).replace("EXTRA", repr(list(extra)))
+
+
+def test_status_line_shows_on_a_terminal_and_is_erased(tmp_path):
+    rc, out, term = _run_on_pty(_sim_code(tmp_path / "o"), _env())
+    assert rc == 0, (out, term)
+    assert b"Newton" in term and b"|g|" in term and b"simulate " in term and ERASE in term
+    assert term.endswith(ERASE), "the status line is erased before the verb ends"
+    assert _visible(term) == []                 # nothing left on stderr once erased
+    assert len(out.decode().splitlines()) == 1 and out.startswith(b"converged")
+
+
+@pytest.mark.parametrize("how", ["pipe", "quiet", "ci"])
+def test_no_progress_in_a_pipe_under_ci_or_quiet(tmp_path, how):
+    if how == "pipe":
+        p = subprocess.run([sys.executable, "-c", _sim_code(tmp_path / "o")], capture_output=True, env=_env(),
+                           cwd=ROOT, timeout=300)
+        assert p.returncode == 0 and p.stderr == b""
+        return
+    extra = ["--quiet"] if how == "quiet" else []
+    env = _env(CI="true") if how == "ci" else _env()
+    rc, out, term = _run_on_pty(_sim_code(tmp_path / "o", extra), env)
+    assert rc == 0 and term == b"", term
+
+
+def test_an_error_after_progress_is_one_line_on_the_terminal(tmp_path):
+    """The status line was showing when the error came: erased, then the one error line."""
+    code = ("import sys, forward.simulate as fs\n"
+            "from shellfem.errors import SelfshapeError\n"
+            "def boom(*a, **k):\n    raise SelfshapeError('boom.dxf: cannot write')\n"
+            "fs.write_cad = boom\n" + _sim_code(tmp_path / "o").replace("; ", "\n"))
+    rc, out, term = _run_on_pty(code, _env())
+    assert rc == 2 and b"Newton" in term
+    assert _visible(term) == ["selfshape simulate: error: boom.dxf: cannot write"]
+    assert out == b""
+
+
+def test_wanted_and_the_line_text():
+    r, w = os.pipe()
+    try:
+        assert not wanted(w, env={})                         # a pipe
+        master, slave = pty.openpty()
+        try:
+            assert wanted(slave, env={"TERM": "xterm"})
+            assert not wanted(slave, env={"CI": "true"}) and not wanted(slave, env={"TERM": "dumb"})
+            assert not wanted(slave, quiet=True, env={})
+            assert wanted(slave, env={"CI": "false"})
+        finally:
+            os.close(master)
+            os.close(slave)
+        line = StatusLine("design", w)
+        for e in ({"stage": "design", "step": "flattening", "index": 4, "steps": 6},
+                  {"stage": "verify"}, {"stage": "level", "level": 1, "levels": 2, "n_vertices": 120},
+                  {"stage": "newton", "iteration": 3, "energy": 12.5, "gradient_norm": 3e-4}):
+            line(e)
+            line.last = 0.0                                  # no throttling in the test
+        line.close()
+        got = os.read(r, 65536).decode()
+        assert "design 0 s: flattening (4/6)" in got
+        assert "design 0 s: verify, level 1/2 (120 vertices), Newton 3: E 1.2500e+01 N mm, |g| 3.0e-04" in got
+        assert got.endswith("\r\x1b[2K")
+        assert line.fd is None
+        StatusLine("x", None)({"stage": "newton"})           # inactive: a no-op
+    finally:
+        os.close(r)
+
+
+def test_newton_calls_back_per_accepted_step():
+    from shellfem.model import ShellModel
+    from shellfem.newton import newton
+    from shellfem.sheet import Sheet
+    M = ShellModel.homogeneous(Sheet.rectangle(4, 2, 4, 2), 1.0, 0.3, 0.1)
+    q = M.initial_state()
+    q[2:3 * M.n_vertices:3] += 0.05 * np.sin(np.arange(M.n_vertices))
+    free = np.ones(M.n_dofs, bool)
+    free[:6] = False
+    seen = []
+    r = newton(M, q, free, callback=seen.append, max_iterations=20)
+    assert len(seen) == len(r.history) - (1 if r.converged else 0)
+    assert all({"iteration", "energy", "gradient_norm"} <= set(h) for h in seen)
