@@ -235,9 +235,10 @@ const FS="precision mediump float;varying vec3 vn;varying vec3 vc;uniform float 
 let prog,bufs={};
 function sh(t,s){const o=gl.createShader(t);gl.shaderSource(o,s);gl.compileShader(o);return o;}
 function buf(a){const b=gl.createBuffer();gl.bindBuffer(gl.ARRAY_BUFFER,b);gl.bufferData(gl.ARRAY_BUFFER,a,gl.STATIC_DRAW);return b;}
-const first=dep||tgt;let ctr=[0,0,0],rad=1;
+const first=dep||tgt;let ctr=[0,0,0],rad=1,up=2;
 if(first){const lo=[1e30,1e30,1e30],hi=[-1e30,-1e30,-1e30];for(const M of [dep,tgt])if(M)for(let i=0;i<M.n;i++)for(let j=0;j<3;j++){lo[j]=Math.min(lo[j],M.p[3*i+j]);hi[j]=Math.max(hi[j],M.p[3*i+j]);}
- ctr=[0,1,2].map(j=>(lo[j]+hi[j])/2);rad=Math.max(0.5*Math.hypot(hi[0]-lo[0],hi[1]-lo[1],hi[2]-lo[2]),1e-9);}
+ ctr=[0,1,2].map(j=>(lo[j]+hi[j])/2);
+ const ext=[0,1,2].map(j=>hi[j]-lo[j]);up=ext.indexOf(Math.min(...ext));rad=Math.max(0.5*Math.hypot(hi[0]-lo[0],hi[1]-lo[1],hi[2]-lo[2]),1e-9);}
 let yaw=-0.6,pitch=0.6,dist=3.2;
 function reset(){yaw=-0.6;pitch=0.6;dist=3.2;}
 function matmul(a,b){const o=new Float32Array(16);for(let i=0;i<4;i++)for(let j=0;j<4;j++){let s=0;for(let k=0;k<4;k++)s+=a[k*4+j]*b[i*4+k];o[i*4+j]=s;}return o;}
@@ -246,12 +247,15 @@ function draw(){if(!gl||!first)return;const w=canvas.clientWidth,h=canvas.client
  const f=1/Math.tan(0.35),asp=w/Math.max(h,1),zn=0.05*dist*rad,zf=10*dist*rad;
  const pr=new Float32Array([f/asp,0,0,0, 0,f,0,0, 0,0,(zf+zn)/(zn-zf),-1, 0,0,2*zf*zn/(zn-zf),0]);
  const cy=Math.cos(yaw),sy=Math.sin(yaw),cp=Math.cos(pitch),sp=Math.sin(pitch);
- // world z up: rotate about z by yaw, then tilt by pitch, then move back
+ // the shape's thinnest axis is "up" (a cyclic permutation P takes it to z), then rotate about it
+ // by yaw, tilt by pitch and move back
  const Rz=new Float32Array([cy,sy,0,0, -sy,cy,0,0, 0,0,1,0, 0,0,0,1]);
  const Rx=new Float32Array([1,0,0,0, 0,sp,-cp,0, 0,cp,sp,0, 0,0,0,1]);
  const T=new Float32Array([1,0,0,0, 0,1,0,0, 0,0,1,0, -ctr[0],-ctr[1],-ctr[2],1]);
  const B=new Float32Array([1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,-dist*rad,1]);
- const mv=matmul(B,matmul(Rx,matmul(Rz,T)));
+ const P=[new Float32Array([0,0,1,0, 1,0,0,0, 0,1,0,0, 0,0,0,1]),new Float32Array([0,1,0,0, 0,0,1,0, 1,0,0,0, 0,0,0,1]),
+  new Float32Array([1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1])][up];
+ const mv=matmul(B,matmul(Rx,matmul(Rz,matmul(P,T))));
  gl.useProgram(prog);gl.uniformMatrix4fv(gl.getUniformLocation(prog,"pr"),false,pr);gl.uniformMatrix4fv(gl.getUniformLocation(prog,"mv"),false,mv);
  const pass=(b,a)=>{for(const [nm,bb] of [["p",b.P],["n",b.N],["c",b.C]]){const l=gl.getAttribLocation(prog,nm);gl.bindBuffer(gl.ARRAY_BUFFER,bb);gl.enableVertexAttribArray(l);gl.vertexAttribPointer(l,3,gl.FLOAT,false,0,0);}
   gl.uniform1f(gl.getUniformLocation(prog,"alpha"),a);gl.drawArrays(gl.TRIANGLES,0,b.count);};
