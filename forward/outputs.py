@@ -46,5 +46,5 @@ def write_cad(out, sim, pattern):
     for name in SURFACES:
         out.write(name, lambda tmp: cad.write_surface(tmp, sim.positions, sim.sheet.triangles))
     drawing = cad.pattern_drawing(pattern)
-    out.write("pattern.dxf", lambda tmp: cad.write_dxf(tmp, drawing))
-    out.write("pattern.svg", lambda tmp: cad.write_svg(tmp, drawing))
+    for name in ("pattern.dxf", "pattern.svg"):
+        out.write(name, lambda tmp: cad.write_drawing(tmp, drawing))

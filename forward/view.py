@@ -30,6 +30,20 @@ from shellfem.outfiles import check_finite_arrays
 #: The result files a folder needs for a page (any one of them; deployed.vtu or flat.vtu draws).
 VIEW_INPUTS = ("deployed.vtu", "flat.vtu")
 CSP = "default-src 'none'; script-src 'unsafe-inline'; style-src 'unsafe-inline'; img-src data:"
+#: The target ghost is decimated to at most this many triangles (a design refines its target to
+#: up to 600k faces; a ghost needs its shape, not its resolution, and the page stays small)
+GHOST_TRIANGLES = 40_000
+
+
+def coarsened(points, triangles, max_triangles: int = GHOST_TRIANGLES):
+    """(points, triangles) with at most about ``max_triangles`` triangles: VTK's decimation
+    (pyvista) when there are more, else unchanged."""
+    tri = np.asarray(triangles)
+    if len(tri) <= max_triangles:
+        return np.asarray(points, float), tri
+    import pyvista as pv
+    d = pv.PolyData.from_regular_faces(np.asarray(points, float), tri).decimate(1.0 - max_triangles / len(tri))
+    return np.asarray(d.points, float), d.faces.reshape(-1, 4)[:, 1:]
 
 
 def _b64(a, dtype) -> str:
@@ -140,7 +154,7 @@ def folder_page(folder, summary: dict | None = None, *, target: bool = True) -> 
     if "flat.vtu" in have:
         pts, tri, cells, points = _read_vtu(os.path.join(folder, "flat.vtu"))
         if "target" in points:
-            ghost = (points["target"], tri)
+            ghost = coarsened(points["target"], tri)
             if deployed is None:        # a design without --verify: the target is the surface
                 deployed, ghost = (points["target"], tri, {}), None
     svg = os.path.join(folder, "pattern.svg")

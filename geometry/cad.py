@@ -17,6 +17,12 @@ thickness by layer). Holes of a printed polygon are closed polylines on the same
 - Surfaces (:func:`write_surface`, :func:`read_surface`, meshio): OBJ, STL (binary) and PLY
   (binary) of a triangulated surface (vertex positions in mm), for Rhino, slicers and ParaView.
 
+One call per job, by the file's suffix as meshio does: :func:`write_drawing` / :func:`read_drawing`
+(.dxf, .svg) for a flat pattern, :func:`write_surface` / :func:`read_surface` (.obj, .stl, .ply)
+for a surface::
+
+    write_drawing("pattern.dxf", pattern_drawing(load_pattern("examples/ribbons.toml")))
+
 Every writer refuses a non-finite coordinate (shellfem.outfiles.NonFiniteOutput, nothing
 written); the writers write exactly the path they are given (callers make it atomic through
 shellfem.outfiles.write_atomic or OutputDir.write).
@@ -180,13 +186,34 @@ def read_svg(path) -> tuple[list[Shape], dict]:
     return shapes, info
 
 
+# ----------------------------------------------------------------------------- by suffix
+def _suffix(path) -> str:
+    return "." + str(path).rsplit(".", 1)[-1].lower() if "." in str(path) else ""
+
+
+def write_drawing(path, shapes) -> None:
+    """A flat drawing as DXF or SVG, by the suffix of ``path`` (see :func:`write_dxf`, :func:`write_svg`)."""
+    fn = {".dxf": write_dxf, ".svg": write_svg}.get(_suffix(path))
+    if fn is None:
+        raise SelfshapeError(f"{path}: a flat pattern is written as .dxf or .svg")
+    fn(path, shapes)
+
+
+def read_drawing(path) -> list[Shape]:
+    """The shapes of a DXF or SVG drawing, by the suffix of ``path`` (see :func:`read_dxf`, :func:`read_svg`)."""
+    fn = {".dxf": read_dxf, ".svg": read_svg}.get(_suffix(path))
+    if fn is None:
+        raise SelfshapeError(f"{path}: a flat pattern is read from .dxf or .svg")
+    return fn(path)[0]
+
+
 # ----------------------------------------------------------------------------- surfaces
 def write_surface(path, points, triangles) -> None:
     """A triangulated surface, points (n, 3) mm and triangles (m, 3), as OBJ, STL or PLY (by the
     suffix; STL and PLY binary). NonFiniteOutput if a coordinate is not finite."""
     import meshio
 
-    suffix = "." + str(path).rsplit(".", 1)[-1].lower()
+    suffix = _suffix(path)
     if suffix not in SURFACE_FORMATS:
         raise SelfshapeError(f"{path}: a surface is written as {', '.join(SURFACE_FORMATS)}")
     pts = np.asarray(points, float)

@@ -408,11 +408,12 @@ def _write_design_files(out, d, raw, printer, title):
     out.write("pattern.png", lambda tmp: plot_pattern(d, tmp, title=title))
     p_toml = out.file("pattern.toml")
     drawing = cad.pattern_drawing(parse_pattern(raw, p_toml, os.path.dirname(os.path.abspath(p_toml))))
-    out.write("pattern.dxf", lambda tmp: cad.write_dxf(tmp, drawing))
-    out.write("pattern.svg", lambda tmp: cad.write_svg(tmp, drawing))
+    for n in ("pattern.dxf", "pattern.svg"):
+        out.write(n, lambda tmp: cad.write_drawing(tmp, drawing))
 
 
-def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smoothness, verbose, pattern_kw):
+def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smoothness, verbose, pattern_kw,
+                        progress=None):
     """The --refine stage of design_file: refine, then rewrite pattern.toml, G-code, pattern.png
     and the verification (into the OutputDir ``out``) for the rounded refined thicknesses; on
     failure keep the open-loop design and record why (report "refine": {"ok": false, "reason": ...})."""
@@ -428,7 +429,8 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
         return
     before = [r.thickness_mm for r in d.ribbons]
     try:
-        block = refine_design(d, pattern, sims[0], printer, refine_options, smoothness=smoothness, verbose=verbose)
+        block = refine_design(d, pattern, sims[0], printer, refine_options, smoothness=smoothness, verbose=verbose,
+                              progress=progress)
     except SelfshapeError as e:
         for r, t0 in zip(d.ribbons, before):
             r.thickness_mm = t0
@@ -444,7 +446,9 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
     for k in VERIFY_KEYS:
         rep.pop(k, None)
     pattern2 = parse_pattern(raw2, p_toml, os.path.dirname(os.path.abspath(p_toml)))
-    rep.update(verify_design(d, pattern2, out))
+    if progress is not None:
+        progress({"stage": "verify"})
+    rep.update(verify_design(d, pattern2, out, progress=progress))
     near, rel = block.get("rounded", {}), rep.get("deviation_pct_bbox")
     if near.get("deviation_pct_bbox") and rel:
         # release from flat reaches the refined state if its deviations match the state nearest the target
@@ -545,7 +549,7 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
                     progress({"stage": "refine"})
                 _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, refine_smoothness, verbose,
                                     dict(mesh_size_mm=mesh_size_mm, mesh_across=mesh_across,
-                                         max_iterations=verify_iterations, metric_floor=metric_floor))
+                                         max_iterations=verify_iterations, metric_floor=metric_floor), progress)
         rep["total_time_s"] = round(time.perf_counter() - t_start, 3)
         from forward.view import folder_page
         out.write_text("index.html", folder_page(out.path, rep))        # the 3D page (forward.view)

@@ -50,14 +50,17 @@ def rounded(p, layer_mm: float, bounds) -> np.ndarray:
     return np.clip(np.round(np.asarray(p) / layer_mm), max(k_lo, 1), k_hi) * layer_mm
 
 
-def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.05, verbose: bool = False) -> dict:
+def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.05, verbose: bool = False,
+                  progress=None) -> dict:
     """Refine the thicknesses of the design ``d`` (whose pattern is ``pattern`` and whose
     verification simulation is ``sim``, forward.simulate.Simulation). Sets the ribbons'
     thickness_mm to the rounded refined values and returns the report block "refine":
     per outer iteration objective, RMS distance (mm), deviations both ways (%), seconds;
     continuous and rounded thicknesses; the rounded design's deviations at the equilibrium
     nearest the target; the reason the iteration stopped. Raises SelfshapeError if no
-    equilibrium near the target can be found (the caller keeps the open-loop design)."""
+    equilibrium near the target can be found (the caller keeps the open-loop design).
+    ``progress``: called with {"stage": "outer", "iteration", "rms_mm"} at each accepted outer
+    iterate (the CLI's status line)."""
     from inverse.refine import RefineOptions, ThicknessProblem, linear_rounding, refine_thickness
     from inverse.registration import flat_to_target
     from shellfem.boundary import gauge_dofs
@@ -76,7 +79,10 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     q_target = np.concatenate([T.ravel(), np.zeros(sim.model.n_edges)])
 
     def measure(it, p, q, model):
-        return deviations(d, model.split(q)[0], sheet.triangles, T)
+        out = deviations(d, model.split(q)[0], sheet.triangles, T)
+        if progress is not None:
+            progress({"stage": "outer", "iteration": int(it), "rms_mm": prob.objective(model.split(q)[0], p)[1] ** 0.5})
+        return out
 
     start = "target"
     try:

@@ -66,6 +66,8 @@ class StatusLine:
         s["_last"] = kind
         if kind == "newton":
             s["newton"] = event
+        elif kind == "outer":                       # an outer iteration of design --refine
+            s.update(outer=event, newton=None)
         elif kind == "release":
             s.update(release=event, newton=None)
         elif kind == "level":
@@ -74,7 +76,7 @@ class StatusLine:
             s.update(phase=f"{event['step']} ({event['index']}/{event['steps']})", context=event.get("candidate"))
         elif kind in ("verify", "refine"):           # a stage that runs simulations of its own
             s.update(context={"verify": "verify", "refine": "refine"}[kind], phase=None, level=None, newton=None,
-                     release=None)
+                     release=None, outer=None)
         elif kind == "mesh":
             s.update(phase="meshing", level=None, newton=None, release=None)
         elif kind == "write":
@@ -98,6 +100,8 @@ class StatusLine:
         if s.get("level") and s["level"]["levels"] > 1:
             lv = s["level"]
             parts.append(f"level {lv['level']}/{lv['levels']} ({lv['n_vertices']} vertices)")
+        if s.get("outer"):
+            parts.append(f"outer iteration {s['outer']['iteration']} (rms {s['outer']['rms_mm']:.3f} mm)")
         if s.get("release"):
             parts.append(f"release step {s['release']['step']}/{s['release']['steps']}")
         if s.get("newton"):

@@ -99,6 +99,19 @@ def test_surface_round_trip(tmp_path, suffix):
     assert np.allclose(X[T], V[F], atol=1e-4 * np.abs(V).max())      # STL is float32, corners merged
 
 
+def test_one_call_per_job_by_suffix(tmp_path):
+    from shellfem.errors import SelfshapeError
+    d = cad.pattern_drawing(_pattern())
+    for name in ("p.dxf", "p.SVG"):
+        cad.write_drawing(str(tmp_path / name), d)
+        assert _same(cad.read_drawing(str(tmp_path / name)), d)
+    for name in ("p.png", "p"):
+        with pytest.raises(SelfshapeError, match=".dxf or .svg"):
+            cad.write_drawing(str(tmp_path / name), d)
+    with pytest.raises(SelfshapeError, match=".obj"):
+        cad.write_surface(str(tmp_path / "s.vtk"), np.zeros((3, 3)), [[0, 1, 2]])
+
+
 def test_non_finite_coordinates_are_refused_and_nothing_written(tmp_path):
     bad = [cad.Shape(np.array([[0.0, 0.0], [1.0, np.nan], [0.0, 1.0]]), "fabric")]
     for name, fn in (("p.dxf", cad.write_dxf), ("p.svg", cad.write_svg)):

@@ -116,13 +116,15 @@ def test_wanted_and_the_line_text():
         line = StatusLine("design", w)
         for e in ({"stage": "design", "step": "flattening", "index": 4, "steps": 6},
                   {"stage": "verify"}, {"stage": "level", "level": 1, "levels": 2, "n_vertices": 120},
-                  {"stage": "newton", "iteration": 3, "energy": 12.5, "gradient_norm": 3e-4}):
+                  {"stage": "newton", "iteration": 3, "energy": 12.5, "gradient_norm": 3e-4},
+                  {"stage": "refine"}, {"stage": "outer", "iteration": 2, "rms_mm": 0.4321}):
             line(e)
             line.last = 0.0                                  # no throttling in the test
         line.close()
         got = os.read(r, 65536).decode()
         assert "design 0 s: flattening (4/6)" in got
         assert "design 0 s: verify, level 1/2 (120 vertices), Newton 3: E 1.2500e+01 N mm, |g| 3.0e-04" in got
+        assert "design 0 s: refine, outer iteration 2 (rms 0.432 mm)" in got
         assert got.endswith("\r\x1b[2K")
         assert line.fd is None
         StatusLine("x", None)({"stage": "newton"})           # inactive: a no-op

@@ -67,6 +67,16 @@ def test_page_is_self_contained_with_its_data(tmp_path):
     assert "1 ribbons, stretch 1.3" in page                     # the report's line
 
 
+def test_a_fine_target_ghost_is_coarsened():
+    from forward.view import coarsened
+    from geometry.target import cylinder_patch
+    V, F = cylinder_patch(n_arc=60, n_len=40)
+    P, T = coarsened(V, F, 1000)
+    assert len(T) <= 1000 and T.max() < len(P)
+    assert np.allclose(P.min(0), V.min(0), atol=1.0) and np.allclose(P.max(0), V.max(0), atol=1.0)
+    assert coarsened(V, F, len(F))[1] is not None and len(coarsened(V, F, len(F))[1]) == len(F)
+
+
 def test_view_verb_writes_index_html_and_refuses_a_folder_without_results(tmp_path, capsys):
     folder = _result_folder(str(tmp_path / "d"), design=False)
     assert main(["view", folder]) == 0
