@@ -69,6 +69,8 @@ def test_dxf_round_trip_in_mm_with_layers(tmp_path):
     assert {"fabric", "front_0.40mm", "back_0.80mm"} <= {layer.dxf.name for layer in doc.layers}
     assert doc.layers.get("front_0.40mm").color == 1 and doc.layers.get("back_0.80mm").color == 5
     assert {e.dxftype() for e in doc.modelspace()} == {"LWPOLYLINE"}
+    auditor = doc.audit()                                  # what a CAD program would complain about
+    assert not auditor.has_errors and not auditor.has_fixes
 
 
 def test_svg_round_trip_size_and_viewbox_in_mm(tmp_path):

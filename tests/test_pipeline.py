@@ -259,9 +259,19 @@ def test_verify_deviation_zero_for_an_exact_deployment_and_nonconvergence_report
     if converged:
         assert rep["deviation_pct_bbox"][1] < 1e-6
         assert (tmp_path / "out" / "deployed.vtu").is_file() and (tmp_path / "out" / "verify.png").is_file()
+        import meshio
+        from geometry.cad import read_surface
+        vtu = meshio.read(tmp_path / "out" / "deployed.vtu")
+        for suffix in (".obj", ".stl", ".ply"):                 # the registered surface for CAD, mm
+            X, T = read_surface(str(tmp_path / "out" / f"deployed{suffix}"))
+            assert np.allclose(X[T], vtu.points[vtu.cells_dict["triangle"]], atol=1e-4)
+        page = (tmp_path / "out" / "index.html").read_text()
+        assert '"target": {' in page and '"deployed": {' in page      # deployed with the target ghost
     else:
         assert rep["deviation_pct_bbox"] is None and "did not converge" in rep["verify_note"]
         assert not (tmp_path / "out" / "deployed.vtu").exists()
+        assert not (tmp_path / "out" / "deployed.obj").exists()
+        assert '"target": null' in (tmp_path / "out" / "index.html").read_text()     # the target drawn alone
     on_disk = json.loads((tmp_path / "out" / "report.json").read_text())
     assert on_disk["verify_converged"] is converged
 

@@ -67,6 +67,17 @@ def test_page_is_self_contained_with_its_data(tmp_path):
     assert "1 ribbons, stretch 1.3" in page                     # the report's line
 
 
+def test_a_design_without_verification_shows_its_target():
+    """No deployed.vtu (design without --verify): the target is the surface, no ghost."""
+    import tempfile as tf
+    with tf.TemporaryDirectory() as d:
+        _result_folder(d)
+        os.remove(os.path.join(d, "deployed.vtu"))
+        data = _data(folder_page(d))
+        assert data["target"] is None and data["deployed"]["fields"] == {}
+        assert data["deployed"]["n"] == len(meshio.read(os.path.join(d, "flat.vtu")).points)
+
+
 def test_a_fine_target_ghost_is_coarsened():
     from forward.view import coarsened
     from geometry.target import cylinder_patch
