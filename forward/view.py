@@ -186,6 +186,9 @@ header h1{font-size:16px;margin:0 12px 0 0;display:inline}
 #gl{width:100%;height:100%;display:block;cursor:grab}
 #right{flex:2;border-left:1px solid #ccc;background:#fff;overflow:auto;padding:8px;min-width:0}
 #right svg{width:100%;height:auto;max-height:90%}
+#right #fabric polygon{fill:#eeeeea}
+#right g[id^="front"] polygon{fill:#d62728;fill-opacity:.55}
+#right g[id^="back"] polygon{fill:#1f77b4;fill-opacity:.55}
 #ui{position:absolute;left:8px;top:8px;background:rgba(255,255,255,.85);padding:6px;border-radius:4px}
 #legend{position:absolute;left:8px;bottom:8px;background:rgba(255,255,255,.85);padding:4px 6px;border-radius:4px}
 #bar{width:200px;height:10px}
@@ -253,8 +256,8 @@ const first=dep||tgt;let ctr=[0,0,0],rad=1,up=2;
 if(first){const lo=[1e30,1e30,1e30],hi=[-1e30,-1e30,-1e30];for(const M of [dep,tgt])if(M)for(let i=0;i<M.n;i++)for(let j=0;j<3;j++){lo[j]=Math.min(lo[j],M.p[3*i+j]);hi[j]=Math.max(hi[j],M.p[3*i+j]);}
  ctr=[0,1,2].map(j=>(lo[j]+hi[j])/2);
  const ext=[0,1,2].map(j=>hi[j]-lo[j]);up=ext.indexOf(Math.min(...ext));rad=Math.max(0.5*Math.hypot(hi[0]-lo[0],hi[1]-lo[1],hi[2]-lo[2]),1e-9);}
-let yaw=-0.6,pitch=0.6,dist=3.2;
-function reset(){yaw=-0.6;pitch=0.6;dist=3.2;}
+let yaw=-0.6,pitch=0.6,dist=2.7;
+function reset(){yaw=-0.6;pitch=0.6;dist=2.7;}
 function matmul(a,b){const o=new Float32Array(16);for(let i=0;i<4;i++)for(let j=0;j<4;j++){let s=0;for(let k=0;k<4;k++)s+=a[k*4+j]*b[i*4+k];o[i*4+j]=s;}return o;}
 function draw(){if(!gl||!first)return;const w=canvas.clientWidth,h=canvas.clientHeight;if(canvas.width!==w||canvas.height!==h){canvas.width=w;canvas.height=h;}
  gl.viewport(0,0,w,h);gl.clearColor(0.96,0.96,0.95,1);gl.clear(gl.COLOR_BUFFER_BIT|gl.DEPTH_BUFFER_BIT);gl.enable(gl.DEPTH_TEST);
@@ -275,7 +278,7 @@ function draw(){if(!gl||!first)return;const w=canvas.clientWidth,h=canvas.client
   gl.uniform1f(gl.getUniformLocation(prog,"alpha"),a);gl.drawArrays(gl.TRIANGLES,0,b.count);};
  if(bufs.dep)pass(bufs.dep,1.0);
  if(bufs.tgt&&(!dep||document.getElementById("ghost").checked)){gl.enable(gl.BLEND);gl.blendFunc(gl.SRC_ALPHA,gl.ONE_MINUS_SRC_ALPHA);gl.depthMask(false);
-  pass(bufs.tgt,dep?0.35:1.0);gl.depthMask(true);gl.disable(gl.BLEND);}}
+  pass(bufs.tgt,dep?0.4:1.0);gl.depthMask(true);gl.disable(gl.BLEND);}}
 function upload(M,name){const g=geometry(M);return {P:buf(g.P),N:buf(g.N),C:buf(colours(M,name)),count:3*M.m};}
 const sel=document.getElementById("field");
 if(dep){for(const k of Object.keys(dep.f).concat(["plain"])){const o=document.createElement("option");o.textContent=k;sel.appendChild(o);}}
@@ -283,7 +286,7 @@ else sel.parentNode.style.display="none";
 if(!tgt||!dep)document.getElementById("ghostl").style.display="none";
 if(gl&&first){prog=gl.createProgram();gl.attachShader(prog,sh(gl.VERTEX_SHADER,VS));gl.attachShader(prog,sh(gl.FRAGMENT_SHADER,FS));gl.linkProgram(prog);
  if(dep)bufs.dep=upload(dep,sel.value);
- if(tgt){const g=geometry(tgt),C=new Float32Array(tgt.m*9);for(let i=0;i<tgt.m*3;i++)C.set([0.15,0.55,0.35],3*i);bufs.tgt={P:buf(g.P),N:buf(g.N),C:buf(C),count:3*tgt.m};}
+ if(tgt){const g=geometry(tgt),C=new Float32Array(tgt.m*9);for(let i=0;i<tgt.m*3;i++)C.set([0.05,0.45,0.25],3*i);bufs.tgt={P:buf(g.P),N:buf(g.N),C:buf(C),count:3*tgt.m};}
  sel.onchange=()=>{gl.bindBuffer(gl.ARRAY_BUFFER,bufs.dep.C);gl.bufferData(gl.ARRAY_BUFFER,colours(dep,sel.value),gl.STATIC_DRAW);draw();};
  document.getElementById("ghost").onchange=draw;
  let drag=null;canvas.onmousedown=e=>{drag=[e.clientX,e.clientY];};window.onmouseup=()=>{drag=null;};
