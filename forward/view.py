@@ -29,7 +29,7 @@ from shellfem.outfiles import check_finite_arrays
 
 #: The result files a folder needs for a page (any one of them; deployed.vtu or flat.vtu draws).
 VIEW_INPUTS = ("deployed.vtu", "flat.vtu")
-CSP = "default-src 'none'; script-src 'unsafe-inline'; style-src 'unsafe-inline'; img-src data:"
+CSP = "default-src 'none'; script-src 'unsafe-inline'; style-src 'unsafe-inline'"
 #: The target ghost is decimated to at most this many triangles (a design refines its target to
 #: up to 600k faces; a ghost needs its shape, not its resolution, and the page stays small)
 GHOST_TRIANGLES = 40_000

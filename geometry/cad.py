@@ -4,12 +4,14 @@ The flat pattern is a drawing: a list of :class:`Shape` (a closed or open polyli
 mm on a named layer). :func:`pattern_drawing` makes it from a geometry.patterns.Pattern: the
 fabric outline on layer ``fabric`` and each printed polygon on the layer of its side and
 plastic thickness (``front_0.40mm``, ``back_0.80mm``: a CAD user selects all plastic of one
-thickness by layer). Holes of a printed polygon are closed polylines on the same layer.
+thickness by layer). Holes of a printed polygon are closed polylines on the same layer. Every
+layer is in the pattern's frame, the fabric seen from its front (back.gcode is mirrored for
+printing after flipping the fabric; the drawing is not).
 
 - DXF (:func:`write_dxf`, :func:`read_dxf`, ezdxf): R2010, ``$INSUNITS`` = 4 (millimetres) and
   ``$MEASUREMENT`` = 1 (metric), one LWPOLYLINE per shape (closed flag set for closed shapes),
-  one layer per name (fabric white, front red, back blue): what Rhino and laser-cutter
-  software import at true size.
+  one layer per name (fabric white, front red, back blue), ``$EXTMIN``/``$EXTMAX`` set: what
+  Rhino and laser-cutter software import at true size.
 - SVG (:func:`write_svg`, :func:`read_svg`): ``width``/``height`` in mm and a ``viewBox`` in
   mm, so one user unit is one millimetre; one ``<g>`` per layer (also an Inkscape layer),
   ``<polygon>`` for closed shapes, ``<polyline>`` for open ones, y up as in the pattern (the
@@ -102,6 +104,13 @@ def write_dxf(path, shapes) -> None:
             doc.layers.add(s.layer, color=LAYER_COLOURS.get(s.layer.split("_")[0], 7))
         msp.add_lwpolyline([(float(x), float(y)) for x, y in s.points], close=bool(s.closed),
                            dxfattribs={"layer": s.layer})
+    if shapes:                              # the drawing's extents, for viewers' initial "zoom all"
+        lo, hi = _bounds(shapes, 0.0)
+        ext = (float(lo[0]), float(lo[1]), 0.0), (float(hi[0]), float(hi[1]), 0.0)
+        msp.reset_extents(*ext)
+        # ezdxf copies the modelspace's extents into the header on saving, unless one is the
+        # zero vector (a drawing from the origin): then the header's own values are kept
+        doc.header["$EXTMIN"], doc.header["$EXTMAX"] = ext
     doc.saveas(path)
 
 

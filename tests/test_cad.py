@@ -66,6 +66,7 @@ def test_dxf_round_trip_in_mm_with_layers(tmp_path):
     assert _same(shapes, d) and all(s.closed for s in shapes)
     doc = ezdxf.readfile(p)
     assert doc.header["$MEASUREMENT"] == 1
+    assert doc.header["$EXTMIN"][:2] == pytest.approx((0, 0)) and doc.header["$EXTMAX"][:2] == pytest.approx((40, 20))
     assert {"fabric", "front_0.40mm", "back_0.80mm"} <= {layer.dxf.name for layer in doc.layers}
     assert doc.layers.get("front_0.40mm").color == 1 and doc.layers.get("back_0.80mm").color == 5
     assert {e.dxftype() for e in doc.modelspace()} == {"LWPOLYLINE"}
