@@ -38,7 +38,6 @@ def write_vtu(sim, path: str):
                                    cell_data={name: [np.asarray(v)] for name, v in cells.items()}))
 
 
-
 def write_cad(out, sim, pattern):
     """deployed.obj/.stl/.ply and pattern.dxf/.svg of a simulation into the OutputDir ``out``,
     each atomically (geometry.cad; mm)."""

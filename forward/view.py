@@ -13,7 +13,9 @@ with inline script and style only) and needs no server: open the file. It shows
   nothing but polygons is embedded), and the run's summary line.
 
 Drag to orbit, wheel to zoom, double-click to reset. ``write_view`` is `selfshape view DIR`;
-`selfshape simulate` and `design` write the same page from memory (:func:`page_html`).
+`selfshape simulate` and `design` write the same page (:func:`folder_page`) once their other
+files are written, before their summary. pyvista's own export_html needs trame (a server-side
+framework) and is not used.
 """
 from __future__ import annotations
 
@@ -21,6 +23,7 @@ import base64
 import html
 import json
 import os
+import re
 
 import numpy as np
 
@@ -66,7 +69,8 @@ def _mesh_json(points, triangles, fields=None) -> dict:
 
 def deployed_fields(cell_data: dict, point_data: dict) -> dict:
     """The colourings of a deployed.vtu's data: {label: (on, kind, values)}; kind "diverging"
-    (signed, around 0), "sequential" or "category" (integer ids)."""
+    (signed, around 0), "sequential", "category" (integer ids) or "side" (+1 front, -1 back,
+    0 bare, 2 both)."""
     f = {}
     if "mean_curvature_per_mm" in cell_data:
         f["mean curvature (1/mm)"] = ("cell", "diverging", cell_data["mean_curvature_per_mm"])
@@ -91,9 +95,10 @@ def page_html(deployed=None, target=None, shapes=None, title: str = "selfshape",
             "target": _mesh_json(*target) if target is not None else None}
     svg = svg_text(shapes, inline=True) if shapes else ""
     blob = json.dumps(data, allow_nan=False).replace("</", "<\\/")
-    return (_PAGE.replace("@TITLE@", html.escape(title)).replace("@SUMMARY@", html.escape(summary))
-            .replace("@CSP@", CSP).replace("@SVG@", svg or '<p class="none">no flat pattern in this folder</p>')
-            .replace("@DATA@", blob).replace("@SCRIPT@", _SCRIPT))
+    fill = {"TITLE": html.escape(title), "SUMMARY": html.escape(summary), "CSP": CSP,
+            "SVG": svg or '<p class="none">no flat pattern in this folder</p>', "DATA": blob, "SCRIPT": _SCRIPT}
+    # one pass, so that no filled-in text is itself searched for placeholders
+    return re.sub(r"@(TITLE|SUMMARY|CSP|SVG|DATA|SCRIPT)@", lambda m: fill[m.group(1)], _PAGE)
 
 
 def _read_vtu(path):
@@ -102,7 +107,10 @@ def _read_vtu(path):
         m = meshio.read(path)
     except Exception as e:  # meshio raises many kinds on a broken file
         raise SelfshapeError(f"{path}: cannot read it as VTU ({' '.join(str(e).split()) or type(e).__name__})") from None
-    tri = np.vstack([c.data for c in m.cells if c.type == "triangle"])
+    blocks = [c.data for c in m.cells if c.type == "triangle"]
+    if not blocks:
+        raise SelfshapeError(f"{path}: holds no triangles to draw")
+    tri = np.vstack(blocks)
     cells = {k: np.concatenate([np.asarray(b) for b, c in zip(v, m.cells) if c.type == "triangle"])
              for k, v in m.cell_data.items()}
     return m.points, tri, cells, {k: np.asarray(v) for k, v in m.point_data.items()}

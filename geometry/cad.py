@@ -31,6 +31,7 @@ shellfem.outfiles.write_atomic or OutputDir.write).
 """
 from __future__ import annotations
 
+import html
 import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -150,8 +151,9 @@ def svg_text(shapes, margin_mm: float = 2.0, *, inline: bool = False) -> str:
     layers = list(dict.fromkeys(s.layer for s in shapes))
     for layer in layers:
         colour = SVG_COLOURS.get(layer.split("_")[0], "#000000")
-        ink = "" if inline else f' inkscape:groupmode="layer" inkscape:label="{layer}"'
-        out.append(f'<g id="{layer}"{ink} fill="none" stroke="{colour}" stroke-width="{SVG_STROKE_MM}">')
+        name = html.escape(layer, quote=True)
+        ink = "" if inline else f' inkscape:groupmode="layer" inkscape:label="{name}"'
+        out.append(f'<g id="{name}"{ink} fill="none" stroke="{colour}" stroke-width="{SVG_STROKE_MM}">')
         for s in shapes:
             if s.layer == layer:
                 pts = " ".join(f"{x:.4f},{0.0 - y:.4f}" for x, y in np.asarray(s.points, float))
@@ -189,7 +191,11 @@ def read_svg(path) -> tuple[list[Shape], dict]:
         for el in g:
             tag = el.tag.split("}")[-1]
             if tag in ("polygon", "polyline"):
-                xy = np.array([[float(v) for v in p.split(",")] for p in el.get("points").split()], float)
+                try:
+                    xy = np.array([[float(v) for v in p.split(",")] for p in el.get("points", "").split()], float)
+                    xy = xy.reshape(-1, 2)
+                except ValueError:
+                    raise SelfshapeError(f"{path}: a <{tag}> has points that are not x,y pairs") from None
                 xy[:, 1] *= -1.0
                 shapes.append(Shape(xy, g.get("id"), tag == "polygon"))
     return shapes, info

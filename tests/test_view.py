@@ -78,6 +78,18 @@ def test_a_design_without_verification_shows_its_target():
         assert data["deployed"]["n"] == len(meshio.read(os.path.join(d, "flat.vtu")).points)
 
 
+def test_layer_names_and_titles_cannot_inject_markup(tmp_path):
+    """A pattern.svg edited by hand (a layer id with markup) and an odd folder name stay text."""
+    from geometry import cad
+    folder = _result_folder(str(tmp_path / "@DATA@ <b>"))
+    shapes = [cad.Shape(np.array([[0, 0], [1, 0], [0, 1]], float), 'front"><script>alert(1)</script>')]
+    cad.write_svg(os.path.join(folder, "pattern.svg"), shapes)
+    page = folder_page(folder)
+    assert "<script>alert" not in page and page.count("<script") == 2
+    assert "<title>@DATA@ &lt;b&gt;</title>" in page
+    assert cad.read_svg(os.path.join(folder, "pattern.svg"))[0][0].layer == shapes[0].layer
+
+
 def test_a_fine_target_ghost_is_coarsened():
     from forward.view import coarsened
     from geometry.target import cylinder_patch
