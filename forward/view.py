@@ -2,7 +2,7 @@
 
 The page holds its data (base64 float32/uint32 arrays in a JSON block) and a small WebGL
 viewer; it makes no network request (its Content-Security-Policy is ``default-src 'none'``
-with inline script and style only) and needs no server: open the file. It shows
+and the one inline script it allows by its SHA-256 hash, so no other script can run) and needs no server: open the file. It shows
 
 - the deployed surface (deployed.vtu, mm), coloured by any of the fields the folder has:
   mean curvature (1/mm), region, side, distance to the target (% of the bounding-box
@@ -20,6 +20,7 @@ framework) and is not used.
 from __future__ import annotations
 
 import base64
+import hashlib
 import html
 import json
 import os
@@ -32,7 +33,6 @@ from shellfem.outfiles import check_finite_arrays
 
 #: The result files a folder needs for a page (any one of them; deployed.vtu or flat.vtu draws).
 VIEW_INPUTS = ("deployed.vtu", "flat.vtu")
-CSP = "default-src 'none'; script-src 'unsafe-inline'; style-src 'unsafe-inline'"
 #: The target ghost is decimated to at most this many triangles (a design refines its target to
 #: up to 600k faces; a ghost needs its shape, not its resolution, and the page stays small)
 GHOST_TRIANGLES = 40_000
@@ -302,3 +302,7 @@ if(gl&&first){prog=gl.createProgram();gl.attachShader(prog,sh(gl.VERTEX_SHADER,V
  canvas.onwheel=e=>{e.preventDefault();dist*=Math.exp(0.001*e.deltaY);draw();};canvas.ondblclick=()=>{reset();draw();};
  window.onresize=draw;draw();document.title=document.title+" \u00b7 drawn";}
 """
+
+#: The page's Content-Security-Policy: nothing may load; only the viewer script (by its hash) runs
+CSP = ("default-src 'none'; script-src 'sha256-" + base64.b64encode(hashlib.sha256(_SCRIPT.encode()).digest()).decode()
+       + "'; style-src 'unsafe-inline'")

@@ -54,7 +54,7 @@ def _data(page):
 def test_page_is_self_contained_with_its_data(tmp_path):
     folder = _result_folder(str(tmp_path / "d"))
     page = folder_page(folder)
-    assert f'content="{CSP}"' in page and "default-src 'none'" in CSP
+    assert f'content="{CSP}"' in page and "default-src 'none'" in CSP and "unsafe-inline'; style" not in CSP
     assert not re.search(r"https?://", page), "the page must name no URL (no CDN, no fetch)"
     assert not re.search(r"\b(src|href)\s*=", page), "the page must load nothing"
     d = _data(page)
