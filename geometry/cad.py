@@ -32,6 +32,7 @@ shellfem.outfiles.write_atomic or OutputDir.write).
 from __future__ import annotations
 
 import html
+import os
 import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -220,6 +221,22 @@ def read_drawing(path) -> list[Shape]:
     if fn is None:
         raise SelfshapeError(f"{path}: a flat pattern is read from .dxf or .svg")
     return fn(path)[0]
+
+
+def export_pattern_file(pattern_path, out_path) -> dict:
+    """`selfshape export PATTERN -o OUT.dxf|.svg`: the flat drawing of a pattern file (.toml, or
+    .gcode: geometry.patterns) without simulating it, for the laser cutter or CAD. The output is
+    checked before the work (shellfem.outfiles.check_output_file: a .dxf or .svg file, not an
+    input) and written atomically. Returns dict(path, n_shapes, layers)."""
+    from geometry.patterns import load_pattern
+    from shellfem.outfiles import check_output_file, write_atomic
+    p = check_output_file(out_path, inputs=[pattern_path], what="export output (-o)")
+    if _suffix(p) not in (".dxf", ".svg"):
+        raise SelfshapeError(f"{p}: the export output (-o) must be a .dxf or .svg file")
+    drawing = pattern_drawing(load_pattern(pattern_path))
+    os.makedirs(os.path.dirname(os.path.abspath(p)), exist_ok=True)      # as predict: missing folders made
+    write_atomic(p, lambda tmp: write_drawing(tmp, drawing))
+    return {"path": p, "n_shapes": len(drawing), "layers": list(dict.fromkeys(s.layer for s in drawing))}
 
 
 # ----------------------------------------------------------------------------- surfaces

@@ -1,4 +1,4 @@
-"""The ``selfshape`` command: mesh, simulate, design, calibrate, validate, predict, view.
+"""The ``selfshape`` command: mesh, simulate, design, calibrate, validate, predict, export, view.
 
 Every verb is a thin wrapper over a Python function (named in its help) so that
 scripts can call the same thing. Bad input exits with status 2 and one line on
@@ -196,6 +196,12 @@ def _cmd_predict(a):
     print(f"wrote {n} predictions to {a.output}")
 
 
+def _cmd_export(a):
+    from geometry.cad import export_pattern_file
+    r = export_pattern_file(a.pattern, a.output)
+    print(f"wrote {r['path']}: {r['n_shapes']} polylines on layers {', '.join(r['layers'])} (mm)")
+
+
 def _cmd_view(a):
     from forward.view import write_view
     path = write_view(a.folder)
@@ -267,6 +273,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("data")
     r.add_argument("-o", "--output", required=True)
     r.set_defaults(fn=_cmd_predict)
+    x = sub.add_parser("export", help="the flat pattern as DXF or SVG in mm, without simulating "
+                                      "(geometry.cad.export_pattern_file)")
+    x.add_argument("pattern", help="pattern .toml or .gcode")
+    x.add_argument("-o", "--output", required=True, help="output .dxf or .svg")
+    x.set_defaults(fn=_cmd_export)
     w = sub.add_parser("view", help="DIR/index.html: the 3D page of a simulate or design folder (forward.view.write_view)")
     w.add_argument("folder", help="an output folder of selfshape simulate or design")
     w.add_argument("--open", action="store_true", help="also open it in the default browser")

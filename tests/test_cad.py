@@ -170,3 +170,21 @@ def test_design_writes_the_flat_pattern_per_side(tmp_path):
     assert {x.split("_")[0] for x in layers} - {"fabric"} == sides
     svg, _ = cad.read_svg(str(out / "pattern.svg"))
     assert _same(svg, shapes)
+
+
+def test_export_verb_writes_the_drawing_without_simulating(tmp_path, capsys):
+    for name in ("strip.dxf", "strip.svg"):
+        out = tmp_path / name
+        assert main(["export", EXAMPLE, "-o", str(out)]) == 0
+        assert capsys.readouterr().out.startswith(f"wrote {out}: 2 polylines on layers fabric, front_0.30mm")
+        assert _same(cad.read_drawing(str(out)), cad.pattern_drawing(load_pattern(EXAMPLE)))
+    for bad, names in ((tmp_path / "strip.png", "must be a .dxf or .svg"), (tmp_path, "is a folder"),
+                       (tmp_path / "no" / "such" / "x.dxf", None)):
+        rc = main(["export", EXAMPLE, "-o", str(bad)])
+        err = capsys.readouterr().err.splitlines()
+        if names is None:                     # a missing folder is created, as for the other verbs
+            assert rc == 0 and bad.is_file()
+            continue
+        assert rc == 2 and len(err) == 1 and names in err[0] and str(bad) in err[0], err
+    assert main(["export", str(tmp_path / "missing.toml"), "-o", str(tmp_path / "m.dxf")]) == 2
+    assert len(capsys.readouterr().err.splitlines()) == 1

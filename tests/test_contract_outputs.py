@@ -69,6 +69,7 @@ def inputs(tmp_path_factory):
 #: verb -> (argv with OUT for the output, "dir" or "file", its summary, every output name)
 VERBS = {
     "mesh": (["mesh", "{pattern}", "-o", "OUT", "--size", "4"], "file", None, None),
+    "export": (["export", "{pattern}", "-o", "OUT"], "file", None, None),
     "simulate": (["simulate", "{pattern}", "-o", "OUT", "--size", "3", "--no-png"], "dir", "summary.json",
                  ("deployed.vtu", "deployed.obj", "deployed.stl", "deployed.ply", "pattern.dxf", "pattern.svg",
                   "deployed.png", "index.html", "summary.json")),
@@ -137,7 +138,7 @@ def _bad_cases(verb, base, inputs):
     files planted under base as each case needs. A folder verb also gets a symbolic link, a
     folder and an input file at one of its output names inside an existing folder."""
     kind, names = VERBS[verb][1], VERBS[verb][3]
-    sfx = ".msh" if verb == "mesh" else ".csv" if verb == "predict" else ""
+    sfx = {"mesh": ".msh", "predict": ".csv", "export": ".dxf"}.get(verb, "")
     victim = base / "victim.txt"
     victim.write_text("precious")
     (base / "afile").write_text("a file")
@@ -177,8 +178,8 @@ def _same_as_input(verb, base, inputs):
     out = base / "same"
     out.mkdir()
     moved = dict(inputs)
-    if verb == "mesh":
-        p = base / "pattern.msh"              # a TOML pattern whatever its suffix
+    if verb in ("mesh", "export"):
+        p = base / ("pattern.msh" if verb == "mesh" else "pattern.dxf")     # a TOML pattern whatever its suffix
         shutil.copy(inputs["pattern"], p)
         moved["pattern"] = str(p)
         return moved, str(p), str(p)
@@ -208,7 +209,7 @@ def test_bad_output_paths_are_refused_before_the_work(verb, inputs, tmp_path, ca
     victim behind a planted link intact, no folder created, nothing written); the verb's work
     never starts (it is replaced by a failure: exit 3 if it ran)."""
     import importlib
-    mod, fn = {**WORK, "mesh": ("geometry.meshing", "_mesh_model"),
+    mod, fn = {**WORK, "mesh": ("geometry.meshing", "_mesh_model"), "export": ("geometry.cad", "pattern_drawing"),
                "predict": ("validation.loop", "predict_rows")}[verb]
 
     def work(*a, **k):
@@ -244,7 +245,7 @@ def test_read_only_folder_is_refused(inputs, tmp_path, capsys):
         else:
             pytest.skip("this user writes into a read-only folder (root)")
         for verb in sorted(VERBS):
-            out = str(ro / ("o.msh" if verb == "mesh" else "o.csv" if verb == "predict" else "o"))
+            out = str(ro / {"mesh": "o.msh", "predict": "o.csv", "export": "o.dxf"}.get(verb, "o"))
             rc, _, err = run(argv_of(verb, inputs, out), capsys)
             assert_refused(rc, err, out)
             assert os.listdir(ro) == []
