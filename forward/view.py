@@ -187,13 +187,14 @@ _PAGE = """<!DOCTYPE html>
 <title>@TITLE@</title>
 <style>
 html,body{margin:0;height:100%;font:14px system-ui,sans-serif;background:#f4f4f2;color:#222}
+body{display:flex;flex-direction:column}
 header{padding:6px 12px;border-bottom:1px solid #ccc;background:#fff}
 header h1{font-size:16px;margin:0 12px 0 0;display:inline}
-#main{display:flex;height:calc(100% - 38px)}
+#main{display:flex;flex:1;min-height:0}
 #left{flex:3;position:relative;min-width:0}
 #gl{width:100%;height:100%;display:block;cursor:grab}
 #right{flex:2;border-left:1px solid #ccc;background:#fff;overflow:auto;padding:8px;min-width:0}
-#right svg{width:100%;height:auto;max-height:90%}
+#right svg{width:100%;height:calc(100% - 24px)}
 #right #fabric polygon{fill:#eeeeea}
 #right g[id^="front"] polygon{fill:#d62728;fill-opacity:.55}
 #right g[id^="back"] polygon{fill:#1f77b4;fill-opacity:.55}
@@ -267,7 +268,7 @@ if(first){const lo=[1e30,1e30,1e30],hi=[-1e30,-1e30,-1e30];for(const M of [dep,t
 let yaw=-0.6,pitch=0.6,dist=2.7;
 function reset(){yaw=-0.6;pitch=0.6;dist=2.7;}
 function matmul(a,b){const o=new Float32Array(16);for(let i=0;i<4;i++)for(let j=0;j<4;j++){let s=0;for(let k=0;k<4;k++)s+=a[k*4+j]*b[i*4+k];o[i*4+j]=s;}return o;}
-function draw(){if(!gl||!first)return;const w=canvas.clientWidth,h=canvas.clientHeight;if(canvas.width!==w||canvas.height!==h){canvas.width=w;canvas.height=h;}
+function draw(){if(!gl||!first)return;const r=window.devicePixelRatio||1,w=Math.round(canvas.clientWidth*r),h=Math.round(canvas.clientHeight*r);if(canvas.width!==w||canvas.height!==h){canvas.width=w;canvas.height=h;}
  gl.viewport(0,0,w,h);gl.clearColor(0.96,0.96,0.95,1);gl.clear(gl.COLOR_BUFFER_BIT|gl.DEPTH_BUFFER_BIT);gl.enable(gl.DEPTH_TEST);
  const f=1/Math.tan(0.35),asp=w/Math.max(h,1),zn=0.05*dist*rad,zf=10*dist*rad;
  const pr=new Float32Array([f/asp,0,0,0, 0,f,0,0, 0,0,(zf+zn)/(zn-zf),-1, 0,0,2*zf*zn/(zn-zf),0]);
@@ -297,8 +298,9 @@ if(gl&&first){prog=gl.createProgram();gl.attachShader(prog,sh(gl.VERTEX_SHADER,V
  if(tgt){const g=geometry(tgt),C=new Float32Array(tgt.m*9);for(let i=0;i<tgt.m*3;i++)C.set([0.05,0.45,0.25],3*i);bufs.tgt={P:buf(g.P),N:buf(g.N),C:buf(C),count:3*tgt.m};}
  sel.onchange=()=>{gl.bindBuffer(gl.ARRAY_BUFFER,bufs.dep.C);gl.bufferData(gl.ARRAY_BUFFER,colours(dep,sel.value),gl.STATIC_DRAW);draw();};
  document.getElementById("ghost").onchange=draw;
- let drag=null;canvas.onmousedown=e=>{drag=[e.clientX,e.clientY];};window.onmouseup=()=>{drag=null;};
- window.onmousemove=e=>{if(!drag)return;yaw+=0.01*(e.clientX-drag[0]);pitch=Math.max(-1.55,Math.min(1.55,pitch+0.01*(e.clientY-drag[1])));drag=[e.clientX,e.clientY];draw();};
+ let drag=null;canvas.style.touchAction="none";
+ canvas.onpointerdown=e=>{drag=[e.clientX,e.clientY];canvas.setPointerCapture(e.pointerId);};canvas.onpointerup=canvas.onpointercancel=()=>{drag=null;};
+ canvas.onpointermove=e=>{if(!drag)return;yaw+=0.01*(e.clientX-drag[0]);pitch=Math.max(-1.55,Math.min(1.55,pitch+0.01*(e.clientY-drag[1])));drag=[e.clientX,e.clientY];draw();};
  canvas.onwheel=e=>{e.preventDefault();dist*=Math.exp(0.001*e.deltaY);draw();};canvas.ondblclick=()=>{reset();draw();};
  window.onresize=draw;draw();document.title=document.title+" \u00b7 drawn";}
 """
