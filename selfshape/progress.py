@@ -61,9 +61,10 @@ class StatusLine:
         if self.fd is None:
             return
         kind = event.get("stage")
-        new_stage = kind != self.state.get("_last")
+        key = (kind, event.get("step"), event.get("level"), event.get("candidate"))
+        new_stage = key != self.state.get("_last")          # a new stage or step is always shown
         s = self.state
-        s["_last"] = kind
+        s["_last"] = key
         if kind == "newton":
             s["newton"] = event
         elif kind == "outer":                       # an outer iteration of design --refine

@@ -100,6 +100,23 @@ def test_an_error_after_progress_is_one_line_on_the_terminal(tmp_path):
     assert out == b""
 
 
+def test_design_shows_its_stages_on_a_terminal(tmp_path):
+    from geometry.target import cylinder_patch
+    V, F = cylinder_patch(n_arc=16, n_len=12)
+    target = tmp_path / "cyl.obj"
+    with open(target, "w") as f:
+        f.writelines(f"v {x:.9g} {y:.9g} {z:.9g}\n" for x, y, z in V)
+        f.writelines(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in F)
+    code = (f"import sys; from selfshape.cli import main; "
+            f"sys.exit(main(['design', {str(target)!r}, '-o', {str(tmp_path / 'd')!r}, '--diagonal', '60']))")
+    rc, out, term = _run_on_pty(code, _env())
+    assert rc == 0, term
+    shown = term.decode()
+    for step in ("load and refine (1/6)", "flattening (4/6)", "ribbon layout (5/6)", "writing files"):
+        assert f": {step}" in shown, (step, shown[-500:])
+    assert _visible(term) == [] and out.decode().startswith("design written to")
+
+
 def test_wanted_and_the_line_text():
     r, w = os.pipe()
     try:
