@@ -107,7 +107,7 @@ def test_strips_gcode_reads_back_to_the_specimens(tmp_path, capsys):
                            "fabric_thickness_mm", "width_mm", "length_mm", "curvature_per_mm", "rest_curvature_per_mm"]
     assert all(r["curvature_per_mm"] == "" and r["rest_curvature_per_mm"] == "" for r in rows)
     assert all(r[c] != "" for r in rows for c in header if c not in ("curvature_per_mm", "rest_curvature_per_mm"))
-    summary = json.loads((out / "summary.json").read_text())
+    summary = json.loads((out / f"{out.name}_summary.json").read_text())
     assert summary["printer"]["nozzle_mm"] == 0.6 and summary["layer_height_mm"] == pytest.approx(0.05)
     seen = 0
     for fr in summary["frames"]:
@@ -196,7 +196,7 @@ def test_law_gcode_reads_back_to_the_patches(tmp_path, capsys):
     assert len(rows) == 8 and {r["side"] for r in rows} == {"front", "back"}
     assert all(r[c] == "" for r in rows for c in ("kappa_per_mm", "kappa_across_per_mm", "contraction_along",
                                                    "contraction_across"))
-    summary = json.loads((out / "summary.json").read_text())
+    summary = json.loads((out / f"{out.name}_summary.json").read_text())
     for fr in summary["frames"]:
         for side in ("front", "back"):
             if side not in fr["files"]:

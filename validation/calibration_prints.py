@@ -28,7 +28,8 @@ the origin and the flip axis, and the front and back specimens of a frame occupy
 places of the fabric (a strip printed on both faces at once would be a trilayer). Every
 printed thickness must be a whole number of layers: the layer height is the printer's, or the
 largest printer height / k that divides every thickness (0.05 mm for the seed's 0.3-0.45 mm),
-said in summary.json and on the command line.
+said in the print's summary JSON and on the command line. One folder may hold a strips and a law
+print (their file names differ; a rerun removes its own kind's files only).
 
 Units: mm, 1/mm, dimensionless stretch; positions are pattern (printed-state) coordinates of
 the fabric seen from the front, the ones geometry.gcode.read_gcode reads the files back to.
@@ -72,7 +73,8 @@ LAW_GEOMETRY = ("patch", "frame", "side", "stretch", "thickness_mm", "spacing_mm
                 "x_mm", "y_mm")
 LAW_MEASURED = ("kappa_per_mm", "kappa_across_per_mm", "contraction_along", "contraction_across")
 LAW_COLUMNS = LAW_GEOMETRY + LAW_MEASURED + ("note",)
-FRAME_FILE = r"(strips|law)_frame\d+_(front|back)\.gcode|(strips|law)_frame\d+_map\.png"
+#: the per-frame files of a print set (``kind`` strips or law): a rerun removes its own kind's only
+FRAME_FILE = r"{kind}_frame\d+_(front|back)\.gcode|{kind}_frame\d+_map\.png"
 
 
 # ----------------------------------------------------------------------------- specimens
@@ -353,20 +355,21 @@ def _printer_summary(p: Printer) -> dict:
 
 
 # ----------------------------------------------------------------------------- strips
-STRIPS_OUTPUTS = ("strips.csv", "summary.json")
+STRIPS_OUTPUTS = ("strips.csv", "strips_summary.json")
 
 
 def calibration_strips(out_dir, printer: Printer | None = None, *, layer_height_mm=None, gap_mm=GAP_MM,
                        inputs=(), **options) -> dict:
     """Write the strip calibration print to ``out_dir``: per frame G-code (front, back) and a
-    map PNG, ``strips.csv`` (the strips schema, measured columns empty) and ``summary.json``
-    (last). ``options``: those of :func:`strip_specimens` (default: :data:`STRIP_DEFAULTS`).
+    map PNG, ``strips.csv`` (the strips schema, measured columns empty) and
+    ``strips_summary.json`` (last). ``options``: those of :func:`strip_specimens` (default: :data:`STRIP_DEFAULTS`).
     Returns the summary."""
     p0 = printer if printer is not None else Printer()
     opts = dict(STRIP_DEFAULTS)
     opts.update({k: v for k, v in options.items() if v is not None})
     _check_options(opts)
-    outs = OutputDir(out_dir, STRIPS_OUTPUTS, patterns=(FRAME_FILE,), inputs=inputs)   # checked before the work
+    outs = OutputDir(out_dir, STRIPS_OUTPUTS, patterns=(FRAME_FILE.format(kind="strips"),),
+                     inputs=inputs)                   # checked before the work
     p = print_printer(p0, opts["thickness_mm"], layer_height_mm)
     bead = max(p.nozzle_mm, p.layer_height_mm)
     sps = strip_specimens(bead_mm=bead, **{k: opts[k] for k in STRIP_DEFAULTS})
@@ -383,7 +386,7 @@ def calibration_strips(out_dir, printer: Printer | None = None, *, layer_height_
     with outs.begin():
         summary["frames"] = _write_frames(outs, frames, p, "strips", "strip calibration")
         outs.write_text("strips.csv", csv_text(STRIPS_COLUMNS, rows))
-        outs.write_json("summary.json", summary)
+        outs.write_json("strips_summary.json", summary)
     return summary
 
 
@@ -431,7 +434,7 @@ def fill_strips_from_model(template, out_path, modulus_ratio, noise=0.015, seed=
 
 
 # ----------------------------------------------------------------------------- law
-LAW_OUTPUTS = ("law_measurements.csv", "summary.json")
+LAW_OUTPUTS = ("law_measurements.csv", "law_summary.json")
 LAW_COMMENTS = (
     "selfshape law_measurements template (selfshape calibration-print law); columns: docs/calibration-prints.md",
     "measure each released patch: kappa_per_mm = 1 / radius (1/mm) of the cylinder it rolls into, along the "
@@ -446,7 +449,7 @@ def calibration_law(out_dir, printer: Printer | None = None, *, layer_height_mm=
                     simulate=False, from_rows=None, mirror_back=False, sim_options=None, calibration=None,
                     **options) -> dict:
     """Write the curvature-law calibration print to ``out_dir``: per frame G-code and map,
-    ``law_measurements.csv`` and ``summary.json`` (last). ``options``: those of
+    ``law_measurements.csv`` and ``law_summary.json`` (last). ``options``: those of
     :func:`patch_specimens` (default :data:`LAW_DEFAULTS`). ``simulate``: fill the measured
     columns by simulating every patch (validation.law_tables.simulate_row with
     ``sim_options``: mesh_size, across, max_iterations, start_curvature, start_direction, seed;
@@ -469,7 +472,8 @@ def calibration_law(out_dir, printer: Printer | None = None, *, layer_height_mm=
         raise SelfshapeError("--simulate and --from-rows are exclusive: fill by simulating or from a rows JSON")
     rows_index = _read_rows_json(from_rows) if from_rows else None
     plastic_info = _plastic(calibration) if simulate or (rows_index is not None and calibration) else None
-    outs = OutputDir(out_dir, LAW_OUTPUTS, patterns=(FRAME_FILE,), inputs=list(inputs) + [from_rows, calibration])
+    outs = OutputDir(out_dir, LAW_OUTPUTS, patterns=(FRAME_FILE.format(kind="law"),),
+                     inputs=list(inputs) + [from_rows, calibration])
     p = print_printer(p0, opts["thickness_mm"], layer_height_mm)
     sps = patch_specimens(**{k: opts[k] for k in LAW_DEFAULTS})
     frames = layout(sps, p.bed_size, "LP", gap_mm=gap_mm)
@@ -487,7 +491,7 @@ def calibration_law(out_dir, printer: Printer | None = None, *, layer_height_mm=
     with outs.begin():
         summary["frames"] = _write_frames(outs, frames, p, "law", "curvature-law calibration")
         outs.write_text("law_measurements.csv", csv_text(LAW_COLUMNS, rows, comments))
-        outs.write_json("summary.json", summary)
+        outs.write_json("law_summary.json", summary)
     return summary
 
 
