@@ -309,3 +309,56 @@ def test_law_simulate_grid_then_build_matches_the_shipped_law(tmp_path, capsys):
     rc, _, err = run(["design", str(obj), "-o", str(tmp_path / "design"), "--law", str(law_csv)], capsys)
     assert rc == 0, err
     assert json.loads((tmp_path / "design" / "report.json").read_text())["thickness_law"] == str(law_csv)
+
+
+def test_layout_keeps_specimens_apart_and_on_the_bed():
+    """The default law grid (96 patches of six sizes, first-fit decreasing-height shelves): on
+    every frame the cut outlines are >= the gap apart and inside the bed less its margins; ids
+    are unique and numbered in frame order."""
+    from validation.calibration_prints import GAP_MM, MARGIN_MM, layout, patch_specimens
+    sps = patch_specimens()
+    frames = layout(sps, (223.0, 223.0), "LP")
+    assert sum(len(f[2]) for f in frames) == 96 and len({sp.id for sp in sps}) == 96
+    assert len(frames) <= 22
+    k = 0
+    for frame, s, fs in frames:
+        boxes = [shapely.Polygon(sp.outline + np.asarray(sp.centre)) for sp in fs]
+        for i in range(len(boxes)):
+            for j in range(i):
+                assert boxes[i].distance(boxes[j]) >= GAP_MM - 1e-9
+        lo = np.min([b.bounds[:2] for b in boxes], axis=0)
+        hi = np.max([b.bounds[2:] for b in boxes], axis=0)
+        assert np.all(hi - lo <= 223.0 - 2 * MARGIN_MM + 1e-9) and np.allclose(lo + hi, 0.0)
+        for sp in fs:
+            k += 1
+            assert sp.frame == frame and sp.id == f"LP-{k:03d}"
+
+
+def test_outputs_are_checked_first_replaced_by_kind_and_removed_on_failure(tmp_path, capsys, monkeypatch):
+    """-o a file: one line, exit 2. A strips and a law print share a folder; a rerun with fewer
+    frames removes its own stale frame files only. A failure half-way (here the second G-code
+    file) leaves none of the run's files (shellfem.outfiles.OutputDir)."""
+    (tmp_path / "f").write_text("x")
+    rc, _, err = run(["calibration-print", "strips", "-o", str(tmp_path / "f")], capsys)
+    assert rc == 2 and err.count("\n") == 1 and "the output must be a folder" in err
+    out = tmp_path / "both"
+    assert run(["calibration-print", "strips", "-o", str(out)], capsys)[0] == 0          # 2 frames
+    assert (out / "strips_frame02_back.gcode").exists()
+    law = ["calibration-print", "law", "-o", str(out), "--thickness", "0.2", "0.4", "--spacing", "3.9", "6.5"]
+    assert run(law, capsys)[0] == 0
+    assert run(["calibration-print", "strips", "-o", str(out), "--repetitions", "2"], capsys)[0] == 0   # 1 frame
+    names = set(os.listdir(out))
+    assert "strips_frame02_back.gcode" not in names and "strips_frame01_front.gcode" in names
+    assert {"law_measurements.csv", "law_summary.json", "law_frame01_front.gcode", "strips.csv"} <= names
+    import inverse.gcode
+    real, calls = inverse.gcode.write_gcode, []
+
+    def failing(*a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+    monkeypatch.setattr(inverse.gcode, "write_gcode", failing)
+    fresh = tmp_path / "fresh"
+    rc, _, err = run(["calibration-print", "strips", "-o", str(fresh), "--repetitions", "2"], capsys)
+    assert rc == 130 and not fresh.exists()

@@ -177,17 +177,19 @@ def patch_specimens(thickness_mm=LAW_DEFAULTS["thickness_mm"], spacing_mm=LAW_DE
 
 # ----------------------------------------------------------------------------- layout
 def layout(specimens, bed_size, prefix, gap_mm=GAP_MM, margin_mm=MARGIN_MM):
-    """Place the specimens on frames: one stretch per frame, shelf packing (tallest first, rows
-    left to right, bottom to top) into the bed less ``margin_mm`` with ``gap_mm`` of fabric
-    between specimens. Sets each specimen's frame (from 1), centre (pattern mm, the frame's
-    layout centred on (0, 0)) and id (``prefix``-nnn in frame and row order). Returns the frames
-    as [(frame, stretch, [specimens])]. A specimen larger than the bed is a SelfshapeError."""
+    """Place the specimens on frames: one stretch per frame, first-fit decreasing-height shelf
+    packing into the bed less ``margin_mm``, with ``gap_mm`` of fabric between specimens (each
+    specimen, tallest first, goes on the first shelf of any open frame with room, else on a new
+    shelf of the first frame with room, else on a new frame; shelves run left to right, bottom to
+    top). Sets each specimen's frame (from 1), centre (pattern mm, the frame's layout centred on
+    (0, 0)) and id (``prefix``-nnn in frame and row order). Returns the frames as
+    [(frame, stretch, [specimens])]. A specimen larger than the bed is a SelfshapeError."""
     W, H = bed_size[0] - 2 * margin_mm, bed_size[1] - 2 * margin_mm
     frames = []
     for s in sorted({sp.stretch for sp in specimens}):
         group = [sp for sp in specimens if sp.stretch == s]
         order = sorted(range(len(group)), key=lambda i: (-round(group[i].size[1], 6), -round(group[i].size[0], 6), i))
-        sheets, cur, x, y, shelf = [], [], 0.0, 0.0, 0.0
+        sheets = []                    # per frame: {"shelves": [[y, height, x_next]], "top": y_next, "placed": []}
         for i in order:
             sp = group[i]
             w, h = sp.size
@@ -195,16 +197,22 @@ def layout(specimens, bed_size, prefix, gap_mm=GAP_MM, margin_mm=MARGIN_MM):
                 raise SelfshapeError(f"a {sp.kind} of {w:.1f} x {h:.1f} mm does not fit the {bed_size[0]:g} x "
                                      f"{bed_size[1]:g} mm bed less {margin_mm:g} mm margins (--printer bed_size; "
                                      f"fewer rows or motifs)")
-            if x > 0 and x + w > W:                       # next shelf
-                x, y, shelf = 0.0, y + shelf + gap_mm, 0.0
-            if y + h > H:                                 # next frame
-                sheets.append(cur)
-                cur, x, y, shelf = [], 0.0, 0.0, 0.0
-            cur.append((sp, x + w / 2, y + h / 2))
-            x += w + gap_mm
-            shelf = max(shelf, h)
-        sheets.append(cur)
-        for placed in sheets:
+            spot = next(((sh, shelf) for sh in sheets for shelf in sh["shelves"]
+                         if h <= shelf[1] + 1e-9 and shelf[2] + w <= W + 1e-9), None)
+            if spot is None:
+                sh = next((sh for sh in sheets if sh["top"] + h <= H + 1e-9), None)
+                if sh is None:
+                    sh = {"shelves": [], "top": 0.0, "placed": []}
+                    sheets.append(sh)
+                shelf = [sh["top"], h, 0.0]
+                sh["shelves"].append(shelf)
+                sh["top"] += h + gap_mm
+                spot = (sh, shelf)
+            sh, shelf = spot
+            sh["placed"].append((sp, shelf[2] + w / 2, shelf[0] + h / 2))
+            shelf[2] += w + gap_mm
+        for sh in sheets:
+            placed = sh["placed"]
             pts = np.array([[cx, cy] for _, cx, cy in placed])
             half = np.array([sp.size for sp, _, _ in placed]) / 2
             mid = ((pts - half).min(0) + (pts + half).max(0)) / 2
