@@ -210,7 +210,8 @@ def build_law(measured_csv, out_path, *, thickness=None, spacing=None, mirror_ba
     stretch = float(m["cells"][0]["stretch"])
     if stretch <= 1.0:
         raise SelfshapeError(f"{m['file']}: stretch {stretch:g}: a law needs pre-stretched fabric (stretch > 1)")
-    modulus = plastic_young_modulus_mpa
+    modulus = None if plastic_young_modulus_mpa is None else check_number(
+        "--plastic-modulus", plastic_young_modulus_mpa, lo=0.0, lo_open=True, hi=1e6)
     stated = [c.partition("=")[2].strip() for c in m["comments"] if c.partition("=")[0].strip() == PLASTIC_KEY]
     if modulus is None and stated:
         modulus = check_number(f"{m['file']}: comment {PLASTIC_KEY}", stated[0], lo=0.0, lo_open=True, hi=1e6)
