@@ -256,6 +256,14 @@ def test_law_from_rows_then_build_is_the_shipped_law(tmp_path, capsys, stretch, 
     assert any(rows_json in ln for ln in mine.provenance)
     t, _ = thickness_for_curvature(mine, [0.1, 0.15], [4.0, 6.0], "front", 0.05)
     assert np.all((t >= 0.2) & (t <= 0.4))
+    # the designer takes it (design --law): at its stretch, and refuses it at another
+    from geometry.target import cylinder_patch
+    from inverse.design import design
+    V, F = cylinder_patch()
+    d = design(V, F, diagonal_mm=None, edge_mm=None, thickness_law=str(law_csv), stretch=float(stretch))
+    assert d.ribbons and all(0.2 <= r.thickness_mm <= 0.4 for r in d.ribbons)
+    with pytest.raises(SelfshapeError, match=f"the law was made at fabric stretch {stretch}"):
+        design(V, F, diagonal_mm=None, edge_mm=None, thickness_law=str(law_csv), stretch=1.45)
 
 
 def test_law_simulate_one_patch_is_the_shipped_cell(tmp_path, capsys):
