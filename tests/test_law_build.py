@@ -155,3 +155,11 @@ def test_output_is_checked_before_the_work(tmp_path, capsys):
     (tmp_path / "h.csv").write_text("# only comments\npatch,side\n")
     one_line_error(*build(capsys, tmp_path / "h.csv", tmp_path / "law.csv")[::2], "h.csv: missing column(s) stretch")
     assert not (tmp_path / "law.csv").exists()
+
+
+def test_a_decimal_comma_row_names_the_patch(tmp_path, capsys):
+    src = template(tmp_path / "m.csv")
+    text = src.read_text().replace("LP-003,1,front,1.6,0.3,3.9", "LP-003,1,front,1.6,0,3,3.9")
+    src.write_text(text)
+    rc, _, err = build(capsys, src, tmp_path / "law.csv")
+    one_line_error(rc, err, "patch LP-003 (row 3): 21 fields, the header has 20 (a decimal comma?")

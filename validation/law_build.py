@@ -77,7 +77,9 @@ def read_measurements(path) -> dict:
     problems, cells = [], []
     for i, r in enumerate(body):
         if len(r) != len(header):
-            problems.append(f"row {i + 1}: {len(r)} fields, the header has {len(header)}")
+            pid = r[col["patch"]].strip() if len(r) > col["patch"] else ""
+            problems.append(f"{f'patch {pid} (row {i + 1})' if pid else f'row {i + 1}'}: {len(r)} fields, the header "
+                            f"has {len(header)} (a decimal comma? write 0.18, not 0,18)")
             continue
         get = lambda c: r[col[c]].strip() if c in col else ""  # noqa: E731
         pid = get("patch")
