@@ -285,6 +285,14 @@ def test_law_simulate_one_patch_is_the_shipped_cell(tmp_path, capsys):
     assert abs(float(r["kappa_across_per_mm"])) < float(r["kappa_per_mm"])
     text = (out / "law_measurements.csv").read_text()
     assert "# plastic_young_modulus_mpa = 1179.71" in text and "filled by simulation" in text
+    # the simulated rows refill the template without simulating (--from-rows)
+    again = tmp_path / "again"
+    rc, _, err = run(["calibration-print", "law", "-o", str(again), "--stretch", "1.6", "--thickness", "0.3",
+                      "--spacing", "3.9", "--sides", "front", "--rows", "3", "--motifs", "2",
+                      "--from-rows", str(out / "law_sim_rows.json")], capsys)
+    assert rc == 0, err
+    (r2,) = rows_of(again / "law_measurements.csv")
+    assert {k: r2[k] for k in r2 if k != "note"} == {k: r[k] for k in r if k != "note"}
     rc, _, err = run(["law", "build", str(out / "law_measurements.csv"), "-o", str(tmp_path / "law.csv")], capsys)
     assert rc == 2 and err.count("\n") == 1
     assert "law_measurements.csv: cannot build a law: side front: 1 thickness(es) x 1 spacing(s), too sparse" in err

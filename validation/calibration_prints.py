@@ -442,7 +442,7 @@ def fill_strips_from_model(template, out_path, modulus_ratio, noise=0.015, seed=
 
 
 # ----------------------------------------------------------------------------- law
-LAW_OUTPUTS = ("law_measurements.csv", "law_summary.json")
+LAW_OUTPUTS = ("law_measurements.csv", "law_sim_rows.json", "law_summary.json")
 LAW_COMMENTS = (
     "selfshape law_measurements template (selfshape calibration-print law); columns: docs/calibration-prints.md",
     "measure each released patch: kappa_per_mm = 1 / radius (1/mm) of the cylinder it rolls into, along the "
@@ -495,10 +495,13 @@ def calibration_law(out_dir, printer: Printer | None = None, *, layer_height_mm=
     if simulate or rows_index is not None:
         fill = _fill_law_rows(rows, simulate, rows_index, mirror_back, sim_options or {}, plastic_info, opts)
         comments += fill["comments"]
-        summary["fill"] = {k: v for k, v in fill.items() if k != "comments"}
+        summary["fill"] = {k: v for k, v in fill.items() if k not in ("comments", "sim_rows")}
     with outs.begin():
         summary["frames"] = _write_frames(outs, frames, p, "law", "curvature-law calibration")
         outs.write_text("law_measurements.csv", csv_text(LAW_COLUMNS, rows, comments))
+        if simulate:            # the simulated rows, for --from-rows (a refill without simulating)
+            outs.write_json("law_sim_rows.json", {"rows": fill["sim_rows"], "provenance": {
+                "command": "selfshape calibration-print law --simulate", "comments": fill["comments"]}})
         outs.write_json("law_summary.json", summary)
     return summary
 
@@ -566,9 +569,9 @@ def _fill_law_rows(rows, simulate, rows_index, mirror_back, sim_options, plastic
     front = {key(r): r for r in rows if r["side"] == "front"}
     n_sim = n_drop = n_mirror = n_missing = 0
     t0 = time.perf_counter()
-    comments = []
+    comments, sim_rows = [], []
     if simulate:
-        from validation.law_tables import simulate_row
+        from validation.law_tables import EXTRA_ROW_KEYS, ROW_KEYS, simulate_row
         fabric, plastic, text = plastic_info
         so = {"mesh_size": 3.0, "across": 2.0, "max_iterations": 800, "start_curvature": 0.0,
               "start_direction": "along", "seed": 0}
@@ -600,6 +603,8 @@ def _fill_law_rows(rows, simulate, rows_index, mirror_back, sim_options, plastic
                                plastic=plastic, start_curvature=so["start_curvature"],
                                start_direction=so["start_direction"])
             n_sim += 1
+            sim_rows.append({k: (None if isinstance(sim[k], float) and not math.isfinite(sim[k]) else sim[k])
+                             for k in ROW_KEYS + EXTRA_ROW_KEYS if k in sim})
             if sim["converged"] and np.isfinite(sim["kappa_per_mm"]):
                 r.update(_sim_values(sim))
             else:
@@ -631,4 +636,4 @@ def _fill_law_rows(rows, simulate, rows_index, mirror_back, sim_options, plastic
                 n_mirror += 1
     return {"source": "simulation" if simulate else rows_index["_name"], "simulated": n_sim,
             "not_converged": n_drop, "mirrored": n_mirror, "missing": n_missing,
-            "time_s": round(time.perf_counter() - t0, 2), "comments": comments}
+            "time_s": round(time.perf_counter() - t0, 2), "comments": comments, "sim_rows": sim_rows}
