@@ -200,7 +200,7 @@ def _cmd_calibration_print(a):
     from validation import calibration_prints as cp
     printer = load_printer(a.printer) if a.printer else None
     common = dict(layer_height_mm=a.layer_height, gap_mm=a.gap, inputs=[a.printer] if a.printer else (),
-                  thickness_mm=a.thickness, sides=a.sides)
+                  thickness_mm=a.thickness, sides=a.sides, shuffle=a.shuffle)
     if a.kind == "strips":
         s = cp.calibration_strips(a.output, printer, repetitions=a.repetitions, stretch=a.stretch,
                                   orientation_deg=a.orientation, width_mm=a.width, length_mm=a.length,
@@ -243,6 +243,8 @@ def _add_calibration_verbs(sub):
         q.add_argument("--layer-height", type=_POSITIVE, default=None,
                        help="mm (default: the printer's, or the largest printer height / k dividing every thickness)")
         q.add_argument("--gap", type=_number(0.0), default=8.0, help="fabric between specimens, mm")
+        q.add_argument("--shuffle", type=_SEED, default=None, metavar="SEED",
+                       help="place specimens of one size in a seeded random order (default: in order)")
     st.add_argument("--repetitions", type=_COUNT, default=None, help="strips per thickness, side, orientation, stretch")
     st.add_argument("--stretch", type=_number(1.0, lo_open=True), nargs="+", default=None,
                     help="fabric pre-stretches (one frame set each)")

@@ -378,3 +378,16 @@ def test_outputs_are_checked_first_replaced_by_kind_and_removed_on_failure(tmp_p
     fresh = tmp_path / "fresh"
     rc, _, err = run(["calibration-print", "strips", "-o", str(fresh), "--repetitions", "2"], capsys)
     assert rc == 130 and not fresh.exists()
+
+
+def test_shuffle_is_seeded_and_only_reorders():
+    from validation.calibration_prints import layout, strip_specimens
+
+    def placed(seed):
+        sps = strip_specimens(repetitions=3)
+        layout(sps, (223.0, 223.0), "ST", shuffle=seed)
+        return [(sp.id, sp.side, sp.thickness_mm, sp.centre) for sp in sorted(sps, key=lambda sp: sp.id)]
+    a, b, c = placed(None), placed(7), placed(7)
+    assert b == c and a != b
+    assert [x[3] for x in a] == [x[3] for x in b]                  # the same places, other specimens on them
+    assert sorted((x[1], x[2]) for x in a) == sorted((x[1], x[2]) for x in b)

@@ -176,19 +176,24 @@ def patch_specimens(thickness_mm=LAW_DEFAULTS["thickness_mm"], spacing_mm=LAW_DE
 
 
 # ----------------------------------------------------------------------------- layout
-def layout(specimens, bed_size, prefix, gap_mm=GAP_MM, margin_mm=MARGIN_MM):
+def layout(specimens, bed_size, prefix, gap_mm=GAP_MM, margin_mm=MARGIN_MM, shuffle=None):
     """Place the specimens on frames: one stretch per frame, first-fit decreasing-height shelf
     packing into the bed less ``margin_mm``, with ``gap_mm`` of fabric between specimens (each
     specimen, tallest first, goes on the first shelf of any open frame with room, else on a new
     shelf of the first frame with room, else on a new frame; shelves run left to right, bottom to
     top). Sets each specimen's frame (from 1), centre (pattern mm, the frame's layout centred on
-    (0, 0)) and id (``prefix``-nnn in frame and row order). Returns the frames as
-    [(frame, stretch, [specimens])]. A specimen larger than the bed is a SelfshapeError."""
+    (0, 0)) and id (``prefix``-nnn in frame and row order). ``shuffle``: a seed; specimens of
+    one size are then placed in a seeded random order instead of the given one, so that a place
+    on the frame (uneven tension, the print's first or last layers) is not confounded with a
+    thickness or a side. Returns the frames as [(frame, stretch, [specimens])]. A specimen larger
+    than the bed is a SelfshapeError."""
     W, H = bed_size[0] - 2 * margin_mm, bed_size[1] - 2 * margin_mm
     frames = []
     for s in sorted({sp.stretch for sp in specimens}):
         group = [sp for sp in specimens if sp.stretch == s]
-        order = sorted(range(len(group)), key=lambda i: (-round(group[i].size[1], 6), -round(group[i].size[0], 6), i))
+        rank = np.arange(len(group)) if shuffle is None else np.random.default_rng(shuffle).permutation(len(group))
+        order = sorted(range(len(group)), key=lambda i: (-round(group[i].size[1], 6), -round(group[i].size[0], 6),
+                                                         rank[i]))
         sheets = []                    # per frame: {"shelves": [[y, height, x_next]], "top": y_next, "placed": []}
         for i in order:
             sp = group[i]
@@ -290,16 +295,18 @@ def csv_text(columns, rows, comments=()):
     return buf.getvalue()
 
 
-def _plot_map(frame, stretch, specimens, printer, path, title):
+def _plot_map(frame, stretch, specimens, printer, path, title, origin=None):
     """PNG of one frame: every specimen's cut outline and ribbons in pattern coordinates seen
-    from the front (front specimens solid blue, back ones dashed orange), its id at its centre."""
+    from the front (front specimens solid blue, back ones dashed orange), its id at its centre,
+    and the front's bed (bed position of pattern (0, 0): ``origin``, default the bed centre)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
     bx, by = printer.bed_size
+    ox, oy = (bx / 2, by / 2) if origin is None else origin
     fig, ax = plt.subplots(figsize=(8.0, 8.0 * by / bx + 0.6))
-    ax.add_patch(plt.Rectangle((-bx / 2, -by / 2), bx, by, fill=False, ec="0.6", lw=0.8, ls=":"))
+    ax.add_patch(plt.Rectangle((-ox, -oy), bx, by, fill=False, ec="0.6", lw=0.8, ls=":"))
     segs, colors = [], []
     for sp in specimens:
         col = "C0" if sp.side == "front" else "C1"
@@ -318,8 +325,8 @@ def _plot_map(frame, stretch, specimens, printer, path, title):
                 bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8))
     if segs:
         ax.add_collection(LineCollection(segs, colors=colors, linewidths=0.6, alpha=0.5))
-    ax.set_xlim(-bx / 2, bx / 2)
-    ax.set_ylim(-by / 2, by / 2)
+    ax.set_xlim(-ox, bx - ox)
+    ax.set_ylim(-oy, by - oy)
     ax.set_aspect("equal")
     ax.set_xlabel("x (mm, fabric course direction)")
     ax.set_ylabel("y (mm)")
@@ -352,7 +359,9 @@ def _write_frames(outs, frames, printer, kind, title):
                           "estimated_time_min": round(st["estimated_time_s"] / 60, 1),
                           "origin_mm": st["origin_mm"], "mirror_axis_x_mm": st["mirror_axis_x_mm"]}
         name = f"{kind}_frame{frame:02d}_map.png"
-        outs.write(name, lambda tmp, frame=frame, s=s, sps=sps: _plot_map(frame, s, sps, printer, tmp, title))
+        origin = next((info[sd]["origin_mm"] for sd in SIDES if sd in info), None)
+        outs.write(name, lambda tmp, frame=frame, s=s, sps=sps, origin=origin: _plot_map(frame, s, sps, printer, tmp,
+                                                                                         title, origin))
         info["files"]["map"] = name
         out.append(info)
     return out
@@ -367,11 +376,11 @@ STRIPS_OUTPUTS = ("strips.csv", "strips_summary.json")
 
 
 def calibration_strips(out_dir, printer: Printer | None = None, *, layer_height_mm=None, gap_mm=GAP_MM,
-                       inputs=(), **options) -> dict:
+                       inputs=(), shuffle=None, **options) -> dict:
     """Write the strip calibration print to ``out_dir``: per frame G-code (front, back) and a
     map PNG, ``strips.csv`` (the strips schema, measured columns empty) and
-    ``strips_summary.json`` (last). ``options``: those of :func:`strip_specimens` (default: :data:`STRIP_DEFAULTS`).
-    Returns the summary."""
+    ``strips_summary.json`` (last). ``options``: those of :func:`strip_specimens` (default:
+    :data:`STRIP_DEFAULTS`). Returns the summary."""
     p0 = printer if printer is not None else Printer()
     opts = dict(STRIP_DEFAULTS)
     opts.update({k: v for k, v in options.items() if v is not None})
@@ -381,7 +390,7 @@ def calibration_strips(out_dir, printer: Printer | None = None, *, layer_height_
     p = print_printer(p0, opts["thickness_mm"], layer_height_mm)
     bead = max(p.nozzle_mm, p.layer_height_mm)
     sps = strip_specimens(bead_mm=bead, **{k: opts[k] for k in STRIP_DEFAULTS})
-    frames = layout(sps, p.bed_size, "ST", gap_mm=gap_mm)
+    frames = layout(sps, p.bed_size, "ST", gap_mm=gap_mm, shuffle=shuffle)
     rows = [dict(specimen=sp.id, side=sp.side, stretch=sp.stretch, orientation_deg=sp.fields["orientation_deg"],
                  plastic_thickness_mm=sp.thickness_mm, fabric_thickness_mm=sp.fields["fabric_thickness_mm"],
                  width_mm=sp.fields["width_mm"], length_mm=sp.fields["length_mm"], frame=sp.frame,
@@ -389,7 +398,7 @@ def calibration_strips(out_dir, printer: Printer | None = None, *, layer_height_
             for _, _, fs in frames for sp in fs]
     summary = {"kind": "strips", "specimens": len(rows), "layer_height_mm": p.layer_height_mm,
                "bead_width_mm": sps[0].fields["bead_width_mm"], "options": {k: opts[k] for k in STRIP_DEFAULTS},
-               "gap_mm": gap_mm, "measure": "fill curvature_per_mm (and rest_curvature_per_mm) in strips.csv, then "
+               "gap_mm": gap_mm, "shuffle_seed": shuffle, "measure": "fill curvature_per_mm (and rest_curvature_per_mm) in strips.csv, then "
                "selfshape calibrate strips strips.csv -o DIR", "printer": _printer_summary(p)}
     with outs.begin():
         summary["frames"] = _write_frames(outs, frames, p, "strips", "strip calibration")
@@ -454,7 +463,7 @@ LAW_COMMENTS = (
 
 
 def calibration_law(out_dir, printer: Printer | None = None, *, layer_height_mm=None, gap_mm=GAP_MM, inputs=(),
-                    simulate=False, from_rows=None, mirror_back=False, sim_options=None, calibration=None,
+                    shuffle=None, simulate=False, from_rows=None, mirror_back=False, sim_options=None, calibration=None,
                     **options) -> dict:
     """Write the curvature-law calibration print to ``out_dir``: per frame G-code and map,
     ``law_measurements.csv`` and ``law_summary.json`` (last). ``options``: those of
@@ -484,14 +493,14 @@ def calibration_law(out_dir, printer: Printer | None = None, *, layer_height_mm=
                      inputs=list(inputs) + [from_rows, calibration])
     p = print_printer(p0, opts["thickness_mm"], layer_height_mm)
     sps = patch_specimens(**{k: opts[k] for k in LAW_DEFAULTS})
-    frames = layout(sps, p.bed_size, "LP", gap_mm=gap_mm)
+    frames = layout(sps, p.bed_size, "LP", gap_mm=gap_mm, shuffle=shuffle)
     placed = [sp for _, _, fs in frames for sp in fs]
     rows = [dict(patch=sp.id, frame=sp.frame, side=sp.side, stretch=sp.stretch, thickness_mm=sp.thickness_mm,
                  x_mm=round(sp.centre[0], 3), y_mm=round(sp.centre[1], 3),
                  **{k: sp.fields[k] for k in LAW_GEOMETRY if k in sp.fields}) for sp in placed]
     comments = list(LAW_COMMENTS)
     summary = {"kind": "law", "patches": len(rows), "layer_height_mm": p.layer_height_mm,
-               "options": {k: opts[k] for k in LAW_DEFAULTS}, "gap_mm": gap_mm, "printer": _printer_summary(p)}
+               "options": {k: opts[k] for k in LAW_DEFAULTS}, "gap_mm": gap_mm, "shuffle_seed": shuffle, "printer": _printer_summary(p)}
     if simulate or rows_index is not None:
         fill = _fill_law_rows(rows, simulate, rows_index, mirror_back, sim_options or {}, plastic_info, opts)
         comments += fill["comments"]
