@@ -358,7 +358,7 @@ def test_outputs_are_checked_first_replaced_by_kind_and_removed_on_failure(tmp_p
     rc, _, err = run(["calibration-print", "strips", "-o", str(tmp_path / "f")], capsys)
     assert rc == 2 and err.count("\n") == 1 and "the output must be a folder" in err
     out = tmp_path / "both"
-    assert run(["calibration-print", "strips", "-o", str(out)], capsys)[0] == 0          # 2 frames
+    assert run(["calibration-print", "strips", "-o", str(out), "--repetitions", "6"], capsys)[0] == 0   # 2 frames
     assert (out / "strips_frame02_back.gcode").exists()
     law = ["calibration-print", "law", "-o", str(out), "--thickness", "0.2", "0.4", "--spacing", "3.9", "6.5"]
     assert run(law, capsys)[0] == 0

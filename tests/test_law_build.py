@@ -109,7 +109,7 @@ def test_grids_that_cannot_be_inverted_are_reported_per_cell(tmp_path, capsys):
     # one spacing only: too sparse
     rc, _, err = build(capsys, template(tmp_path / "m.csv", cells=lambda r: r["spacing_mm"] == 3.9), out)
     one_line_error(rc, err, "m.csv: cannot build a law", "side front: 3 thickness(es) x 1 spacing(s), too sparse",
-                   "side back: 3 thickness(es) x 1 spacing(s)")
+                   "side back: 3 thickness(es) x 1 spacing(s)", "spacing_mm 3.9 over patches LP-001, LP-003, LP-005")
     # a missing cell
     rc, _, err = build(capsys, template(tmp_path / "m.csv", cells=lambda r: r["patch"] != "LP-010"), out)
     one_line_error(rc, err, "side back, thickness 0.3 mm, spacing 6.5 mm: no patch (missing cell)")

@@ -398,7 +398,8 @@ def calibration_strips(out_dir, printer: Printer | None = None, *, layer_height_
             for _, _, fs in frames for sp in fs]
     summary = {"kind": "strips", "specimens": len(rows), "layer_height_mm": p.layer_height_mm,
                "bead_width_mm": sps[0].fields["bead_width_mm"], "options": {k: opts[k] for k in STRIP_DEFAULTS},
-               "gap_mm": gap_mm, "shuffle_seed": shuffle, "measure": "fill curvature_per_mm (and rest_curvature_per_mm) in strips.csv, then "
+               "gap_mm": gap_mm, "shuffle_seed": shuffle,
+               "measure": "fill curvature_per_mm (and rest_curvature_per_mm) in strips.csv, then "
                "selfshape calibrate strips strips.csv -o DIR", "printer": _printer_summary(p)}
     with outs.begin():
         summary["frames"] = _write_frames(outs, frames, p, "strips", "strip calibration")
@@ -500,7 +501,8 @@ def calibration_law(out_dir, printer: Printer | None = None, *, layer_height_mm=
                  **{k: sp.fields[k] for k in LAW_GEOMETRY if k in sp.fields}) for sp in placed]
     comments = list(LAW_COMMENTS)
     summary = {"kind": "law", "patches": len(rows), "layer_height_mm": p.layer_height_mm,
-               "options": {k: opts[k] for k in LAW_DEFAULTS}, "gap_mm": gap_mm, "shuffle_seed": shuffle, "printer": _printer_summary(p)}
+               "options": {k: opts[k] for k in LAW_DEFAULTS}, "gap_mm": gap_mm, "shuffle_seed": shuffle,
+               "printer": _printer_summary(p)}
     if simulate or rows_index is not None:
         fill = _fill_law_rows(rows, simulate, rows_index, mirror_back, sim_options or {}, plastic_info, opts)
         comments += fill["comments"]
@@ -590,7 +592,8 @@ def _fill_law_rows(rows, simulate, rows_index, mirror_back, sim_options, plastic
                      f"{so['max_iterations']} Newton iterations, start "
                      + ("flat (perturbed)" if not so["start_curvature"] else
                         f"rolled {so['start_direction']} the ribbons to {so['start_curvature']:g} /mm"),
-                     f"  fabric E {fabric.young_modulus:g} MPa, nu {fabric.poisson:g}, thickness {fabric.thickness:g} mm; "
+                     f"  fabric E {fabric.young_modulus:g} MPa, nu {fabric.poisson:g}, "
+                     f"thickness {fabric.thickness:g} mm; "
                      f"{text}",
                      f"plastic_young_modulus_mpa = {plastic.young_modulus:.6g}"]
     else:

@@ -106,8 +106,9 @@ def read_measurements(path) -> dict:
                 problems.append(f"{who}, column {c}: {msg}" if "must be" in msg else f"{who}, column {c}: {t!r}")
         cells.append(cell)
     if problems:
-        raise SelfshapeError(_problems_line(name, f"{len(problems)} unusable entr{'y' if len(problems) == 1 else 'ies'}",
-                                            problems, "fill in every patch's kappa_per_mm as a number in 1/mm"))
+        what = f"{len(problems)} unusable entr{'y' if len(problems) == 1 else 'ies'}"
+        raise SelfshapeError(_problems_line(name, what, problems, "fill in every patch's kappa_per_mm as a number "
+                                                                  "in 1/mm"))
     s = np.array([c["stretch"] for c in cells])
     if np.ptp(s) > 1e-6:
         j = int(np.argmax(np.abs(s - s[0]) > 1e-6))
@@ -154,8 +155,12 @@ def grid_table(m: dict, thickness=None, spacing=None, mirror_back=False) -> dict
         T = np.unique([round(c["thickness_mm"], 9) for c in sc])
         S = np.unique([round(c["spacing_mm"], 9) for c in sc])
         if len(T) < 2 or len(S) < 2:
-            problems.append(f"side {side}: {len(T)} thickness(es) x {len(S)} spacing(s), too sparse to invert (the "
-                            f"law needs >= 2 thicknesses and >= 2 spacings per side)")
+            ids = [c["patch"] for c in sc]
+            problems.append(f"side {side}: {len(T)} thickness(es) x {len(S)} spacing(s), too sparse to invert (column "
+                            f"thickness_mm has {', '.join(f'{x:g}' for x in T)}, "
+                            f"spacing_mm {', '.join(f'{x:g}' for x in S)}"
+                            f" over patches {', '.join(ids[:4])}{', ...' if len(ids) > 4 else ''}; the law needs >= 2 "
+                            f"thicknesses and >= 2 spacings per side)")
             continue
         K = np.zeros((len(T), len(S)))
         n = np.zeros_like(K, dtype=int)
@@ -242,8 +247,8 @@ def build_law(measured_csv, out_path, *, thickness=None, spacing=None, mirror_ba
             f"{', '.join(f'{x:g}' for x in grids['front']['spacing'])} mm; kappa {grids['front']['direction']} in "
             f"thickness (front)" + ("" if grids["back"].get("mirrored") else f", {grids['back']['direction']} (back)"),
             f"  patches per side: front {reps['front']}, back "
-            + ("= front (--mirror-back: mirror symmetry through the fabric mid-surface)" if grids["back"].get("mirrored")
-               else str(reps["back"]))]
+            + ("= front (--mirror-back: mirror symmetry through the fabric mid-surface)"
+               if grids["back"].get("mirrored") else str(reps["back"]))]
     if thickness is not None or spacing is not None:
         head.append(f"  sub-grid chosen with --thickness {thickness or 'all'} --spacing {spacing or 'all'}")
     for side in SIDES:
