@@ -391,3 +391,31 @@ def test_shuffle_is_seeded_and_only_reorders():
     assert b == c and a != b
     assert [x[3] for x in a] == [x[3] for x in b]                  # the same places, other specimens on them
     assert sorted((x[1], x[2]) for x in a) == sorted((x[1], x[2]) for x in b)
+
+
+def test_a_simulation_that_does_not_converge_leaves_its_cell_empty(tmp_path, capsys, monkeypatch):
+    """--simulate never writes a value it did not converge to: the cell stays empty with a note
+    (kappa null in law_sim_rows.json), and law build names the patch, the column and why."""
+    import validation.law_tables as lt
+
+    def fake(t, mu, side, stretch, **kw):
+        ok = not (t == 0.4 and mu == 6.5)
+        return {"thickness_mm": t, "spacing_mm": mu, "side": side, "kappa_per_mm": 0.1 / t if ok else float("nan"),
+                "converged": ok, "reason": "converged" if ok else "iteration limit", "newton_iterations": 7,
+                "n_triangles": 10, "time_s": 0.0, "kappa_across_per_mm": 0.001, "k1_angle_deg": 0.5,
+                "sigma_along": 1.2, "sigma_across": 1.4}
+    monkeypatch.setattr(lt, "simulate_row", fake)
+    out = tmp_path / "sim"
+    rc, so, err = run(["calibration-print", "law", "-o", str(out), "--thickness", "0.2", "0.4", "--spacing", "3.9",
+                       "6.5", "--simulate", "--mirror-back"], capsys)
+    assert rc == 0, err
+    assert "4 simulated, 1 not converged, 4 mirrored" in so
+    rows = {(r["side"], r["thickness_mm"], r["spacing_mm"]): r for r in rows_of(out / "law_measurements.csv")}
+    bad = rows[("front", "0.4", "6.5")]
+    assert bad["kappa_per_mm"] == "" and "simulation not converged (iteration limit" in bad["note"]
+    assert rows[("back", "0.4", "6.5")]["kappa_per_mm"] == "" and rows[("front", "0.2", "3.9")]["kappa_per_mm"] == "0.5"
+    sim = json.loads((out / "law_sim_rows.json").read_text())["rows"]
+    assert sum(r["kappa_per_mm"] is None for r in sim) == 1 and len(sim) == 4
+    rc, _, err = run(["law", "build", str(out / "law_measurements.csv"), "-o", str(tmp_path / "l.csv")], capsys)
+    assert rc == 2 and err.count("\n") == 1
+    assert f"patch {bad['patch']}, column kappa_per_mm: empty (simulation not converged" in err
