@@ -419,3 +419,19 @@ def test_a_simulation_that_does_not_converge_leaves_its_cell_empty(tmp_path, cap
     rc, _, err = run(["law", "build", str(out / "law_measurements.csv"), "-o", str(tmp_path / "l.csv")], capsys)
     assert rc == 2 and err.count("\n") == 1
     assert f"patch {bad['patch']}, column kappa_per_mm: empty (simulation not converged" in err
+    # refilled from its rows: the same empty cell, said so
+    rc, so, err = run(["calibration-print", "law", "-o", str(tmp_path / "again"), "--thickness", "0.2", "0.4",
+                       "--spacing", "3.9", "6.5", "--from-rows", str(out / "law_sim_rows.json"), "--mirror-back"],
+                      capsys)
+    assert rc == 0, err
+    assert "1 missing" in so
+    again = {(r["side"], r["thickness_mm"], r["spacing_mm"]): r
+             for r in rows_of(tmp_path / "again" / "law_measurements.csv")}
+    cell = again[("front", "0.4", "6.5")]
+    assert cell["kappa_per_mm"] == "" and "did not converge" in cell["note"]
+    # a rows JSON with two rows for one cell is refused, naming the row
+    dup = {"rows": sim + sim[:1]}
+    (tmp_path / "dup.json").write_text(json.dumps(dup))
+    rc, _, err = run(["calibration-print", "law", "-o", str(tmp_path / "dup"), "--from-rows",
+                      str(tmp_path / "dup.json")], capsys)
+    assert rc == 2 and "dup.json: rows[4]: a second row for thickness" in err and not (tmp_path / "dup").exists()

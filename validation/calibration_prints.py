@@ -474,7 +474,7 @@ def calibration_law(out_dir, printer: Printer | None = None, *, layer_height_mm=
     plastic = the modulus ratio of ``calibration`` (a `calibrate strips` parameters.json) x the
     fabric's E, default the shipped inverse/data/strips_S1_calibration.json); ``from_rows``:
     fill them from a rows JSON of studies/thickness_law_sim.py (--rows-json) instead, matching
-    (thickness, spacing, side). ``mirror_back``: back cells take their front cell's values
+    (thickness, spacing, side; one row per cell). ``mirror_back``: back cells take their front cell's values
     (the model is mirror-symmetric without gravity; so were the shipped laws made) instead of
     being simulated or looked up. Cells that do not converge or are absent stay empty, with a
     note. Returns the summary."""
@@ -552,9 +552,15 @@ def _read_rows_json(path):
     for i, r in enumerate(rows):
         try:
             key = (round(float(r["thickness_mm"]), 9), round(float(r["spacing_mm"]), 9), str(r["side"]))
-            float(r["kappa_per_mm"])
+            k = r["kappa_per_mm"]
+            if k is not None:
+                float(k)
         except (KeyError, TypeError, ValueError):
-            raise SelfshapeError(f"{name}: rows[{i}]: needs thickness_mm, spacing_mm, side, kappa_per_mm") from None
+            raise SelfshapeError(f"{name}: rows[{i}]: needs thickness_mm, spacing_mm, side and a number (or null) "
+                                 f"kappa_per_mm") from None
+        if key in out:
+            raise SelfshapeError(f"{name}: rows[{i}]: a second row for thickness {key[0]:g} mm, spacing {key[1]:g} mm, "
+                                 f"side {key[2]}: which one the template should hold is the user's choice (keep one)")
         out[key] = r
     out["_name"] = name
     return out
@@ -627,9 +633,10 @@ def _fill_law_rows(rows, simulate, rows_index, mirror_back, sim_options, plastic
             if src is None:
                 n_missing += 1
                 r["note"] = f"no row in {rows_index['_name']}"
-            elif src.get("converged", True) is False:
+            elif src.get("converged", True) is False or src["kappa_per_mm"] is None \
+                    or not math.isfinite(float(src["kappa_per_mm"])):
                 n_missing += 1
-                r["note"] = f"the row in {rows_index['_name']} did not converge"
+                r["note"] = f"the row in {rows_index['_name']} did not converge (no value)"
             else:
                 r.update(_sim_values(src))
                 if src.get("rows") is not None and (int(src["rows"]), int(src.get("motifs", -1))) != \
