@@ -210,7 +210,7 @@ def _cmd_calibration_print(a):
         sim = dict(mesh_size=a.mesh_size, across=a.across, max_iterations=a.max_iterations,
                    start_curvature=a.start_curvature, start_direction=a.start_direction, seed=a.seed)
         s = cp.calibration_law(a.output, printer, spacing_mm=a.spacing, stretch=a.stretch, rows=a.rows,
-                               motifs=a.motifs, simulate=a.simulate, from_rows=a.from_rows, mirror_back=a.mirror_back,
+                               motifs=a.motifs, repetitions=a.repetitions, simulate=a.simulate, from_rows=a.from_rows, mirror_back=a.mirror_back,
                                sim_options=sim, calibration=a.calibration, **common)
         what, table = f"{s['patches']} patches", "law_measurements.csv"
         if "fill" in s:
@@ -246,6 +246,7 @@ def _add_calibration_verbs(sub):
         q.add_argument("--shuffle", type=_SEED, default=None, metavar="SEED",
                        help="place specimens of one size in a seeded random order (default: in order)")
     st.add_argument("--repetitions", type=_COUNT, default=None, help="strips per thickness, side, orientation, stretch")
+    lw.add_argument("--repetitions", type=_COUNT, default=None, help="patches per side, thickness and spacing (1)")
     st.add_argument("--stretch", type=_number(1.0, lo_open=True), nargs="+", default=None,
                     help="fabric pre-stretches (one frame set each)")
     st.add_argument("--orientation", type=_number(), nargs="+", default=None, help="strip axes from x, degrees")

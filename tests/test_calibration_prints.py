@@ -435,3 +435,45 @@ def test_a_simulation_that_does_not_converge_leaves_its_cell_empty(tmp_path, cap
     rc, _, err = run(["calibration-print", "law", "-o", str(tmp_path / "dup"), "--from-rows",
                       str(tmp_path / "dup.json")], capsys)
     assert rc == 2 and "dup.json: rows[4]: a second row for thickness" in err and not (tmp_path / "dup").exists()
+
+
+def test_replicates_are_simulated_once(tmp_path, capsys, monkeypatch):
+    import validation.law_tables as lt
+    calls = []
+
+    def fake(t, mu, side, stretch, **kw):
+        calls.append((t, mu, side))
+        return {"thickness_mm": t, "spacing_mm": mu, "side": side, "kappa_per_mm": 0.1 / t, "converged": True,
+                "reason": "converged", "newton_iterations": 7, "n_triangles": 10, "time_s": 0.0}
+    monkeypatch.setattr(lt, "simulate_row", fake)
+    out = tmp_path / "sim"
+    rc, so, err = run(["calibration-print", "law", "-o", str(out), "--thickness", "0.2", "0.4", "--spacing", "3.9",
+                       "6.5", "--repetitions", "2", "--simulate"], capsys)
+    assert rc == 0, err
+    assert len(calls) == len(set(calls)) == 8 and "16 patches" in so
+    assert len({r["patch"] for r in rows_of(out / "law_measurements.csv")}) == 16
+
+
+def test_contraction_columns_are_printed_over_deployed_length():
+    """validation.law_tables.curvature_state's sigma_along / sigma_across (the template's
+    contraction columns from a simulation): a flat sheet shrunk to 0.8 along x and 0.9 along y
+    has 1.25 and 1/0.9; rolled isometrically, 1 and 1."""
+    from types import SimpleNamespace
+
+    from geometry.target import grid_triangles
+    from shellfem.model import ShellModel
+    from shellfem.sheet import Sheet
+    from validation.law_tables import curvature_state
+    X, Y = np.meshgrid(np.linspace(0, 60, 31), np.linspace(0, 24, 13), indexing="ij")
+    P = np.column_stack([X.ravel(), Y.ravel()])
+    sheet = Sheet(P, grid_triangles(30, 12))
+    model = ShellModel.homogeneous(sheet, 1.0, 0.3, 0.5)
+
+    def state(pos):
+        q = np.concatenate([pos.ravel(), np.zeros(model.n_dofs - pos.size)])
+        return curvature_state(SimpleNamespace(sheet=sheet, model=model, result=SimpleNamespace(q=q)), (15, 6, 45, 18))
+    s = state(np.column_stack([0.8 * P[:, 0], 0.9 * P[:, 1], np.zeros(len(P))]))
+    assert s["sigma_along"] == pytest.approx(1.25, rel=1e-9) and s["sigma_across"] == pytest.approx(1 / 0.9, rel=1e-9)
+    R = 20.0
+    s = state(np.column_stack([R * np.sin(P[:, 0] / R), P[:, 1], R * (1 - np.cos(P[:, 0] / R))]))
+    assert s["sigma_along"] == pytest.approx(1.0, rel=2e-3) and s["sigma_across"] == pytest.approx(1.0, rel=1e-9)

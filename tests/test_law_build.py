@@ -163,3 +163,36 @@ def test_a_decimal_comma_row_names_the_patch(tmp_path, capsys):
     src.write_text(text)
     rc, _, err = build(capsys, src, tmp_path / "law.csv")
     one_line_error(rc, err, "patch LP-003 (row 3): 21 fields, the header has 20 (a decimal comma?")
+
+
+def test_replicated_noisy_measurements_build_the_law_they_measure(tmp_path, capsys):
+    """The measured analogue of the strips round trip: a law print with 3 replicates per cell,
+    kappa filled from the shipped s = 1.3 law with 2 % seeded noise: the built law is the shipped
+    one within 3 noise standard errors (2 % / sqrt(3)) at every cell."""
+    from inverse.thickness_law import curvature, load_thickness_law, law_for_stretch
+    out = tmp_path / "print"
+    assert main(["calibration-print", "law", "-o", str(out), "--stretch", "1.3", "--thickness", "0.2", "0.3", "0.4",
+                 "--spacing", "3.9", "6.5", "--repetitions", "3"]) == 0
+    capsys.readouterr()
+    path = out / "law_measurements.csv"
+    lines = path.read_text().splitlines()
+    shipped = law_for_stretch(1.3)
+    rng = np.random.default_rng(5)
+    head = [i for i, ln in enumerate(lines) if ln.startswith("patch,")][0]
+    cols = lines[head].split(",")
+    j = {c: cols.index(c) for c in ("side", "thickness_mm", "spacing_mm", "kappa_per_mm")}
+    for i in range(head + 1, len(lines)):
+        f = lines[i].split(",")
+        k = float(curvature(shipped, float(f[j["thickness_mm"]]), float(f[j["spacing_mm"]]), f[j["side"]]))
+        f[j["kappa_per_mm"]] = f"{k * (1 + 0.02 * rng.standard_normal()):.6g}"
+        lines[i] = ",".join(f)
+    path.write_text("\n".join(lines) + "\n")
+    rc, so, err = build(capsys, path, tmp_path / "law.csv")
+    assert rc == 0, err
+    assert "12 rows from 36 patches" in so
+    law = load_thickness_law(tmp_path / "law.csv")
+    for side in ("front", "back"):
+        a, b = law.table(side), shipped.table(side)
+        rel = a.kappa / b.kappa - 1
+        assert np.all(np.abs(rel) < 3 * 0.02 / np.sqrt(3)) and np.any(rel != 0)
+    assert sum("mean of 3 patches" in ln for ln in law.provenance) == 12

@@ -61,7 +61,7 @@ STRIP_DEFAULTS = {"thickness_mm": (0.3, 0.35, 0.4, 0.45), "repetitions": 10, "st
 #: validation.law_tables, thicknesses 0.2-0.55 mm around the shipped laws' 0.2-0.4 mm)
 LAW_DEFAULTS = {"thickness_mm": (0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55),
                 "spacing_mm": (3.9, 5.0, 6.5, 8.5, 11.0, 15.0), "stretch": 1.6, "sides": ("front", "back"),
-                "rows": 6, "motifs": 3, "aspect": 2.0}
+                "rows": 6, "motifs": 3, "aspect": 2.0, "repetitions": 1}
 GAP_MM = 8.0          # fabric between neighbouring specimens (to cut them apart)
 MARGIN_MM = 8.0       # free border of the bed around the layout
 STRIPS_MEASURED = ("curvature_per_mm", "rest_curvature_per_mm")
@@ -152,9 +152,11 @@ def strip_specimens(thickness_mm=STRIP_DEFAULTS["thickness_mm"], repetitions=STR
 
 def patch_specimens(thickness_mm=LAW_DEFAULTS["thickness_mm"], spacing_mm=LAW_DEFAULTS["spacing_mm"],
                     stretch=LAW_DEFAULTS["stretch"], sides=LAW_DEFAULTS["sides"], rows=LAW_DEFAULTS["rows"],
-                    motifs=LAW_DEFAULTS["motifs"], aspect=LAW_DEFAULTS["aspect"]):
-    """The law's parallel-ribbon patches: every side x thickness x spacing, each the patch of
-    validation.law_tables.patch_pattern (the simulated one), centred on (0, 0)."""
+                    motifs=LAW_DEFAULTS["motifs"], aspect=LAW_DEFAULTS["aspect"],
+                    repetitions=LAW_DEFAULTS["repetitions"]):
+    """The law's parallel-ribbon patches: every side x thickness x spacing, ``repetitions`` times
+    (replicates, averaged by `law build`), each the patch of validation.law_tables.patch_pattern
+    (the simulated one), centred on (0, 0)."""
     from validation.law_tables import MU1, RIBBON_LENGTH, RIBBON_WIDTH, patch_motifs, patch_pattern
     out = []
     for side in sides:
@@ -167,11 +169,12 @@ def patch_specimens(thickness_mm=LAW_DEFAULTS["thickness_mm"], spacing_mm=LAW_DE
                 ribs = [Ribbon(path=np.asarray(r["path"], float) - c, width_mm=r["width_mm"],
                                thickness_mm=r["thickness_mm"], side=side) for r in raw["ribbon"]]
                 corners = np.array([[0, 0], [W, 0], [W, H], [0, H]], float) - c
-                out.append(Specimen("patch", side, float(stretch), float(t), ribs, corners, {
-                    "spacing_mm": float(mu), "ribbon_length_mm": RIBBON_LENGTH, "ribbon_width_mm": RIBBON_WIDTH,
-                    "ribbon_gap_mm": MU1 - RIBBON_LENGTH, "mu1_mm": MU1, "rows": int(rows),
-                    "motifs": int(patch_motifs(motifs, rows, mu, MU1, aspect)), "patch_length_mm": float(W),
-                    "patch_width_mm": float(H)}))
+                for _ in range(int(repetitions)):
+                    out.append(Specimen("patch", side, float(stretch), float(t), ribs, corners, {
+                        "spacing_mm": float(mu), "ribbon_length_mm": RIBBON_LENGTH, "ribbon_width_mm": RIBBON_WIDTH,
+                        "ribbon_gap_mm": MU1 - RIBBON_LENGTH, "mu1_mm": MU1, "rows": int(rows),
+                        "motifs": int(patch_motifs(motifs, rows, mu, MU1, aspect)), "patch_length_mm": float(W),
+                        "patch_width_mm": float(H)}))
     return out
 
 
@@ -482,7 +485,7 @@ def calibration_law(out_dir, printer: Printer | None = None, *, layer_height_mm=
     opts = dict(LAW_DEFAULTS)
     opts.update({k: v for k, v in options.items() if v is not None})
     _check_options({k: opts[k] for k in ("thickness_mm", "spacing_mm", "sides")} | {"stretch": (opts["stretch"],)})
-    for key, lo, hi in (("rows", 1, 100), ("motifs", 1, 100)):
+    for key, lo, hi in (("rows", 1, 100), ("motifs", 1, 100), ("repetitions", 1, 100)):
         if not (isinstance(opts[key], int) and lo <= opts[key] <= hi):
             raise SelfshapeError(f"--{key} must be an integer in [{lo}, {hi}], got {opts[key]!r}")
     check_number("--aspect", opts["aspect"], lo=0.0, hi=20.0)
@@ -611,18 +614,24 @@ def _fill_law_rows(rows, simulate, rows_index, mirror_back, sim_options, plastic
                          f"plastic_young_modulus_mpa = {plastic_info[1].young_modulus:.6g}"]
     if mirror_back:
         comments.append("back cells = their front cell (mirror symmetry through the fabric mid-surface, no gravity)")
+    done = {}                 # replicates of a cell: the (deterministic) simulation once
     for r in rows:
         if mirror_back and r["side"] == "back":
             continue
         if simulate:
-            sim = simulate_row(r["thickness_mm"], r["spacing_mm"], r["side"], r["stretch"], mesh_size=so["mesh_size"],
-                               across=so["across"], max_iterations=int(so["max_iterations"]), n_rows=opts["rows"],
-                               n_motifs=opts["motifs"], aspect=opts["aspect"], seed=int(so["seed"]), fabric=fabric,
-                               plastic=plastic, start_curvature=so["start_curvature"],
-                               start_direction=so["start_direction"])
-            n_sim += 1
-            sim_rows.append({k: (None if isinstance(sim[k], float) and not math.isfinite(sim[k]) else sim[k])
-                             for k in ROW_KEYS + EXTRA_ROW_KEYS if k in sim})
+            if key(r) in done:
+                sim = done[key(r)]
+            else:
+                sim = simulate_row(r["thickness_mm"], r["spacing_mm"], r["side"], r["stretch"],
+                                   mesh_size=so["mesh_size"], across=so["across"],
+                                   max_iterations=int(so["max_iterations"]), n_rows=opts["rows"],
+                                   n_motifs=opts["motifs"], aspect=opts["aspect"], seed=int(so["seed"]), fabric=fabric,
+                                   plastic=plastic, start_curvature=so["start_curvature"],
+                                   start_direction=so["start_direction"])
+                done[key(r)] = sim
+                n_sim += 1
+                sim_rows.append({k: (None if isinstance(sim[k], float) and not math.isfinite(sim[k]) else sim[k])
+                                 for k in ROW_KEYS + EXTRA_ROW_KEYS if k in sim})
             if sim["converged"] and np.isfinite(sim["kappa_per_mm"]):
                 r.update(_sim_values(sim))
             else:

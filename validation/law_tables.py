@@ -54,8 +54,8 @@ SPACINGS = (3.9, 5.0, 6.5, 8.5, 11.0, 15.0)             # mm: sigma2 in [1.3, 1.
 ROW_KEYS = ("thickness_mm", "spacing_mm", "side", "kappa_per_mm", "converged", "reason", "newton_iterations",
             "n_triangles", "time_s")
 EXTRA_ROW_KEYS = ("kappa_across_per_mm", "kappa_along_signed", "kappa_across_signed", "k1_per_mm", "k2_per_mm",
-                  "k1_angle_deg", "gaussian_per_mm2", "sigma_along", "sigma_across", "stable", "energy_nmm", "rows", "motifs", "patch_mm",
-                  "start_curvature_per_mm", "start_direction")
+                  "k1_angle_deg", "gaussian_per_mm2", "sigma_along", "sigma_across", "stable", "energy_nmm", "rows",
+                  "motifs", "patch_mm", "start_curvature_per_mm", "start_direction")
 
 
 def git_hash() -> str:
