@@ -1,4 +1,5 @@
-"""The ``selfshape`` command: mesh, simulate, design, calibrate, validate, predict, export, view.
+"""The ``selfshape`` command: mesh, simulate, design, calibrate, validate, predict, export, view,
+calibration-print, law.
 
 Every verb is a thin wrapper over a Python function (named in its help) so that
 scripts can call the same thing. Bad input exits with status 2 and one line on
@@ -211,6 +212,93 @@ def _cmd_view(a):
     print(f"wrote {path}: open it in a browser (works offline)")
 
 
+# ---------------------------------------------------------------- calibration prints (issue 23)
+def _cmd_calibration_print(a):
+    from inverse.printer import load_printer
+    from validation import calibration_prints as cp
+    printer = load_printer(a.printer) if a.printer else None
+    common = dict(layer_height_mm=a.layer_height, gap_mm=a.gap, inputs=[a.printer] if a.printer else (),
+                  thickness_mm=a.thickness, sides=a.sides, shuffle=a.shuffle)
+    if a.kind == "strips":
+        s = cp.calibration_strips(a.output, printer, repetitions=a.repetitions, stretch=a.stretch,
+                                  orientation_deg=a.orientation, width_mm=a.width, length_mm=a.length,
+                                  fabric_thickness_mm=a.fabric_thickness, **common)
+        what, table = f"{s['specimens']} strips", "strips.csv"
+    else:
+        sim = dict(mesh_size=a.mesh_size, across=a.across, max_iterations=a.max_iterations,
+                   start_curvature=a.start_curvature, start_direction=a.start_direction, seed=a.seed)
+        s = cp.calibration_law(a.output, printer, spacing_mm=a.spacing, stretch=a.stretch, rows=a.rows,
+                               motifs=a.motifs, repetitions=a.repetitions, simulate=a.simulate, from_rows=a.from_rows, mirror_back=a.mirror_back,
+                               sim_options=sim, calibration=a.calibration, **common)
+        what, table = f"{s['patches']} patches", "law_measurements.csv"
+        if "fill" in s:
+            f = s["fill"]
+            table += (f" (filled from {f['source']}: {f['simulated']} simulated, {f['not_converged']} not converged, "
+                      f"{f['mirrored']} mirrored, {f['missing']} missing)")
+    print(f"{what} on {len(s['frames'])} frame(s), layer height {s['layer_height_mm']:g} mm -> {a.output} "
+          f"(G-code, maps, {table})")
+
+
+def _cmd_law(a):
+    from validation.law_build import build_law
+    r = build_law(a.measured, a.output, thickness=a.thickness, spacing=a.spacing, mirror_back=a.mirror_back,
+                  plastic_young_modulus_mpa=a.plastic_modulus)
+    print(f"law at stretch {r['stretch']:g}: {r['cells']} rows from {r['patches']} patches -> {r['output']}")
+
+
+def _add_calibration_verbs(sub):
+    """``calibration-print strips|law`` and ``law build`` (validation.calibration_prints, validation.law_build)."""
+    c = sub.add_parser("calibration-print", help="G-code, map and template of calibration specimens "
+                       "(validation.calibration_prints)")
+    kinds = c.add_subparsers(dest="kind", required=True)
+    st = kinds.add_parser("strips", help="bilayer strips for `calibrate strips` (seed section 3.3)")
+    lw = kinds.add_parser("law", help="parallel-ribbon patches for `law build` (seed Fig. 5.7)")
+    for q in (st, lw):
+        q.add_argument("-o", "--output", required=True, help="output directory")
+        q.add_argument("--printer", default=None, help="printer TOML (inverse.printer.Printer fields)")
+        q.add_argument("--thickness", type=_POSITIVE, nargs="+", default=None, help="plastic thicknesses, mm")
+        q.add_argument("--sides", nargs="+", choices=["front", "back"], default=None)
+        q.add_argument("--layer-height", type=_POSITIVE, default=None,
+                       help="mm (default: the printer's, or the largest printer height / k dividing every thickness)")
+        q.add_argument("--gap", type=_number(0.0), default=8.0, help="fabric between specimens, mm")
+        q.add_argument("--shuffle", type=_SEED, default=None, metavar="SEED",
+                       help="place specimens of one size in a seeded random order (default: in order)")
+    st.add_argument("--repetitions", type=_COUNT, default=None, help="strips per thickness, side, orientation, stretch")
+    lw.add_argument("--repetitions", type=_COUNT, default=None, help="patches per side, thickness and spacing (1)")
+    st.add_argument("--stretch", type=_number(1.0, lo_open=True), nargs="+", default=None,
+                    help="fabric pre-stretches (one frame set each)")
+    st.add_argument("--orientation", type=_number(), nargs="+", default=None, help="strip axes from x, degrees")
+    st.add_argument("--width", type=_POSITIVE, default=None, help="strip width, mm")
+    st.add_argument("--length", type=_POSITIVE, default=None, help="strip length, mm")
+    st.add_argument("--fabric-thickness", type=_POSITIVE, default=None, help="measured fabric thickness, mm")
+    lw.add_argument("--spacing", type=_POSITIVE, nargs="+", default=None, help="transverse spacings mu2, mm")
+    lw.add_argument("--stretch", type=_number(1.0, lo_open=True), default=None, help="fabric pre-stretch")
+    lw.add_argument("--rows", type=_COUNT, default=None, help="ribbon rows per patch")
+    lw.add_argument("--motifs", type=_COUNT, default=None, help="dash periods along a patch (at least)")
+    lw.add_argument("--simulate", action="store_true", help="fill the measured columns by simulating each patch")
+    lw.add_argument("--from-rows", default=None, help="fill them from a rows JSON of studies/thickness_law_sim.py")
+    lw.add_argument("--mirror-back", action="store_true", help="back cells = front cells (not simulated/looked up)")
+    lw.add_argument("--calibration", default=None, help="calibrate strips parameters.json for the simulated plastic")
+    lw.add_argument("--mesh-size", type=_POSITIVE, default=None, help="--simulate: fabric edge length, mm (3)")
+    lw.add_argument("--across", type=_POSITIVE, default=None, help="--simulate: triangle rows across a ribbon (2)")
+    lw.add_argument("--max-iterations", type=_COUNT, default=None, help="--simulate: Newton cap (800)")
+    lw.add_argument("--start-curvature", type=_number(0.0), default=None, help="--simulate: start rolled, 1/mm")
+    lw.add_argument("--start-direction", choices=["along", "across"], default=None)
+    lw.add_argument("--seed", type=_SEED, default=None, help="--simulate: seed of the start perturbation")
+    c.set_defaults(fn=_cmd_calibration_print)
+
+    lb = sub.add_parser("law", help="build a curvature-law table from patch measurements (validation.law_build)")
+    lb.add_argument("action", choices=["build"])
+    lb.add_argument("measured", help="law_measurements.csv")
+    lb.add_argument("-o", "--output", required=True, help="law CSV (for design --law)")
+    lb.add_argument("--thickness", type=_POSITIVE, nargs="+", default=None, help="use only these thicknesses, mm")
+    lb.add_argument("--spacing", type=_POSITIVE, nargs="+", default=None, help="use only these spacings, mm")
+    lb.add_argument("--mirror-back", action="store_true", help="the back grid is the front one")
+    lb.add_argument("--plastic-modulus", type=_POSITIVE, default=None,
+                    help="plastic_young_modulus_mpa the law states (MPa; default: the template's, if any)")
+    lb.set_defaults(fn=_cmd_law)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="selfshape", description="Self-shaping textiles: simulate, design, calibrate.")
     sub = p.add_subparsers(dest="verb", required=True)
@@ -282,6 +370,8 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("folder", help="an output folder of selfshape simulate or design")
     w.add_argument("--open", action="store_true", help="also open it in the default browser")
     w.set_defaults(fn=_cmd_view)
+
+    _add_calibration_verbs(sub)
     return p
 
 

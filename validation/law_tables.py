@@ -54,8 +54,8 @@ SPACINGS = (3.9, 5.0, 6.5, 8.5, 11.0, 15.0)             # mm: sigma2 in [1.3, 1.
 ROW_KEYS = ("thickness_mm", "spacing_mm", "side", "kappa_per_mm", "converged", "reason", "newton_iterations",
             "n_triangles", "time_s")
 EXTRA_ROW_KEYS = ("kappa_across_per_mm", "kappa_along_signed", "kappa_across_signed", "k1_per_mm", "k2_per_mm",
-                  "k1_angle_deg", "gaussian_per_mm2", "stable", "energy_nmm", "rows", "motifs", "patch_mm",
-                  "start_curvature_per_mm", "start_direction")
+                  "k1_angle_deg", "gaussian_per_mm2", "sigma_along", "sigma_across", "stable", "energy_nmm", "rows",
+                  "motifs", "patch_mm", "start_curvature_per_mm", "start_direction")
 
 
 def git_hash() -> str:
@@ -144,7 +144,10 @@ def curvature_state(sim, box) -> dict:
     the ribbons (printed x, = curvature_along_x) and across them (printed y); the principal
     curvatures of the box's mean forms (k1 the larger in magnitude) with the angle of k1's
     direction from the ribbons (printed coordinates, degrees in [0, 90]: 0 = bent along the
-    ribbons, 90 = bent across them); and the area-weighted mean Gaussian curvature (1/mm^2)."""
+    ribbons, 90 = bent across them); the area-weighted mean Gaussian curvature (1/mm^2); and the
+    in-plane contraction printed / deployed length along and across the ribbons, 1 / area-mean
+    sqrt(a_xx) and 1 / area-mean sqrt(a_yy) (intrinsic, so the bending does not enter; the
+    ``contraction_*`` columns a lab measures on a calibration patch, validation.calibration_prints)."""
     from scipy.linalg import eigh
     a, b = sim.model.cartesian_forms(sim.result.q)         # (m, 2, 2) in printed (X, Y)
     P = sim.sheet.points[sim.sheet.triangles]
@@ -162,7 +165,8 @@ def curvature_state(sim, box) -> dict:
     i = int(np.argmax(np.abs(k)))
     angle = float(np.degrees(np.arctan2(abs(v[1, i]), abs(v[0, i]))))
     return {"kappa_along_signed": kx, "kappa_across_signed": ky, "k1_per_mm": float(k[i]),
-            "k2_per_mm": float(k[1 - i]), "k1_angle_deg": round(angle, 2), "gaussian_per_mm2": gauss}
+            "k2_per_mm": float(k[1 - i]), "k1_angle_deg": round(angle, 2), "gaussian_per_mm2": gauss,
+            "sigma_along": 1.0 / mean(np.sqrt(a[:, 0, 0])), "sigma_across": 1.0 / mean(np.sqrt(a[:, 1, 1]))}
 
 
 def rolled_start(points, curvature, seed=0, direction="along") -> np.ndarray:
