@@ -574,34 +574,41 @@ class QuadraticForm:
                          self.Q, order, W, g, H)
         return W, (g if order >= 1 else None), (H if order >= 2 else None)
 
-    def minimiser(self, keep=None, tol: float = 1e-14, max_iterations: int = 50):
+    def minimiser(self, keep=None, tol: float = 1e-13, max_iterations: int = 50):
         """Per-triangle minimiser z* of W over the components ``keep`` (others held at 0):
         one linear solve for the quadratic part, then Newton with the exact Hessian on the
-        exact-metric triangles (damped by halving if a step does not decrease W), until the
-        step is below tol of |z|."""
+        exact-metric triangles (damped by halving if a step increases W beyond round-off),
+        each triangle until its step is below tol of |z| (then the step is taken and the
+        triangle is done: only the unfinished ones are evaluated again)."""
         keep = np.arange(6) if keep is None else np.asarray(keep)
         q = np.zeros((self.m, 6))
         for idx, Q, zbar, *_ in self._terms:
             q[idx] += (Q @ zbar[:, :, None])[:, :, 0]
         z = np.zeros((self.m, 6))
         z[:, keep] = np.linalg.solve(self.Q[:, keep][:, :, keep], q[:, keep, None])[..., 0]
-        if not self.thick.any():
+        active = np.flatnonzero(self.thick)
+        if not len(active):
             return z
-        W, g, H = self.evaluate(z)
+        W, g, H = self.evaluate(z, faces=active)            # rows of the active triangles
         for _ in range(max_iterations):
-            step = np.zeros_like(z)
+            step = np.zeros((len(active), 6))
             step[:, keep] = -np.linalg.solve(H[:, keep][:, :, keep], g[:, keep, None])[..., 0]
-            t = np.ones(self.m)
+            done = np.all(np.abs(step) <= tol * np.abs(z[active]).max(1, keepdims=True), axis=1)
+            z[active[done]] += step[done]
+            active, step, W = active[~done], step[~done], W[~done]
+            if not len(active):
+                break
+            t = np.ones(len(active))
+            zt = z.copy()
             for _ in range(30):
-                Wt = self.evaluate(z + t[:, None] * step, order=0)[0]
-                bad = ~(Wt <= W)
+                zt[active] = z[active] + t[:, None] * step
+                Wt = self.evaluate(zt, order=0, faces=active)[0]
+                bad = ~(Wt <= W + 1e-14 * np.abs(W))
                 if not bad.any():
                     break
                 t = np.where(bad, 0.5 * t, t)
-            z = z + t[:, None] * step
-            W, g, H = self.evaluate(z)
-            if np.all(np.abs(t[:, None] * step) <= tol * np.abs(z).max(1, keepdims=True)):
-                break
+            z[active] += t[:, None] * step
+            W, g, H = self.evaluate(z, faces=active)
         return z
 
 
