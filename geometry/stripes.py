@@ -35,6 +35,11 @@ from shellfem.errors import SelfshapeError
 TWO_PI = 2.0 * np.pi
 
 
+class MeshTooCoarse(SelfshapeError):
+    """The mesh's edges are too long for the stripe spacing (an edge spans more than half a
+    period): refine and retry."""
+
+
 @dataclass
 class StripeField:
     """Result of :func:`stripe_field` on a mesh with n vertices and m faces.
@@ -297,7 +302,7 @@ def stripe_field(V, F, direction, spacing, seed: int = 0, direction_on: str = "a
     worst = int(np.argmax(np.abs(omega)))
     if abs(omega[worst]) > np.pi:
         a, b = E[worst]
-        raise SelfshapeError(
+        raise MeshTooCoarse(
             f"stripes: mesh too coarse for the spacing: edge ({a}, {b}) spans {abs(omega[worst]) / TWO_PI:.2f} "
             f"stripe periods (spacing {spacing[a]:.3g} mm); refine to edges below half the spacing")
 

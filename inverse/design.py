@@ -199,6 +199,20 @@ class DesignOptions:
     layout_edge_mm: float | None = 2.0
 
 
+def _check_fits_bed(uv, printer, ribbon_length, diagonal_mm, where):
+    """One-line error before the layout when the flattened pattern (printed-state mm) cannot
+    fit the printer's bed: the ribbons fill the outline to within a ribbon length of its edge,
+    so an outline more than two ribbon lengths longer than the bed in x or y cannot print
+    (the G-code writer refuses the marginal cases ribbon by ribbon)."""
+    ext = np.ptp(uv, axis=0)
+    bed = np.asarray(printer.bed_size, float)
+    if np.any(ext - 2.0 * ribbon_length > bed):
+        hint = f"lower --diagonal (now {diagonal_mm:g} mm)" if diagonal_mm is not None else "scale the target down"
+        raise SelfshapeError(f"{where}: the flattened pattern is {ext[0]:.0f} x {ext[1]:.0f} mm, larger than the "
+                             f"printer's {bed[0]:g} x {bed[1]:g} mm bed; {hint} or give a printer with a larger "
+                             f"bed_size")
+
+
 #: A target whose vertices all lie within this fraction of its bounding-box diagonal of one
 #: plane is flat: there is no curvature to design for (0.11 mm at the default 110 mm).
 FLAT_REL = 1e-3
@@ -234,6 +248,7 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     from geometry.fields import curvature_line_field
     from geometry.flattening import stretch_bounds
     from geometry.target import check_disk, normalize, refine
+    from geometry.stripes import MeshTooCoarse
     from inverse.layout import ribbon_layout
     from inverse.printer import Printer
     from inverse.thickness_law import (ThicknessLaw, check_law_stretch, curvature_reach, law_for_stretch,
@@ -295,6 +310,7 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
         raise SelfshapeError(f"{where}: the flattening has {flat.flipped} flipped triangles; "
                              f"the surface cannot be flattened within the stretch bounds")
 
+    _check_fits_bed(flat.uv, printer, ribbon_length, o.diagonal_mm, where)
     kappa1 = normal_curvature_along(curv, lf.face_dirs)
     outline = boundary_polygon(flat.uv, Ff)
     s1 = np.clip(flat.sigma1, bounds[0], bounds[1])
@@ -306,10 +322,19 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
         while lay_levels > 0 and e0 / 2 ** (lay_levels - 1) <= o.layout_edge_mm:
             lay_levels -= 1
     area = face_areas(Vf, Ff)
-    uv_l, F_l, d_l, s1_l, s2_l, k_l = coarsen_for_layout(F0, levels, lay_levels, flat.uv, area, flat.dir1,
-                                                         s1, s2, kappa1)
-    ribbons = ribbon_layout(uv_l, Ff if F_l is None else F_l, d_l, s1_l, s2_l, k_l, stretch, outline=outline,
-                            ribbon_length=ribbon_length, ribbon_width=ribbon_width, seed=o.seed)
+    while True:     # the coarsest level whose edges resolve the stripes (non-uniform meshes need finer)
+        uv_l, F_l, d_l, s1_l, s2_l, k_l = coarsen_for_layout(F0, levels, lay_levels, flat.uv, area, flat.dir1,
+                                                             s1, s2, kappa1)
+        try:
+            ribbons = ribbon_layout(uv_l, Ff if F_l is None else F_l, d_l, s1_l, s2_l, k_l, stretch,
+                                    outline=outline, ribbon_length=ribbon_length, ribbon_width=ribbon_width,
+                                    seed=o.seed)
+            break
+        except MeshTooCoarse as e:
+            if lay_levels >= levels:
+                raise SelfshapeError(f"{where}: the target's mesh is too coarse for the ribbon spacing after "
+                                     f"{levels} refinements ({e}); give a finer target mesh") from None
+            lay_levels += 1
     if not ribbons:
         raise SelfshapeError(f"{where}: the layout produced no ribbons (surface too small for "
                              f"{ribbon_length:g} x {ribbon_width:g} mm ribbons?)")

@@ -232,7 +232,66 @@ def layer_scratch():
     """Scratch arrays of :func:`layer_terms` (allocate once per chunk of triangles, not per
     triangle: small allocations dominate the cost of the third-form terms otherwise)."""
     return (np.empty(6), np.empty(3), np.empty(3), np.empty(3), np.empty((3, 6)), np.empty((3, 9)),
-            np.empty((3, 6)), np.empty((3, 6, 6)))
+            np.empty((3, 6)), np.empty((3, 6, 6)), np.empty(6), np.empty(6), np.empty((6, 6)))
+
+
+#: The third-form terms are weighted by phi(rho), rho = zmax^2 (k1^2 + k2^2) with zmax the
+#: largest |z| of a triangle's layers: phi = 1 for rho <= RHO_EXACT (every fibre within
+#: |z k_i| <= 0.5 of the surface: the exact energy), a C2 quintic step down to 0 at
+#: RHO_TRUNCATED (|z k_i| <= 0.9 still: no focal point inside any layer), the truncated
+#: metric's quadratic energy beyond.
+RHO_EXACT = 0.25
+RHO_TRUNCATED = 0.81
+
+
+@njit(cache=True, inline="always")
+def curvature_square(z, order, ds, Hs):
+    """s = tr((a^-1 b)^2) = k1^2 + k2^2 (1/mm^2) of one state z = (a, b) (6,), its gradient ds
+    (6,) (order >= 1) and Hessian Hs (6, 6) (order 2), written into the given arrays.
+    s = F / det(a)^2 with F = n^2 - 2 det(a) det(b), n = tr(adj(a) b)."""
+    a0, a1, a2, b0, b1, b2 = z[0], z[1], z[2], z[3], z[4], z[5]
+    da = a0 * a2 - a1 * a1
+    db = b0 * b2 - b1 * b1
+    n = a2 * b0 - 2.0 * a1 * b1 + a0 * b2
+    F = n * n - 2.0 * da * db
+    u = 1.0 / da
+    s = F * u * u
+    if order == 0:
+        return s
+    dn = (b2, -2.0 * b1, b0, a2, -2.0 * a1, a0)
+    dda = (a2, -2.0 * a1, a0, 0.0, 0.0, 0.0)
+    ddb = (0.0, 0.0, 0.0, b2, -2.0 * b1, b0)
+    u2 = u * u
+    for i in range(6):
+        # ds = u^2 dF + 2 F u du,  dF = 2 n dn - 2 (db dda + da ddb),  du = -u^2 dda
+        ds[i] = u2 * (2.0 * n * dn[i] - 2.0 * (db * dda[i] + da * ddb[i])) - 2.0 * F * u2 * u * dda[i]
+    if order == 1:
+        return s
+    # second derivatives of n, det a, det b: nonzero pairs only
+    for i in range(6):
+        for j in range(6):
+            Hs[i, j] = 0.0
+    for i in range(6):
+        dFi = 2.0 * n * dn[i] - 2.0 * (db * dda[i] + da * ddb[i])
+        for j in range(i, 6):
+            dFj = 2.0 * n * dn[j] - 2.0 * (db * dda[j] + da * ddb[j])
+            hF = 2.0 * dn[i] * dn[j] - 2.0 * (ddb[i] * dda[j] + dda[i] * ddb[j])
+            # Hs = u^2 HF + 2 u (dF du^T + du dF^T) + 2 F (du du^T + u Hu),
+            # du = -u^2 dda, Hu = 2 u^3 dda dda^T - u^2 Hda
+            Hs[i, j] = (u2 * hF - 2.0 * u2 * u * (dFi * dda[j] + dda[i] * dFj)
+                        + 6.0 * F * u2 * u2 * dda[i] * dda[j])
+    # the constant second derivatives: n (a0 b2, a1 b1, a2 b0), det a (a0 a2, a1 a1), det b (b0 b2, b1 b1)
+    pairs_n = ((0, 5, 1.0), (1, 4, -2.0), (2, 3, 1.0))
+    for i, j, v in pairs_n:
+        Hs[i, j] += u2 * 2.0 * n * v
+    for i, j, v in ((0, 2, 1.0), (1, 1, -2.0)):
+        Hs[i, j] += u2 * (-2.0 * db * v) - 2.0 * F * u2 * u * v
+    for i, j, v in ((3, 5, 1.0), (4, 4, -2.0)):
+        Hs[i, j] += u2 * (-2.0 * da * v)
+    for i in range(6):
+        for j in range(i + 1, 6):
+            Hs[j, i] = Hs[i, j]
+    return s
 
 
 @njit(cache=True, inline="always")
@@ -309,16 +368,17 @@ def layer_terms(z, t0, t1, Qs, zbars, Rs, cbars, thick, zlo, zhi, order, Wz, Z, 
     """Energy of one triangle's layer terms t0..t1-1 at z (6,); adds the gradient to Wz (6,)
     (order >= 1) and, for exact-metric terms, the state-dependent part of the Hessian to Z
     (6, 6) (order 2; Z holds the constant quadratic part on entry). work: :func:`layer_scratch`.
-    Exact-metric triangles whose layers [zlo, zhi] reach a focal point (1 - z k_i <= 0 for a
-    principal curvature k_i) keep only the quadratic (truncated-metric) part: beyond a focal
-    point the Kirchhoff body folds and the third-form terms have spurious wells (a fibre at
-    z k = 2 has its length back), while +inf there would reject the theta = 0 starts of
-    interpolated meshes (sharp kinks at the print's edges). The energy is discontinuous at
-    that bound, which equilibria (|k z| <= 0.15 on printed faces) never approach.
-    Each term is evaluated from its own differences w = (z - zbar, c - cbar), never expanded
-    (no cancellation)."""
+    The third-form (exact-metric) terms carry the weight phi(rho), rho = zmax^2 (k1^2 + k2^2),
+    zmax = max(|zlo|, |zhi|) (:data:`RHO_EXACT`, :data:`RHO_TRUNCATED`): 1 wherever every fibre
+    of the layers is within |z k_i| <= 0.5, a C2 step to 0 before any fibre reaches a focal
+    point (1 - z k_i = 0), where the Kirchhoff body folds and the third-form terms have spurious
+    wells (a fibre at z k = 2 has its length back). Beyond, the truncated metric's quadratic
+    (coercive) energy is kept, so the interpolated meshes' sharp starting kinks stay admissible,
+    and the energy stays twice differentiable throughout (equilibria, |k z| <= 0.15 on printed
+    faces, sit where phi = 1). Each term is evaluated from its own differences
+    w = (z - zbar, c - cbar), never expanded (no cancellation)."""
     w = 0.0
-    d, c, r, D2, Jc, Rsum, RJ, Hc = work
+    d, c, r, D2, Jc, Rsum, RJ, Hc, g3, ds, Hs = work
     for t in range(t0, t1):                       # quadratic part, layer by layer
         for k in range(6):
             d[k] = z[k] - zbars[t, k]
@@ -331,17 +391,27 @@ def layer_terms(z, t0, t1, Qs, zbars, Rs, cbars, thick, zlo, zhi, order, Wz, Z, 
                 Wz[k] += qd
     if not thick:
         return w
-    det = z[0] * z[2] - z[1] * z[1]
-    Hm = 0.5 * (z[2] * z[3] - 2.0 * z[1] * z[4] + z[0] * z[5]) / det          # mean curvature
-    disc = np.sqrt(max(Hm * Hm - (z[3] * z[5] - z[4] * z[4]) / det, 0.0))
-    if min(1.0 - zhi * (Hm + disc), 1.0 - zhi * (Hm - disc), 1.0 - zlo * (Hm + disc),
-           1.0 - zlo * (Hm - disc)) <= 0.0:
+    zm2 = max(zlo * zlo, zhi * zhi)
+    rho = zm2 * curvature_square(z, 0, ds, Hs)
+    if not rho < RHO_TRUNCATED:                   # (also NaN: a degenerate metric)
         return w
+    phi, phi1, phi2 = 1.0, 0.0, 0.0               # phi and its derivatives in rho
+    if rho > RHO_EXACT:
+        width = RHO_TRUNCATED - RHO_EXACT
+        x = (rho - RHO_EXACT) / width
+        phi = 1.0 - x * x * x * (10.0 + x * (-15.0 + 6.0 * x))
+        phi1 = -30.0 * x * x * (1.0 - x) * (1.0 - x) / width
+        phi2 = -60.0 * x * (1.0 - x) * (1.0 - 2.0 * x) / (width * width)
+        if order >= 1:
+            curvature_square(z, order, ds, Hs)
     third_form_derivatives(z, order, c, Jc, Hc)
     for k in range(3):
         r[k] = 0.0
         for l in range(9):
             Rsum[k, l] = 0.0
+    for l in range(6):
+        g3[l] = 0.0
+    w3 = 0.0
     for t in range(t0, t1):
         for k in range(6):
             d[k] = z[k] - zbars[t, k]
@@ -354,34 +424,45 @@ def layer_terms(z, t0, t1, Qs, zbars, Rs, cbars, thick, zlo, zhi, order, Wz, Z, 
             q = 0.0
             for l in range(3):
                 q += Rs[t, k, 6 + l] * D2[l]
-            w += D2[k] * (p + 0.5 * q)
+            w3 += D2[k] * (p + 0.5 * q)
             r[k] += p + q
         if order >= 1:
             for l in range(6):
-                Wz[l] += Rs[t, 0, l] * D2[0] + Rs[t, 1, l] * D2[1] + Rs[t, 2, l] * D2[2]
+                g3[l] += Rs[t, 0, l] * D2[0] + Rs[t, 1, l] * D2[1] + Rs[t, 2, l] * D2[2]
         if order == 2:
             for k in range(3):
                 for l in range(9):
                     Rsum[k, l] += Rs[t, k, l]
+    w += phi * w3
     if order == 0:
         return w
     for l in range(6):
-        Wz[l] += Jc[0, l] * r[0] + Jc[1, l] * r[1] + Jc[2, l] * r[2]
+        g3[l] += Jc[0, l] * r[0] + Jc[1, l] * r[1] + Jc[2, l] * r[2]
+    b1 = phi1 * zm2                                # d phi / dz = b1 ds (ds computed where phi < 1)
+    for l in range(6):
+        Wz[l] += phi * g3[l]
+        if phi < 1.0:
+            Wz[l] += w3 * b1 * ds[l]
     if order == 1:
         return w
-    # Z += Jc^T R6 + R6^T Jc + Jc^T R22 Jc + sum_k r_k Hc_k
+    # phi (Jc^T R6 + R6^T Jc + Jc^T R22 Jc + sum_k r_k Hc_k) + the terms of phi's derivatives
     for k in range(3):
         for l in range(6):
             RJ[k, l] = Rsum[k, 6] * Jc[0, l] + Rsum[k, 7] * Jc[1, l] + Rsum[k, 8] * Jc[2, l]
+    b2 = phi2 * zm2 * zm2
     for i in range(6):
         for j in range(i, 6):
-            s = 0.0
+            h = 0.0
             for k in range(3):
-                s += (Jc[k, i] * (Rsum[k, j] + 0.5 * RJ[k, j]) + (Rsum[k, i] + 0.5 * RJ[k, i]) * Jc[k, j]
+                h += (Jc[k, i] * (Rsum[k, j] + 0.5 * RJ[k, j]) + (Rsum[k, i] + 0.5 * RJ[k, i]) * Jc[k, j]
                       + r[k] * Hc[k, i, j])
-            Z[i, j] += s
+            h *= phi
+            if phi < 1.0:
+                h += (b1 * (ds[i] * g3[j] + g3[i] * ds[j])
+                      + w3 * (b2 * ds[i] * ds[j] + b1 * Hs[i, j]))
+            Z[i, j] += h
             if j > i:
-                Z[j, i] += s
+                Z[j, i] += h
     return w
 
 
@@ -493,34 +574,41 @@ class QuadraticForm:
                          self.Q, order, W, g, H)
         return W, (g if order >= 1 else None), (H if order >= 2 else None)
 
-    def minimiser(self, keep=None, tol: float = 1e-14, max_iterations: int = 50):
+    def minimiser(self, keep=None, tol: float = 1e-13, max_iterations: int = 50):
         """Per-triangle minimiser z* of W over the components ``keep`` (others held at 0):
         one linear solve for the quadratic part, then Newton with the exact Hessian on the
-        exact-metric triangles (damped by halving if a step does not decrease W), until the
-        step is below tol of |z|."""
+        exact-metric triangles (damped by halving if a step increases W beyond round-off),
+        each triangle until its step is below tol of |z| (then the step is taken and the
+        triangle is done: only the unfinished ones are evaluated again)."""
         keep = np.arange(6) if keep is None else np.asarray(keep)
         q = np.zeros((self.m, 6))
         for idx, Q, zbar, *_ in self._terms:
             q[idx] += (Q @ zbar[:, :, None])[:, :, 0]
         z = np.zeros((self.m, 6))
         z[:, keep] = np.linalg.solve(self.Q[:, keep][:, :, keep], q[:, keep, None])[..., 0]
-        if not self.thick.any():
+        active = np.flatnonzero(self.thick)
+        if not len(active):
             return z
-        W, g, H = self.evaluate(z)
+        W, g, H = self.evaluate(z, faces=active)            # rows of the active triangles
         for _ in range(max_iterations):
-            step = np.zeros_like(z)
+            step = np.zeros((len(active), 6))
             step[:, keep] = -np.linalg.solve(H[:, keep][:, :, keep], g[:, keep, None])[..., 0]
-            t = np.ones(self.m)
+            done = np.all(np.abs(step) <= tol * np.abs(z[active]).max(1, keepdims=True), axis=1)
+            z[active[done]] += step[done]
+            active, step, W = active[~done], step[~done], W[~done]
+            if not len(active):
+                break
+            t = np.ones(len(active))
+            zt = z.copy()
             for _ in range(30):
-                Wt = self.evaluate(z + t[:, None] * step, order=0)[0]
-                bad = ~(Wt <= W)
+                zt[active] = z[active] + t[:, None] * step
+                Wt = self.evaluate(zt, order=0, faces=active)[0]
+                bad = ~(Wt <= W + 1e-14 * np.abs(W))
                 if not bad.any():
                     break
                 t = np.where(bad, 0.5 * t, t)
-            z = z + t[:, None] * step
-            W, g, H = self.evaluate(z)
-            if np.all(np.abs(t[:, None] * step) <= tol * np.abs(z).max(1, keepdims=True)):
-                break
+            z[active] += t[:, None] * step
+            W, g, H = self.evaluate(z, faces=active)
         return z
 
 

@@ -77,7 +77,7 @@ class ShellModel:
 
     @classmethod
     def from_materials(cls, sheet: Sheet, fabric: Fabric, plastic: Plastic, gravity: bool = True,
-                       exact_metric: bool = False):
+                       exact_metric: bool = True):
         """The seed's model: bare fabric = the fabric's membrane model (Fabric.model, from the
         registry of shellfem.materials) + bending with k_B; printed triangles = fabric layer (E2, nu_f) + plastic layer(s)
         on the front (+z) and/or back (-z) face, plastic with rest curvature (plastic set).

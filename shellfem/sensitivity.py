@@ -30,7 +30,10 @@ from shellfem.model import ShellModel, edge_metric, plastic_layers
 def thickness_form(model: ShellModel, fabric, plastic, exact_metric: bool | None = None) -> QuadraticForm:
     """The per-triangle derivative dW/dt of the plastic layers' energy with respect to the
     triangle's own plastic thickness t (mm), as a QuadraticForm (N mm per mm). A triangle
-    printed on both faces cannot take one thickness parameter: SelfshapeError."""
+    printed on both faces cannot take one thickness parameter: SelfshapeError. Exact where the
+    third-form terms carry their full weight (shellfem.layers.RHO_EXACT: every fibre within
+    |z k| <= 0.5, as at every equilibrium); in the fade before a focal point it is the
+    derivative of the unfaded exact-metric energy."""
     sheet = model.sheet
     if ((sheet.thickness_front > 0) & (sheet.thickness_back > 0)).any():
         raise SelfshapeError("thickness sensitivity: a triangle is printed on both faces; "

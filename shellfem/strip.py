@@ -19,13 +19,14 @@ from shellfem.layers import QuadraticForm, layer_form
 
 
 def strip_state(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, plastic_poisson=0.5,
-                fabric_poisson=0.3, rest_curvature=0.0, mode="narrow", exact_metric=False):
+                fabric_poisson=0.3, rest_curvature=0.0, mode="narrow", exact_metric=True):
     """Uniform equilibrium (a11, a12, a22, b11, b12, b22) in printed Cartesian coordinates
     of a strip with plastic on the front (+z); arrays broadcast together.
 
     mode "narrow": no constraint (a narrow strip: transverse stress free, anticlastic
     freedom); "plate": transverse curvature b22 = 0 (a wide sheet rolling into a cylinder
-    about y). exact_metric=False: the truncated metric a - 2 z b (shellfem.layers)."""
+    about y). The layers carry the exact Kirchhoff-Love metric (shellfem.layers); exact_metric=False:
+    the truncated metric a - 2 z b, O(kappa h) off."""
     hp, hf, s, ratio, nup, nuf, kap = np.broadcast_arrays(*(np.asarray(v, float) for v in (
         plastic_thickness, fabric_thickness, stretch, modulus_ratio, plastic_poisson, fabric_poisson,
         rest_curvature)))
@@ -50,7 +51,7 @@ def strip_state(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, 
 
 
 def strip_curvature(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, plastic_poisson=0.5,
-                    fabric_poisson=0.3, rest_curvature=0.0, mode="narrow", exact_metric=False):
+                    fabric_poisson=0.3, rest_curvature=0.0, mode="narrow", exact_metric=True):
     """Curvature (1/mm) of a released bilayer strip, > 0 when concave on the fabric side.
 
     plastic_thickness, fabric_thickness: mm; stretch: isotropic pre-stretch s >= 1;

@@ -478,3 +478,31 @@ def test_stretch_auto_picks_the_law_that_reaches_the_target(tmp_path, monkeypatc
     bare.write_text(format_thickness_law(rows, ["no stretch here"]))
     with pytest.raises(SelfshapeError, match="needs a law that states its fabric stretch"):
         choose_stretch(V, F, diagonal_mm=60.0, edge_mm=3.0, thickness_law=str(bare))
+
+
+def test_layout_moves_to_a_finer_level_where_the_coarsest_cannot_resolve_the_stripes(monkeypatch):
+    """A coarse target (12 mm edges against stripe periods of ~8 mm) refined for the flattening:
+    the layout starts on the coarsest level (layout_edge_mm large), whose edges span more than
+    half a stripe period, and moves to the next finer level instead of failing (a 200 mm hat
+    failed this way)."""
+    import inverse.layout as layout_module
+    calls = []
+    real = layout_module.stripe_field
+
+    def counting(V, F, *a, **k):
+        calls.append(len(F))
+        return real(V, F, *a, **k)
+    monkeypatch.setattr(layout_module, "stripe_field", counting)
+    V, F = cylinder_patch(n_arc=5, n_len=4)
+    d = design(V, F, diagonal_mm=None, edge_mm=1.0, layout_edge_mm=1000.0)
+    assert len(d.ribbons) > 20
+    assert calls[0] == len(F) and max(calls) > len(F)        # tried the target's own mesh, then finer
+
+
+def test_pattern_larger_than_the_bed_is_refused_before_the_layout():
+    from inverse.printer import Printer
+    V, F = cylinder_patch(n_arc=8, n_len=6)
+    with pytest.raises(SelfshapeError) as e:
+        design(V, F, diagonal_mm=None, edge_mm=None, printer=Printer(bed_size=(10.0, 10.0)))
+    msg = str(e.value)
+    assert "larger than the printer's 10 x 10 mm bed" in msg and "\n" not in msg

@@ -232,7 +232,7 @@ def test_shipped_default_law_is_the_simulated_table():
     assert np.array_equal(f.kappa, b.kappa)
     # the table's rows (issue 18: 3-row rows where they agree with 112.5 mm patches, the
     # 112.5 mm rows elsewhere, each bending along the ribbons) are kept with the study's runs
-    with open(os.path.join(os.path.dirname(DEFAULT_LAW), "thickness_law_s1.6_large_patch_rows.json")) as fh:
+    with open(os.path.join(os.path.dirname(DEFAULT_LAW), "thickness_law_s1.6_rows.json")) as fh:
         rows = {(r["thickness_mm"], r["spacing_mm"]): r for r in json.load(fh)["rows"] if r["side"] == "front"}
     for i, tk in enumerate(f.thickness):
         for j, mu in enumerate(f.spacing):
