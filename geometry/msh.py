@@ -97,6 +97,23 @@ def read_msh(path) -> Sheet:
         span = max(float(np.ptp(pts[:, :2], axis=0).max()), 1e-300)
         if np.abs(pts[:, 2]).max() > 1e-9 * span:
             raise SelfshapeError(f"{path}: the mesh is not flat (z != 0); a Sheet is a planar printed state")
+    if not np.isfinite(pts).all():
+        raise SelfshapeError(f"{path}: node {int(np.flatnonzero(~np.isfinite(pts).all(1))[0])} has a non-finite coordinate")
+    thick = {}
+    for name in ("thickness_front", "thickness_back"):
+        v = np.asarray(cell_values(name, 0.0), float)
+        bad = np.flatnonzero(~(np.isfinite(v) & (v >= 0.0)))
+        if len(bad):
+            raise SelfshapeError(f"{path}: element data {name} of triangle {int(bad[0])} is {v[bad[0]]!r} "
+                                 f"(a plastic thickness is a finite number >= 0 mm)")
+        thick[name] = v
     used, inv = np.unique(tri, return_inverse=True)
-    return Sheet(pts[used, :2], inv.reshape(-1, 3), region, cell_values("thickness_front", 0.0),
-                 cell_values("thickness_back", 0.0))
+    P = pts[used, :2]
+    T = inv.reshape(-1, 3)
+    e1, e2 = P[T[:, 1]] - P[T[:, 0]], P[T[:, 2]] - P[T[:, 0]]
+    area2 = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    span = max(float(np.ptp(P, axis=0).max()), 1e-300)
+    flat = np.flatnonzero(area2 <= 1e-12 * span * span)
+    if len(flat):
+        raise SelfshapeError(f"{path}: triangle {int(flat[0])} has zero area (repeated or collinear nodes)")
+    return Sheet(P, T, region, thick["thickness_front"], thick["thickness_back"])

@@ -275,3 +275,39 @@ def test_helpers_on_known_values():
     np.testing.assert_allclose(quantise_size([0.4, 0.45, 0.47, 3.0], 2.0), [0.4, 0.4, 0.46, 2.0])
     strip = shapely.box(0, 0, 100, 1.5)
     assert feature_width(np.array([strip]))[0] == pytest.approx(2 * 150 / 203)
+
+
+def _msh2(path, nodes, triangles, thickness_front=None):
+    """A Gmsh 2.2 ASCII file with the given nodes (n, 3), triangles (1-based) and optional
+    element data thickness_front."""
+    lines = ["$MeshFormat", "2.2 0 8", "$EndMeshFormat", "$Nodes", str(len(nodes))]
+    lines += [f"{i + 1} {x!r} {y!r} {z!r}" for i, (x, y, z) in enumerate(nodes)]
+    lines += ["$EndNodes", "$Elements", str(len(triangles))]
+    lines += [f"{i + 1} 2 2 0 1 {a} {b} {c}" for i, (a, b, c) in enumerate(triangles)]
+    lines += ["$EndElements"]
+    if thickness_front is not None:
+        lines += ["$ElementData", "1", '"thickness_front"', "1", "0.0", "3", "0", "1", str(len(triangles))]
+        lines += [f"{i + 1} {v!r}" for i, v in enumerate(thickness_front)]
+        lines += ["$EndElementData"]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize("nodes, tris, tf, word", [
+    ([(0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)], [(1, 2, 3), (2, 4, 3)], [0.3, float("nan")],
+     "thickness_front of triangle 1"),
+    ([(0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)], [(1, 2, 3), (2, 4, 3)], [0.3, -0.1],
+     "thickness_front of triangle 1"),
+    ([(0, 0, 0), (1, 0, 0), (0, 1, 0), (2, 0, 0)], [(1, 2, 3), (1, 2, 4)], None, "triangle 1 has zero area"),
+    ([(0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)], [(1, 2, 3), (2, 2, 3)], None, "triangle 1 has zero area"),
+    ([(0, 0, 0), (1, 0, 0), (0, float("inf"), 0), (1, 1, 0)], [(1, 2, 3), (2, 4, 3)], None,
+     "node 2 has a non-finite coordinate"),
+])
+def test_msh_reader_refuses_what_is_not_a_printed_sheet(tmp_path, nodes, tris, tf, word):
+    path = _msh2(tmp_path / "m.msh", nodes, tris, tf)
+    with pytest.raises(SelfshapeError) as e:
+        read_msh(path)
+    assert word in str(e.value) and "m.msh" in str(e.value) and "\n" not in str(e.value)
+    ok = _msh2(tmp_path / "ok.msh", [(0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)], [(1, 2, 3), (2, 4, 3)], [0.3, 0.0])
+    s = read_msh(ok)
+    assert s.n_triangles == 2 and list(s.thickness_front) == [0.3, 0.0]
