@@ -307,6 +307,32 @@ def _write_text(path: str, text: str) -> None:
         f.write(text)
 
 
+@contextlib.contextmanager
+def parents_created(path):
+    """Create the missing parent folders of the file ``path`` for the duration of a write; if
+    the block fails (or is interrupted), the folders this call created are removed again
+    (innermost first, only while empty), so a failed run leaves no trace."""
+    parent = os.path.dirname(os.path.abspath(os.fspath(path)))
+    missing = []
+    d = parent
+    while not os.path.isdir(d):
+        missing.append(d)
+        d = os.path.dirname(d)
+    try:
+        os.makedirs(parent, exist_ok=True)
+    except OSError as e:
+        raise SelfshapeError(f"{path}: cannot create {parent} ({e.strerror or e})") from None
+    try:
+        yield
+    except BaseException:
+        for d in missing:                       # innermost first
+            try:
+                os.rmdir(d)
+            except OSError:
+                break
+        raise
+
+
 def write_atomic(path, writer) -> str:
     """Write ``path`` through a temporary file in the same folder (same suffix) that
     ``writer(tmp_path)`` fills, then os.replace: readers never see a partial file, and a

@@ -618,3 +618,22 @@ def test_usage_errors_are_one_line(argv, word, capsys):
     rc, so, err = run(argv, capsys)
     assert rc == 2 and len(err) == 1 and word in err[0] and so == ""
     assert "usage:" not in err[0]
+
+
+def test_failed_prediction_removes_the_folders_it_created(inputs, tmp_path, capsys, monkeypatch):
+    """predict -o a/b/p.csv creates a/ and a/b/; if the write then fails they are removed
+    again (only those this run created, and only while empty), so nothing is left."""
+    import validation.loop as loop_module
+    from shellfem.errors import SelfshapeError
+
+    def failing(path, writer):
+        raise SelfshapeError(f"{path}: cannot write (disk full)")
+    monkeypatch.setattr(loop_module, "write_atomic", failing)
+    (tmp_path / "kept").mkdir()
+    out = tmp_path / "kept" / "a" / "b" / "p.csv"
+    rc, _, err = run(["predict", inputs["model"], inputs["csv"], "-o", str(out)], capsys)
+    assert_refused(rc, err, "p.csv")
+    assert os.listdir(tmp_path) == ["kept"] and os.listdir(tmp_path / "kept") == []
+    monkeypatch.undo()
+    rc, _, _ = run(["predict", inputs["model"], inputs["csv"], "-o", str(out)], capsys)
+    assert rc == 0 and out.is_file()

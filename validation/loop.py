@@ -39,7 +39,7 @@ import scipy.stats as sps
 from scipy import optimize
 
 from shellfem.errors import SelfshapeError
-from shellfem.outfiles import OutputDir, check_finite_arrays, check_output_file, write_atomic
+from shellfem.outfiles import OutputDir, check_finite_arrays, check_output_file, parents_created, write_atomic
 from validation import effects as fx
 from validation import stats
 from validation.strips import MEASURED, REST, model_source, n_rows, read_strips, strip_model, subset
@@ -807,7 +807,6 @@ def predict_file(model_json, csv_path, out_csv) -> int:
     header, body = rows["_raw"]
     col = model.get("measured_column", MEASURED) + "_predicted"
     check_finite_arrays(f"{os.path.basename(out_csv)} (from {os.path.basename(str(model_json))})", {col: pred})
-    os.makedirs(os.path.dirname(os.path.abspath(out_csv)), exist_ok=True)
 
     def write(tmp):
         with open(tmp, "w", newline="") as fh:
@@ -815,5 +814,6 @@ def predict_file(model_json, csv_path, out_csv) -> int:
             w.writerow(list(header) + [col])
             for r, p in zip(body, pred):
                 w.writerow(list(r) + [f"{p:.8g}"])
-    write_atomic(out_csv, write)
+    with parents_created(out_csv):          # a failed write leaves no new folders behind
+        write_atomic(out_csv, write)
     return len(body)
