@@ -374,8 +374,8 @@ def layer_terms(z, t0, t1, Qs, zbars, Rs, cbars, thick, zlo, zhi, order, Wz, Z, 
     point (1 - z k_i = 0), where the Kirchhoff body folds and the third-form terms have spurious
     wells (a fibre at z k = 2 has its length back). Beyond, the truncated metric's quadratic
     (coercive) energy is kept, so the interpolated meshes' sharp starting kinks stay admissible,
-    and the energy stays twice differentiable throughout (equilibria, |k z| <= 0.15 on printed
-    faces, sit where phi = 1). Each term is evaluated from its own differences
+    and the energy stays twice differentiable throughout (the equilibria of the shipped laws,
+    |k z| <= 0.25, sit where phi = 1). Each term is evaluated from its own differences
     w = (z - zbar, c - cbar), never expanded (no cancellation)."""
     w = 0.0
     d, c, r, D2, Jc, Rsum, RJ, Hc, g3, ds, Hs = work
