@@ -46,10 +46,10 @@ def test_example_pattern_loads(path):
 def test_simulate_strip():
     out = run_example("simulate_strip.py")
     assert out["converged"] == "True"
-    assert int(out["iterations"]) == 21
+    assert int(out["iterations"]) == 24
     assert int(out["vertices"]) == 155
-    assert float(out["energy_nmm"]) == pytest.approx(4.2976, rel=1e-4)
-    assert float(out["curvature_k1_per_mm"]) == pytest.approx(-0.22664, abs=2e-5)
+    assert float(out["energy_nmm"]) == pytest.approx(4.40077, rel=1e-4)
+    assert float(out["curvature_k1_per_mm"]) == pytest.approx(-0.22813, abs=2e-5)
     assert float(out["curvature_k2_per_mm"]) == pytest.approx(-0.32679, abs=2e-5)
     assert [float(v) for v in out["bbox_mm"].split()] == pytest.approx([7.23, 3.78, 7.26], abs=0.006)
 
@@ -58,7 +58,7 @@ def test_calibrate_strips():
     out = run_example("calibrate_strips.py")
     assert int(out["strips"]) == 80
     value, _, se = out["modulus_ratio"].split()
-    assert float(value) == pytest.approx(1123.5, abs=0.06)
+    assert float(value) == pytest.approx(1074.1, abs=0.06)
     assert float(se) == pytest.approx(18.4, abs=0.06)
     assert [float(v) for v in out["ci95"].split()] == [1088.0, 1161.0]
     assert int(out["plastic_modulus_mpa"]) == 1180
