@@ -139,7 +139,9 @@ def map_tasks(fn, items, *, scheduler: str | None = None, workers: int | None = 
             kw = {"key": keys[i]} if keys is not None else {}
             futures.append(client.submit(one_thread, fn, item, retries=retries, pure=False, **kw))
         index = {f.key: i for i, f in enumerate(futures)}
-        for fut in distributed.as_completed(futures):
+        pending = distributed.as_completed(futures)
+        del futures                 # as_completed holds them; each is dropped once its result is here
+        for fut in pending:
             i = index[fut.key]
             try:
                 r = fut.result()
@@ -148,6 +150,7 @@ def map_tasks(fn, items, *, scheduler: str | None = None, workers: int | None = 
                     raise
                 r = on_error(i, e)
             results[i] = r
+            fut.release()           # the result is here: a worker lost later need not recompute it
             if on_result is not None:
                 on_result(i, r)
     return results
