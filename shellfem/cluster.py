@@ -105,7 +105,7 @@ def one_thread(fn, item):
 
 
 def map_tasks(fn, items, *, scheduler: str | None = None, workers: int | None = None, retries: int = 2,
-              keys=None, on_result=None, on_error=None) -> list:
+              keys=None, on_result=None, on_error=None, client=None) -> list:
     """``[fn(item) for item in items]``, each call a Dask task (see the module doc); results in
     the items' order. ``fn`` must be a module-level function (workers import it by name).
 
@@ -113,10 +113,11 @@ def map_tasks(fn, items, *, scheduler: str | None = None, workers: int | None = 
     called in this process as each task finishes (for progress and incremental writing).
     ``on_error(i, exception)``: a task that failed for good (its retries used, or its workers
     killed ``allowed-failures`` times: ``KilledWorker``) returns what it returns instead of
-    raising. ``workers=0`` without a scheduler: serial in this process, no Dask."""
+    raising. ``workers=0`` without a scheduler: serial in this process, no Dask. ``client``: an
+    open :func:`dask_client` to use (several maps on one cluster) instead of a new one."""
     items = list(items)
     check_options(scheduler, workers)
-    if not scheduler and workers == 0:
+    if client is None and not scheduler and workers == 0:
         out = []
         for i, item in enumerate(items):
             try:
@@ -133,7 +134,7 @@ def map_tasks(fn, items, *, scheduler: str | None = None, workers: int | None = 
     if not items:
         return results
     distributed = _distributed()
-    with dask_client(scheduler, workers) as client:
+    with (contextlib.nullcontext(client) if client is not None else dask_client(scheduler, workers)) as client:
         futures = []
         for i, item in enumerate(items):
             kw = {"key": keys[i]} if keys is not None else {}

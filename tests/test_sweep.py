@@ -226,3 +226,20 @@ def test_random_draws_are_seeded(tmp_path):
     specs = sweep_module.case_specs(a, str(tmp_path / "o"))
     assert len({s["hash"] for s in specs}) == 8
     assert 'stretch = 1.' in specs[0]["pattern_text"]
+
+
+# ----------------------------------------------------------------------------- the law's patches
+@pytest.mark.slow
+def test_law_patches_on_a_local_cluster_give_the_serial_table(tmp_path, capsys):
+    """studies/thickness_law_sim.py --workers 2: the same table (and rows) as the serial default."""
+    from validation.law_tables import main as law_main
+    args = ["--model", "sim", "--thickness", "0.3", "--spacing", "3.9", "6.5", "--rows", "3", "--motifs", "2",
+            "--mesh-size", "3", "--across", "1", "--sides", "front", "--calibration",
+            os.path.join(ROOT, "inverse", "data", "strips_S1_calibration.json")]
+    tables, kappas = [], []
+    for extra, name in (([], "serial.csv"), (["--workers", "2"], "cluster.csv")):
+        assert law_main(args + extra + ["--out", str(tmp_path / name)]) == 0
+        import json
+        kappas.append([r["kappa_per_mm"] for r in json.loads(capsys.readouterr().out)["rows"]])
+        tables.append([line for line in (tmp_path / name).read_text().splitlines() if not line.startswith("#")])
+    assert tables[0] == tables[1] and kappas[0] == kappas[1] and len(kappas[0]) == 2
