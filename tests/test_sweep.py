@@ -243,3 +243,22 @@ def test_law_patches_on_a_local_cluster_give_the_serial_table(tmp_path, capsys):
         rows = json.loads(capsys.readouterr().out)["rows"]
         runs.append((rc, [{k: v for k, v in r.items() if k != "time_s"} for r in rows]))
     assert runs[0] == runs[1] and len(runs[0][1]) == 2 and all(r["converged"] for r in runs[0][1])
+
+
+def test_example_sweep_files_load():
+    import glob
+    files = glob.glob(os.path.join(ROOT, "examples", "**", "sweep_*.toml"), recursive=True)
+    assert files
+    for f in files:
+        assert sweep_module.load_sweep(f).cases
+
+
+def test_output_that_is_a_file_is_refused(tmp_path, capsys):
+    afile = tmp_path / "afile"
+    afile.write_text("precious")
+    assert main(["sweep", EXAMPLE, "-o", str(afile), "--workers", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "the output must be a folder" in err
+    assert afile.read_text() == "precious"
+    assert main(["sweep", EXAMPLE, "-o", str(tmp_path / "o"), "--workers", "-1"]) == 2
+    assert "--workers" in capsys.readouterr().err
