@@ -262,3 +262,21 @@ def test_output_that_is_a_file_is_refused(tmp_path, capsys):
     assert afile.read_text() == "precious"
     assert main(["sweep", EXAMPLE, "-o", str(tmp_path / "o"), "--workers", "-1"]) == 2
     assert "--workers" in capsys.readouterr().err
+
+
+def test_design_sweep(tmp_path):
+    """targets x design options: each case a design folder, report.json figures in the table,
+    a stretch without a shipped law an error row."""
+    from geometry.target import sphere_cap
+    V, F = sphere_cap(radius=40.0, half_angle_deg=30.0, n_radial=8)
+    with open(tmp_path / "cap.obj", "w") as f:
+        f.writelines(f"v {x:.9g} {y:.9g} {z:.9g}\n" for x, y, z in V)
+        f.writelines(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in F)
+    (tmp_path / "s.toml").write_text('[sweep]\ntargets = ["cap.obj"]\n\n[options]\ndiagonal = 40.0\n\n'
+                                     '[grid]\nstretch = [1.6, 1.8]\n')
+    r = sweep_module.run_sweep(str(tmp_path / "s.toml"), str(tmp_path / "out"), workers=0)
+    assert r["statuses"] == {"ok": 1, "error": 1}
+    ok, bad = read_rows(str(tmp_path / "out"))
+    assert ok["target"] == "cap.obj" and ok["stretch"] == "1.6" and int(ok["report.n_ribbons"]) > 0
+    assert os.path.isfile(os.path.join(str(tmp_path / "out"), ok["path.pattern.png"]))
+    assert bad["status"] == "error" and "no shipped thickness law for fabric stretch 1.8" in bad["reason"]
