@@ -183,6 +183,7 @@ BAD = {
                     "[grid] fabric.stretch value #2 must be a number or [sx, sy], got the string 'abc'"),
     "missing pattern": ('pattern = "nothere.toml"', '"fabric.stretch" = [1.2]',
                         "[sweep] pattern nothere.toml: file not found"),
+    "bad base pattern": ('pattern = "{typo}"', '"fabric.stretch" = [1.2]', "[sweep] pattern: "),
     "index out of range": ('pattern = "{strip}"', '"region.1.thickness_mm" = [0.2]',
                            "the base pattern has 1 [[region]] entry (indices from 0)"),
     "unknown table": ('pattern = "{strip}"', '"fabrik.stretch" = [1.2]', "unknown key 'fabrik'"),
@@ -195,7 +196,8 @@ BAD = {
 def test_bad_sweep_file_is_one_line_and_writes_nothing(name, tmp_path, capsys):
     head, grid, message = BAD[name]
     path = tmp_path / "bad.toml"
-    path.write_text(f"[sweep]\n{head.format(strip=STRIP)}\n\n[grid]\n{grid}\n")
+    typo = os.path.join(ROOT, "tests", "data", "patterns", "typo.toml")
+    path.write_text(f"[sweep]\n{head.format(strip=STRIP, typo=typo)}\n\n[grid]\n{grid}\n")
     out = tmp_path / "out"
     rc = main(["sweep", str(path), "-o", str(out), "--workers", "0"])
     err = capsys.readouterr().err

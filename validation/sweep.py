@@ -316,7 +316,10 @@ class Sweep:
         if not self.pattern_path.lower().endswith(".toml"):
             raise SelfshapeError(f"{label}: the base pattern must be a .toml pattern file")
         self.base = read_toml(self.pattern_path, label)
-        load_pattern(self.pattern_path)            # a bad base pattern is the sweep's error (its own line)
+        try:                                       # a bad base pattern is the sweep's error
+            load_pattern(self.pattern_path)
+        except SelfshapeError as e:
+            raise SelfshapeError(f"{src}: [sweep] pattern: {e}") from None
         if "print" in self.base:
             raise SelfshapeError(f"{label}: [print] G-code in a swept pattern is not supported (each case is "
                                  f"written to its own folder); import the print as [[ribbon]] tables")
