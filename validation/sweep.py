@@ -636,7 +636,7 @@ def run_sweep(sweep_path, out_dir, *, scheduler: str | None = None, workers: int
     ``workers=0`` serially in this process), then write the table, the contact sheet and
     sweep.json. ``progress(row, done, total)`` is called as each case finishes. Returns
     {cases, ran, reused, failed (statuses other than ok), statuses, time_s, files}."""
-    from shellfem.cluster import check_options, map_tasks
+    from shellfem.cluster import check_options, default_workers, map_tasks
     from shellfem.outfiles import OutputDir
     t0 = time.perf_counter()
     check_options(scheduler, workers)
@@ -685,7 +685,8 @@ def run_sweep(sweep_path, out_dir, *, scheduler: str | None = None, workers: int
                    "ran": sum(bool(r.get("ran")) for r in rows), "reused": sum(not r.get("ran") for r in rows),
                    "failed": sum(r["status"] != "ok" for r in rows), "statuses": statuses,
                    "scheduler": scheduler or ("serial" if workers == 0 else "local"),
-                   "workers": workers, "keys": sweep.keys, "version": version_tag(),
+                   "workers": (default_workers() if workers is None and not scheduler else workers),
+                   "keys": sweep.keys, "version": version_tag(),
                    "time_s": round(time.perf_counter() - t0, 2),
                    "files": [os.path.join(out.path, n) for n in OUTPUTS]}
         out.write_json("sweep.json", summary)
