@@ -86,6 +86,7 @@ def test_resuming_a_finished_sweep_runs_nothing(serial, tmp_path, monkeypatch):
     monkeypatch.undo()
     victim = serial[1][4]["case"]
     os.remove(os.path.join(out, victim, "case.json"))
+    monkeypatch.setattr(sweep_module, "PARTIAL_TABLE_S", -1.0)          # the table so far after each case
     r = sweep_module.run_sweep(EXAMPLE, out, workers=0)
     assert (r["ran"], r["reused"]) == (1, 5)
     rows = check_table(out, serial[1])

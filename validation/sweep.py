@@ -32,7 +32,8 @@ status, reason, time_s, ran (run by this invocation), worker, the case's inputs 
 keys, every scalar of summary.json / report.json flattened as ``summary.KEY`` /
 ``report.KEY`` with list indices and nested keys dotted, and the paths of its files relative to DIR),
 ``contact_sheet.png`` (a labelled grid of the cases' deployed.png, or verify.png /
-pattern.png for designs) and ``sweep.json`` (counts and times), all written after the cases.
+pattern.png for designs) and ``sweep.json`` (counts and times), all written after the cases
+(the table also every PARTIAL_TABLE_S while they run, with the cases finished so far).
 
 A bad sweep file (unknown key, empty list, a value of the wrong type, a missing base pattern
 or target) is a one-line SelfshapeError naming the file and the key, raised before anything
@@ -72,6 +73,8 @@ DESIGN_OPTIONS = {
     "seed": ("seed", "count0"), "edge_mm": ("edge_mm", "number"), "gap_mm": ("gap_mm", "number"),
     "layout_edge_mm": ("layout_edge_mm", "number"),
 }
+#: While a sweep runs, the table of the cases finished so far is rewritten at most this often, s.
+PARTIAL_TABLE_S = 60.0
 #: Statuses whose case.json makes a case finished (not rerun on resume).
 FINISHED = ("ok", "not_converged", "error")
 
@@ -654,12 +657,16 @@ def run_sweep(sweep_path, out_dir, *, scheduler: str | None = None, workers: int
         else:
             todo.append(s)
     done = [len(specs) - len(todo)]
+    last_table = [time.perf_counter()]
 
     def finished(j, row):
         done[0] += 1
         rows[todo[j]["index"]] = row
         if progress is not None:
             progress(row, done[0], len(specs))
+        if time.perf_counter() - last_table[0] > PARTIAL_TABLE_S:      # a long sweep's table so far
+            write_table(out, [r for r in rows if r is not None])
+            last_table[0] = time.perf_counter()
 
     def lost(j, e):
         s = todo[j]
