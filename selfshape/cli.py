@@ -1,5 +1,5 @@
 """The ``selfshape`` command: mesh, simulate, design, calibrate, validate, predict, export, view,
-calibration-print, law.
+calibration-print, law, sweep.
 
 Every verb is a thin wrapper over a Python function (named in its help) so that
 scripts can call the same thing. Bad input exits with status 2 and one line on
@@ -299,6 +299,33 @@ def _add_calibration_verbs(sub):
     lb.set_defaults(fn=_cmd_law)
 
 
+# ---------------------------------------------------------------- sweeps (issue 21)
+def _cmd_sweep(a):
+    from validation.sweep import run_sweep
+
+    def line(row, done, total):
+        print(f"case {done}/{total} #{row['index']} {row['status']} ({row.get('time_s') or 0:.1f} s) {row['case']}",
+              flush=True)
+    r = run_sweep(a.sweep, a.output, scheduler=a.scheduler, workers=a.workers, progress=line)
+    print(f"{r['cases']} cases: {r['ran']} run, {r['reused']} reused, {r['failed']} not ok "
+          f"({', '.join(f'{k} {v}' for k, v in sorted(r['statuses'].items()))}), {r['time_s']:.1f} s -> "
+          f"{os.path.join(a.output, 'results.csv')}")
+    return 1 if r["failed"] else 0
+
+
+def _add_sweep_verb(sub):
+    """``sweep SWEEP.toml -o DIR`` (validation.sweep.run_sweep)."""
+    w = sub.add_parser("sweep", help="many simulations or designs of a sweep file as Dask tasks, one table "
+                                     "(validation.sweep.run_sweep)")
+    w.add_argument("sweep", help="sweep .toml (docs/sweeps.md)")
+    w.add_argument("-o", "--output", required=True, help="output directory (resumable: finished cases are kept)")
+    w.add_argument("--scheduler", default=None, help="address of a running Dask scheduler, e.g. tcp://host:8786")
+    w.add_argument("--workers", type=_number(0, integer=True), default=None,
+                   help="local worker processes (default: one per core; 0: serially in this process)")
+    w.add_argument("-v", "--verbose", action="store_true", help="show the libraries' and Dask's messages")
+    w.set_defaults(fn=_cmd_sweep)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="selfshape", description="Self-shaping textiles: simulate, design, calibrate.")
     sub = p.add_subparsers(dest="verb", required=True)
@@ -372,6 +399,7 @@ def build_parser() -> argparse.ArgumentParser:
     w.set_defaults(fn=_cmd_view)
 
     _add_calibration_verbs(sub)
+    _add_sweep_verb(sub)
     return p
 
 

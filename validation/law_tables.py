@@ -21,6 +21,9 @@ Two sources, written as inverse/thickness_law.py CSV tables with a provenance he
   covered sheet rolls as a plate, isolated ribbons as narrow strips). A heuristic, labelled so.
 
 Prints ONE JSON line (rows written, dropped, timings). Lengths mm, curvature 1/mm.
+``--workers N`` / ``--scheduler ADDRESS`` simulate the patches as Dask tasks (shellfem.cluster:
+a local cluster of N single-threaded processes, or a running scheduler's workers); the rows
+and the table are those of the serial default, in the same order.
 The command is studies/thickness_law_sim.py, which calls :func:`main` (kept here with the
 builders it drives, so that the law's options are tested with it):
 
@@ -31,6 +34,7 @@ builders it drives, so that the law's options are tested with it):
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import json
 import os
@@ -235,6 +239,12 @@ def simulate_row(thickness, spacing, side, stretch, *, mesh_size=2.0, across=2.0
     return row
 
 
+def simulate_row_task(call: dict) -> dict:
+    """``simulate_row(**call)``: one patch as a task of shellfem.cluster.map_tasks (module level,
+    so that Dask workers import it by name)."""
+    return simulate_row(**call)
+
+
 def read_modulus_ratio(path: str):
     """(modulus_ratio, standard error, data file) from a `selfshape calibrate strips` parameters.json;
     SystemExit with one line if the file is missing or is not one."""
@@ -293,6 +303,11 @@ def main(argv=None):
     ap.add_argument("--note", action="append", default=[],
                     help="a line of free text added to the provenance header (repeatable)")
     ap.add_argument("--out", default=None, help=f"output CSV (default {DEFAULT_LAW})")
+    ap.add_argument("--scheduler", default=None,
+                    help="simulate the patches as Dask tasks on this running scheduler, e.g. tcp://host:8786 (sim)")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="simulate the patches on a local Dask cluster of this many processes (sim; default: "
+                         "serially in this process; shellfem.cluster)")
     a = ap.parse_args(argv)
     out = a.out or DEFAULT_LAW
     fabric, plastic = Fabric(), Plastic()
@@ -334,48 +349,79 @@ def main(argv=None):
             for r in loaded:
                 previous[(float(r["thickness_mm"]), float(r["spacing_mm"]), r["side"])] = r
 
+        def row_call(t, mu, side, *args, **kw):
+            png = (os.path.join(a.shapes, f"t{t:g}_mu{mu:g}_{side}_r{a.rows}_m{a.motifs}_s{a.start_curvature:g}{a.start_direction[:2]}.png")
+                   if a.shapes else None)
+            return dict(thickness=t, spacing=mu, side=side, stretch=args[0], start_curvature=a.start_curvature,
+                        start_direction=a.start_direction, shape_png=png, **kw)
+
+        distributed = (a.scheduler is not None or a.workers is not None) and not a.from_json
+        mapped = {}
+
         def run_row(t, mu, side, *args, **kw):           # simulate, or reuse a previous run's row
             if a.from_json:
                 if (t, mu, side) not in previous:
                     raise SystemExit(f"thickness_law_sim: {a.from_json} has no row t={t:g} mu2={mu:g} {side}")
                 return previous[(t, mu, side)]
-            png = (os.path.join(a.shapes, f"t{t:g}_mu{mu:g}_{side}_r{a.rows}_m{a.motifs}_s{a.start_curvature:g}{a.start_direction[:2]}.png")
-                   if a.shapes else None)
-            return simulate_row(t, mu, side, *args, start_curvature=a.start_curvature,
-                                start_direction=a.start_direction, shape_png=png, **kw)
+            if (t, mu, side) in mapped:
+                return mapped[(t, mu, side)]
+            if distributed:                              # the mirror check row: one more task
+                return map_rows([row_call(t, mu, side, *args, **kw)])[0]
+            return simulate_row_task(row_call(t, mu, side, *args, **kw))
         mirror = a.back == "mirror" and "back" in a.sides
         simulated_sides = [sd for sd in a.sides if not (mirror and sd == "back")]
-        for side in simulated_sides:
-            for t in a.thickness:
-                for mu in a.spacing:
-                    r = run_row(t, mu, side, a.stretch, mesh_size=a.mesh_size, across=a.across,
-                                max_iterations=a.max_iterations, n_rows=a.rows, n_motifs=a.motifs, aspect=a.min_aspect,
-                                fabric=fabric, plastic=plastic)
-                    log.append(r)
-                    if r["converged"] and np.isfinite(r["kappa_per_mm"]):
-                        rows.append((t, mu, side, r["kappa_per_mm"]))
-                    else:
-                        dropped.append(r)
-        mirror_note = []
-        if mirror:
-            front = {(t, mu): k for t, mu, sd, k in rows if sd == "front"}
-            if not front:
-                raise SystemExit("thickness_law_sim: --back mirror needs converged front rows")
-            t_c, mu_c = sorted(front)[len(front) // 2]
-            chk = run_row(t_c, mu_c, "back", a.stretch, mesh_size=a.mesh_size, across=a.across,
-                          max_iterations=a.max_iterations, n_rows=a.rows, n_motifs=a.motifs, aspect=a.min_aspect,
-                          fabric=fabric, plastic=plastic)
-            log.append(chk)
-            rel = abs(chk["kappa_per_mm"] - front[(t_c, mu_c)]) / front[(t_c, mu_c)]
-            mirror_note = [f"  back rows = front rows by mirror symmetry through the fabric mid-surface (no gravity);",
-                           f"  check: back simulated at t={t_c:g} mu2={mu_c:g}: |kappa| {chk['kappa_per_mm']:.6g} vs front "
-                           f"{front[(t_c, mu_c)]:.6g} (relative difference {rel:.1e}, converged={chk['converged']})"]
-            if not chk["converged"] or rel > 1e-3:
-                # the model is exactly mirror-symmetric; a difference means the (unmirrored) seeded
-                # perturbation led the back patch to another equilibrium: say so, keep the rows
-                mirror_note.append("  the check landed in a different equilibrium of the same patch (the seeded "
-                                   "perturbation is not mirrored): the patch has more than one stable shape here")
-            rows += [(t, mu, "back", k) for (t, mu), k in front.items()]
+        common = dict(mesh_size=a.mesh_size, across=a.across, max_iterations=a.max_iterations, n_rows=a.rows,
+                      n_motifs=a.motifs, aspect=a.min_aspect, fabric=fabric, plastic=plastic)
+        cluster = contextlib.nullcontext()
+        if distributed:                                  # every patch of the grid as one Dask task, in order
+            from shellfem.cluster import check_options, dask_client, map_tasks
+            try:
+                check_options(a.scheduler, a.workers)
+            except SelfshapeError as e:
+                raise SystemExit(f"thickness_law_sim: {e}") from None
+            if a.workers == 0 and a.scheduler is None:
+                cluster = contextlib.nullcontext(None)
+            else:
+                cluster = dask_client(a.scheduler, a.workers)
+        with cluster as client:
+            if distributed:
+                def map_rows(calls):
+                    return map_tasks(simulate_row_task, calls, workers=0 if client is None else None,
+                                     client=client)
+                grid = [(t, mu, side) for side in simulated_sides for t in a.thickness for mu in a.spacing]
+                for key, r in zip(grid, map_rows([row_call(*g, a.stretch, **common) for g in grid])):
+                    mapped[key] = r
+            for side in simulated_sides:
+                for t in a.thickness:
+                    for mu in a.spacing:
+                        r = run_row(t, mu, side, a.stretch, mesh_size=a.mesh_size, across=a.across,
+                                    max_iterations=a.max_iterations, n_rows=a.rows, n_motifs=a.motifs, aspect=a.min_aspect,
+                                    fabric=fabric, plastic=plastic)
+                        log.append(r)
+                        if r["converged"] and np.isfinite(r["kappa_per_mm"]):
+                            rows.append((t, mu, side, r["kappa_per_mm"]))
+                        else:
+                            dropped.append(r)
+            mirror_note = []
+            if mirror:
+                front = {(t, mu): k for t, mu, sd, k in rows if sd == "front"}
+                if not front:
+                    raise SystemExit("thickness_law_sim: --back mirror needs converged front rows")
+                t_c, mu_c = sorted(front)[len(front) // 2]
+                chk = run_row(t_c, mu_c, "back", a.stretch, mesh_size=a.mesh_size, across=a.across,
+                              max_iterations=a.max_iterations, n_rows=a.rows, n_motifs=a.motifs, aspect=a.min_aspect,
+                              fabric=fabric, plastic=plastic)
+                log.append(chk)
+                rel = abs(chk["kappa_per_mm"] - front[(t_c, mu_c)]) / front[(t_c, mu_c)]
+                mirror_note = [f"  back rows = front rows by mirror symmetry through the fabric mid-surface (no gravity);",
+                               f"  check: back simulated at t={t_c:g} mu2={mu_c:g}: |kappa| {chk['kappa_per_mm']:.6g} vs front "
+                               f"{front[(t_c, mu_c)]:.6g} (relative difference {rel:.1e}, converged={chk['converged']})"]
+                if not chk["converged"] or rel > 1e-3:
+                    # the model is exactly mirror-symmetric; a difference means the (unmirrored) seeded
+                    # perturbation led the back patch to another equilibrium: say so, keep the rows
+                    mirror_note.append("  the check landed in a different equilibrium of the same patch (the seeded "
+                                       "perturbation is not mirrored): the patch has more than one stable shape here")
+                rows += [(t, mu, "back", k) for (t, mu), k in front.items()]
         head += ["SOURCE: forward simulation of parallel staggered ribbon sheets (forward.simulate.simulate_sheet):",
                  f"  patch max({a.motifs}, ceil({a.min_aspect:g} rows mu2 / mu1)) x mu1 along (at least {a.min_aspect:g} x its width), {a.rows} rows across, mu1 {MU1:g} mm, "
                  f"odd rows shifted mu1/2; mesh size {a.mesh_size:g} mm, {a.across:g} rows across a ribbon;",
