@@ -129,7 +129,9 @@ def _cmd_simulate(a):
     levels = s.get("timings_s", {}).get("levels") or []
     via = ""
     if len(levels) > 1:      # nested iteration: say where the iterations went
-        via = " (" + " -> ".join(f"{lv['n_vertices']} vertices: {lv['iterations']}" for lv in levels) + ")"
+        via = " (" + " -> ".join(f"exact metric: {lv['iterations']}" if lv.get("metric") == "exact" and k else
+                                 f"{lv['n_vertices']} vertices: {lv['iterations']}"
+                                 for k, lv in enumerate(levels)) + ")"
     print(f"{state} in {s['newton_iterations']} Newton iterations{via}, |grad| {s['gradient_norm']:.2e}, "
           f"{s['n_vertices']} vertices, {s['wall_time_s']:.1f} s -> {a.output}")
     return 0 if s["converged"] else 1

@@ -263,6 +263,19 @@ class ShellModel:
         k = np.stack([tr / 2 + disc, tr / 2 - disc], 1)
         return k, tr / 2, det
 
+    def fibre_bending(self, q) -> np.ndarray:
+        """rho (m,) = zmax^2 (k1^2 + k2^2) of each triangle with exact-metric layers (0 elsewhere;
+        zmax mm the layers' largest |z|, k_i 1/mm): the measure in which the exact metric's
+        third-form terms fade (shellfem.layers.RHO_EXACT, RHO_TRUNCATED). A state with rho >
+        RHO_EXACT has fibres compressed or stretched by more than half their length: no elastic
+        equilibrium of a printed sheet, a folded state of the Kirchhoff body."""
+        rho = np.zeros(self.sheet.n_triangles)
+        thick = self.quad.thick
+        if thick.any():
+            k = self.curvatures(q)[0][thick]
+            rho[thick] = np.max(self.quad.zspan[thick] ** 2, axis=1) * (k * k).sum(1)
+        return rho
+
 
 class EdgeAngleProblem:
     """E(theta) at frozen positions x: the bending part of the energy that depends on the

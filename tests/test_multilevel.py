@@ -96,8 +96,11 @@ def test_nested_iteration_reaches_the_direct_equilibrium():
     nested = simulate(pat, coarse_levels=1)
     assert direct.result.converged and nested.result.converged
     levels = nested.result.timings["levels"]
-    assert len(levels) == 2 and levels[1]["interpolated"] and levels[1]["n_vertices"] == direct.sheet.n_vertices
+    # coarse and fine with the truncated metric, then the fine mesh with the exact metric
+    assert [lv["metric"] for lv in levels] == ["truncated", "truncated", "exact"]
+    assert levels[1]["interpolated"] and levels[1]["n_vertices"] == levels[2]["n_vertices"] == direct.sheet.n_vertices
     assert levels[0]["n_vertices"] <= 0.8 * levels[1]["n_vertices"]
+    assert [lv["metric"] for lv in direct.result.timings["levels"]] == ["truncated", "exact"]
     assert nested.result.iterations == sum(level["iterations"] for level in levels)
     assert nested.result.energy == pytest.approx(direct.result.energy, rel=1e-9)
     k_direct = np.sort(direct.model.curvatures(direct.result.q)[1])       # mean curvature, 1/mm
@@ -149,9 +152,10 @@ def test_cli_coarse_levels(tmp_path, capsys):
     assert main(["simulate", example, "-o", str(tmp_path / "s"), "--coarse-levels", "1", "--no-png"]) == 0
     s = json.loads((tmp_path / "s" / "summary.json").read_text())
     levels = s["timings_s"]["levels"]
-    assert len(levels) == 2 and levels[1]["n_vertices"] == s["n_vertices"] == 535
-    assert s["newton_iterations"] == levels[0]["iterations"] + levels[1]["iterations"]
-    assert f"{levels[0]['n_vertices']} vertices: {levels[0]['iterations']} -> 535 vertices" in capsys.readouterr().out
+    assert len(levels) == 3 and levels[1]["n_vertices"] == levels[2]["n_vertices"] == s["n_vertices"] == 535
+    assert levels[2]["metric"] == "exact" and s["newton_iterations"] == sum(lv["iterations"] for lv in levels)
+    assert (f"{levels[0]['n_vertices']} vertices: {levels[0]['iterations']} -> 535 vertices: {levels[1]['iterations']}"
+            f" -> exact metric: {levels[2]['iterations']})") in capsys.readouterr().out
 
 
 def test_a_coarse_mesh_that_cannot_be_made_ends_the_hierarchy(monkeypatch):
