@@ -266,9 +266,10 @@ class ShellModel:
     def fibre_bending(self, q) -> np.ndarray:
         """rho (m,) = zmax^2 (k1^2 + k2^2) of each triangle with exact-metric layers (0 elsewhere;
         zmax mm the layers' largest |z|, k_i 1/mm): the measure in which the exact metric's
-        third-form terms fade (shellfem.layers.RHO_EXACT, RHO_TRUNCATED). A state with rho >
-        RHO_EXACT has fibres compressed or stretched by more than half their length: no elastic
-        equilibrium of a printed sheet, a folded state of the Kirchhoff body."""
+        third-form terms fade (shellfem.layers.RHO_EXACT, RHO_TRUNCATED); sqrt(rho) bounds every
+        fibre's |k z|. Above RHO_EXACT a fibre is shortened or lengthened by more than half (the
+        exact energy is faded there); at RHO_TRUNCATED and beyond the Kirchhoff body has folded
+        (no elastic equilibrium of a printed sheet)."""
         rho = np.zeros(self.sheet.n_triangles)
         thick = self.quad.thick
         if thick.any():

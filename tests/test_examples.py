@@ -47,7 +47,7 @@ def test_example_pattern_loads(path):
 def test_simulate_strip():
     out = run_example("simulate_strip.py")
     assert out["converged"] == "True"
-    assert int(out["iterations"]) == 24
+    assert int(out["iterations"]) == 27
     assert int(out["vertices"]) == 155
     assert float(out["energy_nmm"]) == pytest.approx(4.40077, rel=1e-4)
     assert float(out["curvature_k1_per_mm"]) == pytest.approx(-0.22813, abs=2e-5)

@@ -226,3 +226,63 @@ def test_printed_region_relaxation_is_off_when_the_print_covers_the_sheet():
     assert sim.result.converged
     assert sim.model.printed_dofs().mean() > 0.9
     assert "printed_relaxations" not in sim.result.timings
+
+
+def _printed(sheet, t):
+    """The sheet with t mm of plastic on the front of every triangle."""
+    return Sheet(sheet.points, sheet.triangles, thickness_front=np.full(sheet.n_triangles, t))
+
+
+def test_the_exact_metric_solve_follows_a_truncated_predictor():
+    """simulate_sheet solves with the truncated metric first and finishes with the exact one: the
+    result is an equilibrium of the exact model (its gradient below tolerance there), not of
+    the truncated one, and its energy differs from the truncated equilibrium's by O(kappa h)."""
+    from forward.simulate import simulate_sheet
+    from shellfem.model import ShellModel
+    sheet = _printed(Sheet.rectangle(30.0, 3.0, 30, 3), 0.3)
+    sim = simulate_sheet(sheet, Fabric(stretch=(1.35, 1.0)), Plastic(), [], max_iterations=200)
+    levels = sim.result.timings["levels"]
+    assert [lv["metric"] for lv in levels] == ["truncated", "exact"] and sim.result.converged
+    assert sim.model.quad.thick.any()                       # the returned model is the exact one
+    g = sim.model.gradient(sim.result.q)
+    free = np.ones(sim.model.n_dofs, bool)
+    free[sim.gauge] = False
+    assert np.linalg.norm(g[free]) < 1e-6                   # N
+    trunc = ShellModel.from_materials(sheet, Fabric(stretch=(1.35, 1.0)), Plastic(), exact_metric=False)
+    assert np.linalg.norm(trunc.gradient(sim.result.q)[free]) > 1e3 * np.linalg.norm(g[free])
+    assert 0.0 < sim.summary()["max_fibre_kz"] < 0.5
+
+
+def test_fibre_bending_is_the_measure_the_exact_metric_fades_in():
+    """ShellModel.fibre_bending = zmax^2 tr((a^-1 b)^2) per printed triangle, the rho of the
+    compiled layer kernel (shellfem.layers.curvature_square), on a random bent state; 0 on bare
+    fabric."""
+    from shellfem.layers import curvature_square
+    from shellfem.model import ShellModel
+    base = Sheet.rectangle(10.0, 4.0, 10, 4)
+    tf = np.where(np.arange(base.n_triangles) % 3 == 0, 0.0, 0.3)
+    sheet = Sheet(base.points, base.triangles, thickness_front=tf)
+    model = ShellModel.from_materials(sheet, Fabric(stretch=(1.35, 1.0)), Plastic())
+    q = model.initial_state()
+    rng = np.random.default_rng(3)
+    q[:3 * sheet.n_vertices] += 0.3 * rng.standard_normal(3 * sheet.n_vertices)
+    q[3 * sheet.n_vertices:] += 0.2 * rng.standard_normal(model.n_edges)
+    rho = model.fibre_bending(q)
+    a, b = model.fundamental_forms(q)
+    ds, Hs = np.zeros(6), np.zeros((6, 6))
+    s = np.array([curvature_square(np.concatenate([a[f], b[f]]), 0, ds, Hs) for f in range(sheet.n_triangles)])
+    thick = model.quad.thick
+    assert thick.sum() == np.count_nonzero(tf) and rho[thick].min() > 0
+    assert rho[thick] == pytest.approx(np.max(model.quad.zspan[thick] ** 2, axis=1) * s[thick], rel=1e-10)
+    assert np.all(rho[~thick] == 0)
+
+
+def test_a_folded_result_is_not_converged(monkeypatch):
+    """A state bent past |k z| = 0.9 on a printed triangle (the exact metric faded out: the
+    Kirchhoff body has folded) is reported as not converged, with the reason."""
+    from forward.simulate import simulate_sheet
+    from shellfem.model import ShellModel
+    monkeypatch.setattr(ShellModel, "fibre_bending", lambda self, q: np.full(self.sheet.n_triangles, 1.44))
+    sim = simulate_sheet(_printed(Sheet.rectangle(30.0, 3.0, 30, 3), 0.3), Fabric(stretch=(1.35, 1.0)), Plastic(), [],
+                         max_iterations=200)
+    assert not sim.result.converged and "folded" in sim.result.reason and "1.20" in sim.result.reason
