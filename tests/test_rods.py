@@ -326,3 +326,76 @@ def test_free_arm_on_fabric_bends_to_the_bilayer_closed_form():
     # front plastic: the arm bends towards -z (centre of curvature on the fabric side)
     k1 = M.rod_measures(r.q)[:, 0]
     assert np.all(k1 < 0)
+
+
+# --- [solver] model = "rods" ----------------------------------------------------------------------
+def _star_pattern(**solver):
+    return {"fabric": {"rectangle": [30.0, 26.0], "stretch": 1.35, "thickness_mm": 0.8},
+            "stars": {"spacing_mm": 10.0, "arm_length": 0.6, "thickness_mm": 0.3, "arm_width_mm": 0.8},
+            "mesh": {"size_mm": 2.0}, "solver": dict(solver)}
+
+
+def test_rods_model_key_is_validated():
+    from geometry.patterns import parse_pattern
+    from shellfem.errors import SelfshapeError
+    assert parse_pattern(_star_pattern()).solver_model == "shell"
+    assert parse_pattern(_star_pattern(model="rods")).solver_model == "rods"
+    with pytest.raises(SelfshapeError, match=r"^p.toml: \[solver\]: model must be one of 'shell', 'rods', got 'rod'$"):
+        parse_pattern(_star_pattern(model="rod"), "p.toml")
+    raw = _star_pattern(model="rods")
+    raw["region"] = [{"polygon": [[2.0, 2.0], [8.0, 2.0], [8.0, 8.0], [2.0, 8.0]], "thickness_mm": 0.4}]
+    with pytest.raises(SelfshapeError) as e:
+        parse_pattern(raw, "p.toml")
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith('p.toml: [solver] model = "rods" supports [stars] and [[ribbon]]')
+    assert "region" in msg
+    raw = _star_pattern(model="rods")
+    raw["ribbon"] = [{"path": [[2.0, 25.0], [28.0, 25.0]], "width_mm": 1.5, "thickness_mm": 0.4}]
+    assert len(parse_pattern(raw).elements[0].centrelines) == 1
+
+
+def test_rods_mesh_has_the_arm_centre_lines_as_edges():
+    from shapely.geometry import LineString
+    from geometry.centrelines import mesh_pattern_rods, pattern_centrelines
+    from geometry.patterns import parse_pattern
+    p = parse_pattern(_star_pattern(model="rods"))
+    rm = mesh_pattern_rods(p)
+    P = rm.sheet.points
+    lines = pattern_centrelines(p)
+    inner = p.outline.buffer(-0.25 * 2.0)
+    for i, (path, h, w, side) in enumerate(lines):
+        mine = rm.line == i
+        seg = LineString(path).intersection(inner)
+        if not mine.any():
+            assert seg.length < 0.5 * 2.0                               # dropped: shorter than half a segment
+            continue
+        L = np.linalg.norm(P[rm.edges[mine, 1]] - P[rm.edges[mine, 0]], axis=1)
+        assert L.sum() == pytest.approx(seg.length, rel=1e-9)          # the edges cover the (clipped) arm
+        assert np.all(L <= min(2.0, seg.length / 4) * (1 + 1e-9))
+        d = np.array([LineString(path).distance(__import__("shapely").points(v)) for v in P[np.unique(rm.edges[mine])]])
+        assert d.max() < 1e-9                                           # on the arm
+    assert np.all(rm.thickness == 0.3) and np.all(rm.width == 0.8) and np.all(rm.side == 1)
+    # stars are joined: the three arms of an inner star share their centre vertex
+    deg = np.bincount(rm.edges.ravel(), minlength=rm.sheet.n_vertices)
+    assert (deg == 3).sum() >= 4
+
+
+def test_rods_model_simulates_a_star_sheet():
+    from forward.simulate import simulate
+    from geometry.patterns import parse_pattern
+    sim = simulate(parse_pattern(_star_pattern(model="rods")))
+    s = sim.summary()
+    assert s["model"] == "rods" and s["converged"], s["reason"]
+    assert s["n_rod_edges"] == len(sim.model.rods.edges) > 0
+    # the arms bend towards the fabric side (front print: k1 < 0) and the fabric contracts
+    k1 = sim.model.rod_measures(sim.result.q)[:, 0]
+    w = sim.model.rods.weight > 0.9 / (sim.model.rods.rest_length.max() * 2)        # ordinary arm stencils
+    assert np.median(k1[w]) < 0
+    assert s["bbox_mm"][0] < 30.0 / 1.05
+    # the shell model says so too (a small printed strip, the default model)
+    from forward.simulate import simulate_sheet
+    from shellfem.materials import Fabric, Plastic
+    from shellfem.sheet import Sheet
+    sh = Sheet.rectangle(10.0, 2.0, 10, 2)
+    sh = Sheet(sh.points, sh.triangles, thickness_front=np.full(sh.n_triangles, 0.3))
+    assert simulate_sheet(sh, Fabric(stretch=1.1), Plastic()).summary()["model"] == "shell"

@@ -29,6 +29,8 @@ from shellfem.sheet import Sheet
 class RodShellModel:
     """ShellModel-compatible energy: shell + rods (the interface shellfem.newton uses)."""
 
+    kind = "rods"          # what summary.json reports as the model
+
     def __init__(self, shell: ShellModel, rods: RodNetwork):
         self.shell, self.rods = shell, rods
         self.sheet, self.topo = shell.sheet, shell.topo
@@ -117,7 +119,8 @@ def arm_rods(sheet: Sheet, edges, plastic_thickness, width, fabric, plastic, sid
     and width (mm, per edge or scalars): the effective monolayer of each edge
     (shellfem.rods.monolayer) with the fabric's misfit along the edge, 1 - t^T diag(1/sx^2,
     1/sy^2) t (t the printed edge direction), and the plastic set. Front plastic bends
-    towards -z (rest k1 < 0: centre of curvature on the fabric side), back plastic towards +z."""
+    towards -z (rest k1 < 0: centre of curvature on the fabric side), back plastic towards +z;
+    side: "front", "back" or per edge +1 (front) / -1 (back)."""
     edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
     P = sheet.points
     t = P[edges[:, 1]] - P[edges[:, 0]]
@@ -127,7 +130,12 @@ def arm_rods(sheet: Sheet, edges, plastic_thickness, width, fabric, plastic, sid
     s_edge = 1 / np.sqrt(misfit_metric)
     sec = arm_section(plastic_thickness, width, fabric.thickness, plastic.young_modulus, fabric.young_modulus, s_edge,
                       plastic_poisson=plastic.poisson, plastic_set=plastic.rest_curvature)
-    sign = -1.0 if side == "front" else 1.0
+    if isinstance(side, str):
+        if side not in ("front", "back"):
+            raise ValueError(f"side must be 'front' or 'back', got {side!r}")
+        sign = -1.0 if side == "front" else 1.0
+    else:
+        sign = -np.sign(np.asarray(side, float))
     return build_network(P, edges, EA=sec.EA, B1=sec.B1, B2=sec.B2, T=sec.T, triangles=sheet.triangles,
                          normal_rest_curvature=sign * sec.rest_curvature)
 
