@@ -109,8 +109,20 @@ class Jet:
         return self * self
 
 
+def recip(a):
+    """1 / a of a Jet or of a plain array (the value-only path of the energies)."""
+    return a.reciprocal() if isinstance(a, Jet) else 1.0 / a
+
+
+def sqrt(a):
+    return a.sqrt() if isinstance(a, Jet) else np.sqrt(a)
+
+
 def atan2(y: Jet, x: Jet) -> Jet:
-    """atan2(y, x) with exact first and second derivatives (away from x = y = 0)."""
+    """atan2(y, x) with exact first and second derivatives (away from x = y = 0); of plain
+    arrays, np.arctan2."""
+    if not isinstance(y, Jet):
+        return np.arctan2(y, x)
     r2 = x.v * x.v + y.v * y.v
     fy, fx = x.v / r2, -y.v / r2
     r4 = r2 * r2
@@ -144,8 +156,8 @@ def add(a, b) -> tuple:
 
 def unit(a) -> tuple:
     """a / |a| (and |a|)."""
-    n = dot(a, a).sqrt()
-    r = n.reciprocal()
+    n = sqrt(dot(a, a))
+    r = recip(n)
     return tuple(c * r for c in a), n
 
 

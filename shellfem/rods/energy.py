@@ -72,8 +72,9 @@ def bend_measures(v: np.ndarray, frame: str = "surface", order: int = 2):
     """(k1, k2, tau) of stencils from inputs v (k, 12) = (e0, e1, s0, s1) as Jets.
 
     frame "surface": d1_j = unit(e_j x s_j) (s_j = x_L - x_R); "up": s_j is the up vector
-    u and d1_j = unit(e_j x (u x e_j))."""
-    J = ad.Jet.inputs(v)
+    u and d1_j = unit(e_j x (u x e_j)). order 0: plain arrays (values only, the same
+    formulas: the line search's energy evaluations skip the derivatives)."""
+    J = ad.Jet.inputs(v) if order > 0 else [np.ascontiguousarray(v[:, i]) for i in range(v.shape[1])]
     e0, e1, s0, s1 = tuple(J[0:3]), tuple(J[3:6]), tuple(J[6:9]), tuple(J[9:12])
     t0, _ = ad.unit(e0)
     t1, _ = ad.unit(e1)
@@ -86,7 +87,7 @@ def bend_measures(v: np.ndarray, frame: str = "surface", order: int = 2):
     else:
         raise ValueError(f"frame must be 'surface' or 'up', got {frame!r}")
     chi = ad.dot(t0, t1) + 1.0
-    rchi = chi.reciprocal()
+    rchi = ad.recip(chi)
     kvec = ad.cross(t0, t1)
     kb = ad.scale(kvec, rchi * 2.0)
     m0, m1 = ad.cross(t0, n0), ad.cross(t1, n1)          # d2 = t x d1
@@ -152,8 +153,7 @@ class RodNetwork:
 
     def measures(self, x: np.ndarray) -> np.ndarray:
         """(k1, k2, tau) (nb, 3) at positions x (n, 3)."""
-        k1, k2, tau = bend_measures(self.stencil_inputs(x), self.frame)
-        return np.stack([k1.v, k2.v, tau.v], 1)
+        return np.stack(bend_measures(self.stencil_inputs(x), self.frame, order=0), 1)
 
     def evaluate(self, x: np.ndarray, order: int = 2):
         """(E, gradient over the 3n positions, stretch blocks (ne, 6, 6), bend blocks
@@ -167,15 +167,17 @@ class RodNetwork:
         c = self.EA / (8 * self.rest_length ** 3)
         E = float(np.sum(c * (s - l2) ** 2))
         # bending and twist
-        k1, k2, tau = bend_measures(self.stencil_inputs(x), self.frame)
+        k1, k2, tau = bend_measures(self.stencil_inputs(x), self.frame, order=order)
+        if order == 0:
+            for m, B, r in ((k1, self.B1, self.rest[:, 0]), (k2, self.B2, self.rest[:, 1]), (tau, self.T, self.rest[:, 2])):
+                E += float(np.sum(B * self.weight * (m - r) ** 2))
+            return E, None, None, None
         W = None
         for jet, B, r in ((k1, self.B1, self.rest[:, 0]), (k2, self.B2, self.rest[:, 1]), (tau, self.T, self.rest[:, 2])):
             d = (jet - r).square() * (B * self.weight)
             W = d if W is None else W + d
         if len(self.weight):
             E += float(W.v.sum())
-        if order == 0:
-            return E, None, None, None
         n = len(x)
         ge = 4 * c[:, None] * (s - l2)[:, None] * e                     # df/de
         grad = np.zeros(3 * n)
