@@ -399,3 +399,26 @@ def test_rods_model_simulates_a_star_sheet():
     sh = Sheet.rectangle(10.0, 2.0, 10, 2)
     sh = Sheet(sh.points, sh.triangles, thickness_front=np.full(sh.n_triangles, 0.3))
     assert simulate_sheet(sh, Fabric(stretch=1.1), Plastic()).summary()["model"] == "shell"
+
+
+def test_arm_rods_take_the_misfit_along_each_edge_and_the_side():
+    from shellfem.materials import Fabric, Plastic
+    from shellfem.rods.coupled import arm_rods
+    from shellfem.sheet import Sheet
+    sh = Sheet.rectangle(8.0, 8.0, 4, 4)
+    P = sh.points
+    row = np.flatnonzero(np.abs(P[:, 1] - 4.0) < 1e-9)
+    row = row[np.argsort(P[row, 0])]
+    col = np.flatnonzero(np.abs(P[:, 0] - 4.0) < 1e-9)
+    col = col[np.argsort(P[col, 1])]
+    fab, pla = Fabric(stretch=(1.35, 1.0), young_modulus=1.0), Plastic(young_modulus=3200.0)
+    for path, s in ((row, 1.35), (col, 1.0)):
+        edges = np.stack([path[:-1], path[1:]], 1)
+        l = 2.0
+        k = monolayer_curvature(0.3, 0.8, 3200.0, 1.0, s)
+        front = arm_rods(sh, edges, 0.3, 0.8, fab, pla, side="front")
+        back = arm_rods(sh, edges, 0.3, 0.8, fab, pla, side=-np.ones(len(edges)))
+        assert np.allclose(front.rest[:, 0], -rest_turning_curvature(k, l, l), atol=1e-15)
+        assert np.allclose(back.rest[:, 0], rest_turning_curvature(k, l, l), atol=1e-15)
+    with pytest.raises(ValueError):
+        arm_rods(sh, edges, 0.3, 0.8, fab, pla, side="top")
