@@ -422,3 +422,18 @@ def test_arm_rods_take_the_misfit_along_each_edge_and_the_side():
         assert np.allclose(back.rest[:, 0], rest_turning_curvature(k, l, l), atol=1e-15)
     with pytest.raises(ValueError):
         arm_rods(sh, edges, 0.3, 0.8, fab, pla, side="top")
+
+
+def test_rods_model_writes_the_simulate_outputs(tmp_path):
+    # `selfshape simulate` on a rods pattern: every output written, summary.json says "rods"
+    import json
+    from forward.simulate import simulate_pattern_file
+    from geometry.patterns import write_pattern
+    path = tmp_path / "stars.toml"
+    write_pattern(str(path), _star_pattern(model="rods"))
+    s = simulate_pattern_file(str(path), str(tmp_path / "out"))
+    assert s["model"] == "rods" and s["converged"]
+    on_disk = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert on_disk["model"] == "rods" and on_disk["n_rod_edges"] == s["n_rod_edges"]
+    for name in ("deployed.vtu", "deployed.png", "index.html"):
+        assert (tmp_path / "out" / name).stat().st_size > 0
