@@ -437,3 +437,34 @@ def test_rods_model_writes_the_simulate_outputs(tmp_path):
     assert on_disk["model"] == "rods" and on_disk["n_rod_edges"] == s["n_rod_edges"]
     for name in ("deployed.vtu", "deployed.png", "index.html"):
         assert (tmp_path / "out" / name).stat().st_size > 0
+
+
+def test_three_armed_junction_is_the_seeds_pairwise_split():
+    # Fig. 3.3: a star centre joins every pair of its three arms, each pair with half weight;
+    # the printed 120 degree angle is the pairs' rest (|kb| = 2 tan(30 deg)), so the print is stress free
+    L, n = 6.0, 3
+    th = np.radians([0.0, 120.0, 240.0])
+    pts = [np.zeros(2)] + [np.array([np.cos(a), np.sin(a)]) * L * (j + 1) / n for a in th for j in range(n)]
+    P = np.array(pts)
+    edges = []
+    for a in range(3):
+        ids = [0] + [1 + a * n + j for j in range(n)]
+        edges += list(zip(ids[:-1], ids[1:]))
+    net = build_network(P, np.array(edges), EA=10.0, B1=1.0, B2=3.0, T=0.5, up=[0, 0, 1])
+    at_centre = net.points[:, 1] == 0
+    l = L / n
+    assert at_centre.sum() == 3
+    assert np.allclose(net.weight[at_centre], 0.5 / (2 * l)) and np.allclose(net.weight[~at_centre], 1 / (2 * l))
+    assert np.allclose(np.abs(net.rest[at_centre, 1]), 2 * np.tan(np.radians(30.0)))
+    X = np.concatenate([P, np.zeros((len(P), 1))], 1)
+    assert net.energy(X) == pytest.approx(0.0, abs=1e-24)
+    # turning one arm rigidly in the plane by d about the centre: its two pairs change their in-plane
+    # turning by +-d, each pair costs (1/2) B2 (2 tan((60 +- d)/2) - 2 tan(30))^2 / (2 l)
+    d = np.radians(2.0)
+    x = X.copy()
+    c, s = np.cos(d), np.sin(d)
+    arm = np.arange(1, n + 1)
+    x[arm, :2] = x[arm, :2] @ np.array([[c, s], [-s, c]])
+    kb0 = 2 * np.tan(np.radians(30.0))
+    expect = sum(0.5 * 3.0 * (2 * np.tan((np.radians(60.0) + sg * d) / 2) - kb0) ** 2 / (2 * l) for sg in (1, -1))
+    assert net.energy(x) == pytest.approx(expect, rel=1e-9)
