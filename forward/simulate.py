@@ -50,6 +50,7 @@ class Simulation:
             "reason": r.reason,
             "stable": bool(r.stable),
             "newton_iterations": int(r.iterations),
+            "model": getattr(self.model, "kind", "shell"),
             "energy": float(r.energy),
             "gradient_norm": float(r.gradient_norm),
             "wall_time_s": round(self.wall_time_s, 3),
@@ -57,17 +58,20 @@ class Simulation:
             "n_triangles": int(self.sheet.n_triangles),
             "n_dofs": int(self.model.n_dofs),
             "bbox_mm": [float(v) for v in (x.max(0) - x.min(0))],
-            "max_fibre_kz": float(np.sqrt(self.model.fibre_bending(r.q).max())),
+            **({"max_fibre_kz": float(np.sqrt(self.model.fibre_bending(r.q).max()))}
+               if hasattr(self.model, "fibre_bending") else {}),
             "timings_s": {k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.timings.items()},
+            **({"n_rod_edges": int(len(self.model.rods.edges)), "n_rod_stencils": int(len(self.model.rods.weight))}
+               if getattr(self.model, "kind", "shell") == "rods" else {}),
         }
 
 
 def _level_setup(sheet: Sheet, fabric, plastic, supports, seed: int, tol_support: float | None, start=None,
-                 exact_metric: bool = True):
+                 factory=None):
     """(model, perturbed flat start, held DOFs, their values, gauge DOFs, free mask) of one mesh;
-    ``start``: (n_vertices, 3) start positions instead of the perturbed flat state;
-    ``exact_metric``: the printed layers' metric (ShellModel.from_materials)."""
-    model = ShellModel.from_materials(sheet, fabric, plastic, exact_metric=exact_metric)
+    ``start``: (n_vertices, 3) start positions instead of the perturbed flat state; ``factory``:
+    (sheet, fabric, plastic) -> model (default ShellModel.from_materials, exact metric)."""
+    model = (factory or ShellModel.from_materials)(sheet, fabric, plastic)
     q = model.initial_state()
     x, _ = model.split(q)
     if start is not None:
@@ -93,9 +97,9 @@ def _level_setup(sheet: Sheet, fabric, plastic, supports, seed: int, tol_support
 
 
 def _release(sheet, model, q, fixed, values, free, fabric, plastic, steps, newton_options, verbose, progress=None,
-             exact_metric: bool = True):
+             factory=None):
     """Continuation from the flat start q over ``steps`` release steps: (result, iterations);
-    the intermediate steps' models with the given metric (``model`` is the last step's)."""
+    the intermediate steps' models from ``factory`` (as for _level_setup; ``model`` is the last step's)."""
     from dataclasses import replace
     start = q[fixed].copy()
     sx, sy = fabric.stretch
@@ -108,7 +112,7 @@ def _release(sheet, model, q, fixed, values, free, fabric, plastic, steps, newto
             progress({"stage": "release", "step": k, "steps": steps})
         fab_k = replace(fabric, stretch=(1 + (sx - 1) * t, 1 + (sy - 1) * t))
         pla_k = replace(plastic, rest_curvature=plastic.rest_curvature * t)
-        model_k = model if k == steps else ShellModel.from_materials(sheet, fab_k, pla_k, exact_metric=exact_metric)
+        model_k = model if k == steps else (factory or ShellModel.from_materials)(sheet, fab_k, pla_k)
         plain = q.copy()
         plain[fixed] = start + (values - start) * t
         plain = carry_support_motion(model_k, plain, q, fixed, free)
@@ -139,7 +143,7 @@ def _release(sheet, model, q, fixed, values, free, fabric, plastic, steps, newto
 def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0, max_iterations: int = 300,
                    release_steps: int = 1, tol_support: float | None = None, verbose: bool = False,
                    rtol: float = 1e-8, metric_floor: float | None = None, coarse=(), start=None,
-                   progress=None) -> Simulation:
+                   progress=None, model_factory=None) -> Simulation:
     """Released equilibrium of a meshed sheet (printed-state mm) with the given materials.
 
     The start is the flat printed state with a smooth out-of-plane perturbation of 1 % of
@@ -177,9 +181,14 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
     ``progress``: called with a dict per event, for a progress display (the CLI's status line):
     {"stage": "level", "level", "levels", "n_vertices"} as each mesh level starts, {"stage":
     "release", "step", "steps"} per release step, {"stage": "newton", "iteration", "energy"
-    (N mm), "gradient_norm" (N)} per accepted Newton step."""
+    (N mm), "gradient_norm" (N)} per accepted Newton step.
+
+    ``model_factory``: (sheet, fabric, plastic) -> the energy to minimise, instead of
+    ShellModel.from_materials (the rods model, shellfem.rods.coupled); single mesh only."""
     if start is not None and len(coarse):
         raise SelfshapeError("simulate_sheet: a start state is for a single mesh (no coarse levels)")
+    if model_factory is not None and len(coarse):
+        raise SelfshapeError("simulate_sheet: a model factory is for a single mesh (no coarse levels)")
     t0 = time.perf_counter()
     sheets = list(coarse) + [sheet]
     steps = max(1, int(release_steps))
@@ -187,14 +196,21 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
     level_log = []
     sums = {}
     prev = None
-    exact_model = ShellModel.from_materials(sheet, fabric, plastic)
-    two_stage = bool(exact_model.quad.thick.any())       # exact-metric layers: truncated predictor first
+    exact_model = ShellModel.from_materials(sheet, fabric, plastic) if model_factory is None else None
+    two_stage = exact_model is not None and bool(exact_model.quad.thick.any())   # truncated predictor first
+
+    def factory(last):
+        """The model of a level: the given factory, else the shell with the truncated metric
+        wherever the exact one follows."""
+        if model_factory is not None:
+            return model_factory
+        exact = last and not two_stage
+        return lambda sh, fab, pla: ShellModel.from_materials(sh, fab, pla, exact_metric=exact)
     for j, sh in enumerate(sheets):
         t_level = time.perf_counter()
         last = j == len(sheets) - 1
         model, q, fixed, values, gauge, free = _level_setup(sh, fabric, plastic, supports, seed, tol_support,
-                                                            start=start if last else None,
-                                                            exact_metric=last and not two_stage)
+                                                            start=start if last else None, factory=factory(last))
         opts = dict(max_iterations=max_iterations, verbose=verbose, metric_floor=metric_floor,
                     rtol=rtol if last and not two_stage else COARSE_RTOL)
         if progress is not None:
@@ -212,7 +228,7 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
                 guess = None
         if guess is None:
             result, its = _release(sh, model, q, fixed, values, free, fabric, plastic, steps, opts, verbose, progress,
-                                   exact_metric=last and not two_stage)
+                                   factory=factory(last))
         else:
             result = newton(model, guess, free, **opts)
             its = result.iterations
@@ -279,10 +295,27 @@ def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=F
 
     coarse_levels (default: the pattern's [solver] coarse_levels, "auto"): coarser meshes of the
     pattern solved first (nested iteration, shellfem.multilevel); 0 solves the mesh alone.
-    progress: as for simulate_sheet, and {"stage": "mesh"} before meshing."""
+    progress: as for simulate_sheet, and {"stage": "mesh"} before meshing.
+
+    [solver] model = "rods" (pattern.solver_model): the seed's chapter-3 model, rods on the
+    centre lines of the stars' arms and the ribbons (the fabric mesh conforming to them,
+    geometry.centrelines) on a bare fabric, with the effective monolayer's rest curvature
+    (shellfem.rods); one mesh level."""
     from geometry.meshing import coarse_meshes, mesh_pattern
     if progress is not None:
         progress({"stage": "mesh"})
+    if getattr(pattern, "solver_model", "shell") == "rods":
+        from geometry.centrelines import mesh_pattern_rods
+        from shellfem.rods.coupled import rod_shell_model
+        rm = mesh_pattern_rods(pattern, size_mm=size_mm)
+
+        def factory(sheet, fabric, plastic):
+            return rod_shell_model(sheet, fabric, plastic, rm.edges, rm.thickness, rm.width, side=rm.side)
+        mi = max_iterations or pattern.max_iterations
+        sim = simulate_sheet(rm.sheet, pattern.fabric, pattern.plastic, pattern.supports,
+                             seed=pattern.seed if seed is None else seed, max_iterations=mi, verbose=verbose,
+                             metric_floor=pattern.metric_floor, progress=progress, model_factory=factory)
+        return sim
     sheet = mesh_pattern(pattern, size_mm=size_mm)
     levels = getattr(pattern, "coarse_levels", "auto") if coarse_levels is None else coarse_levels
     coarse = coarse_meshes(pattern, sheet.n_vertices, size_mm=size_mm, levels=levels)

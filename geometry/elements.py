@@ -14,12 +14,17 @@ class PrintedElement:
     thickness_mm: plastic thickness (> 0). side: "front" (+z) or "back" (-z).
     kind: "region", "ribbon", "star" or "gcode". label: where it came from, for
     error messages and provenance (e.g. "region[2]", "stars (3, -1)", "print.gcode path 17").
+    centrelines: for stars and ribbons, the centre lines ((k, 2) polylines, mm; a star's
+    three arms from its centre, unclipped) and width_mm their printed width: what the rods
+    model ([solver] model = "rods", geometry.centrelines) puts its rods on; None otherwise.
     """
     geometry: object
     thickness_mm: float
     side: str = "front"
     kind: str = "region"
     label: str = ""
+    centrelines: list | None = None
+    width_mm: float | None = None
 
 
 @dataclass

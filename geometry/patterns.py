@@ -33,8 +33,8 @@ from shapely.geometry import LineString, Polygon
 from geometry import outlines
 from geometry.elements import PrintedElement, Support
 from geometry.expressions import compile_field
-from geometry.schema import (MIN_FABRIC_WIDTH_MM, MIN_FEATURE_MM, PATTERN_NUMBERS, check_keys, model_parameter_spec,
-                             number)
+from geometry.schema import (MIN_FABRIC_WIDTH_MM, MIN_FEATURE_MM, PATTERN_NUMBERS, SOLVER_CHOICES, check_keys,
+                             model_parameter_spec, number)
 from geometry.stars import star_elements
 from shellfem.errors import SelfshapeError
 from geometry.tomlfile import read_toml
@@ -64,6 +64,9 @@ FABRIC_FIELDS = (("thickness_mm", "thickness", 0.0, True), ("young_modulus_mpa",
 #: (key, Plastic attribute) of the [plastic] entries
 PLASTIC_FIELDS = (("young_modulus_mpa", "young_modulus"), ("poisson", "poisson"),
                   ("rest_curvature_per_mm", "rest_curvature"))
+#: [solver] keys: the numeric ones of the schema and the model choice
+SOLVER_KEYS = set(PATTERN_NUMBERS["solver"]) | set(SOLVER_CHOICES)
+SOLVER_MODELS = SOLVER_CHOICES["model"]
 TOP_LEVEL = {"fabric", "plastic", "region", "ribbon", "stars", "support", "mesh", "solver", "print", "meta"}
 
 
@@ -83,7 +86,10 @@ class Pattern:
     solver's symmetry-breaking seed. max_iterations: the Newton cap ([solver] max_iterations,
     default 300). metric_floor: the solver's trust-region metric floor ([solver] metric_floor;
     None when absent, meaning the solver's default, shellfem.newton.lm_metric). coarse_levels: coarser meshes solved first ([solver]
-    coarse_levels, "auto" or an integer >= 0, 0 = none; see shellfem.multilevel). source: file path or "<dict>". raw: the parsed TOML
+    coarse_levels, "auto" or an integer >= 0, 0 = none; see shellfem.multilevel). solver_model:
+    [solver] model, "shell" (default: printed areas as bilayer shell regions) or "rods" (the
+    seed's chapter-3 model: rods on the centre lines of stars and ribbons on a bare fabric,
+    shellfem.rods). source: file path or "<dict>". raw: the parsed TOML
     (unknown [solver] and [meta] keys are kept here for the solver).
     """
     fabric: Fabric
@@ -97,6 +103,7 @@ class Pattern:
     max_iterations: int = 300
     metric_floor: float | None = None
     coarse_levels: int | str = "auto"
+    solver_model: str = "shell"
     source: str = "<dict>"
     raw: dict = field(default_factory=dict)
 
@@ -290,7 +297,7 @@ def _ribbons(raw, src, outline) -> list[PrintedElement]:
         clipped = _polygonal(clipped)
         if clipped.is_empty or clipped.area <= 1e-12 * geom.area:
             raise SelfshapeError(f"{where}: ribbon lies entirely outside the fabric")
-        out.append(PrintedElement(clipped, h, side, "ribbon", f"ribbon #{i}"))
+        out.append(PrintedElement(clipped, h, side, "ribbon", f"ribbon #{i}", centrelines=[path], width_mm=w))
     return out
 
 
@@ -437,21 +444,33 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".", from_file
     mesh = _table(raw.get("mesh", {}), f"{src}: [mesh]", KEYS["mesh"])
     mesh_size = _num(mesh, "size_mm", f"{src}: [mesh]", 1.0, "mesh")
     across = _num(mesh, "across", f"{src}: [mesh]", 2.0, "mesh")
-    solver = _table(raw.get("solver", {}), f"{src}: [solver]", set(PATTERN_NUMBERS["solver"]))
+    solver = _table(raw.get("solver", {}), f"{src}: [solver]", SOLVER_KEYS)
     seed, cap, floor = solver_options(solver, f"{src}: [solver]")
     levels = coarse_levels_option(solver, f"{src}: [solver]")
+    model = _choice(solver, "model", f"{src}: [solver]", SOLVER_MODELS, "shell")
     _table(raw.get("meta", {}), f"{src}: [meta]", None)
     fabric, outline = _fabric(raw, src, mesh_size)
     plastic = _plastic(raw, src)
     elements = (_regions(raw, src, outline) + _ribbons(raw, src, outline) + _stars(raw, src, outline)
                 + _print(raw, src, outline, base_dir, confine=from_file))
     supports = _supports(raw, src, outline)
+    if model == "rods":
+        check_rods_model(elements, src)
     if from_file:
         check_printed(elements, fabric, src)
     return Pattern(fabric=fabric, plastic=plastic, outline=outline, elements=elements, supports=supports,
                    mesh_size=mesh_size, seed=seed, mesh_across=across, max_iterations=cap,
-                   metric_floor=floor, coarse_levels=levels, source=src,
+                   metric_floor=floor, coarse_levels=levels, solver_model=model, source=src,
                    raw=raw)
+
+
+def check_rods_model(elements, src: str) -> None:
+    """[solver] model = "rods" puts rods on centre lines: [stars] arms and [[ribbon]] paths;
+    a [[region]] or [print] has none (one-line SelfshapeError naming the file and key)."""
+    for el in elements:
+        if not el.centrelines:
+            raise SelfshapeError(f"{src}: [solver] model = \"rods\" supports [stars] and [[ribbon]] patterns only; "
+                                 f"{el.label or el.kind} ({el.kind}) has no centre line (use model = \"shell\")")
 
 
 def check_printed(elements, fabric, src: str) -> None:

@@ -159,6 +159,10 @@ PATTERN_NUMBERS: dict[str, dict[str, Num]] = {
         "coarse_levels": Num(0, 20, "", "or \"auto\"", integer=True),
     },
 }
+#: [solver] keys that are choices, not numbers: key -> allowed values (first = default).
+#: model: "shell" (printed areas as bilayer shell regions) or "rods" (the seed's chapter-3
+#: model: rods on the centre lines of [stars] arms and [[ribbon]] paths, shellfem.rods).
+SOLVER_CHOICES: dict[str, tuple] = {"model": ("shell", "rods")}
 #: Arm length of a star that is printed (fraction > 0): at least this, mm.
 MIN_ARM_MM = MIN_FEATURE_MM
 

@@ -130,8 +130,13 @@ def star_elements(outline: Polygon, spacing: float, arm_length, thickness, arm_w
     inside = shapely.within(geoms, outline)
     if not inside.all():
         geoms[~inside] = shapely.intersection(geoms[~inside], outline)
+    th = math.radians(angle_deg) + 2.0 * np.pi / 3.0 * np.arange(3)
+    u = np.column_stack([np.cos(th), np.sin(th)])
+    tips = centres[:, None, :] + (frac * spacing)[:, None, None] * u[None]          # (k, 3, 2) arm tips
     elements = []
     for k in np.flatnonzero(~shapely.is_empty(geoms) & (shapely.area(geoms) > 0)):
+        arms = [np.stack([centres[k], tips[k, a]]) for a in range(3)]
         elements.append(PrintedElement(geometry=geoms[k], thickness_mm=float(h[k]), side=side, kind="star",
-                                       label=f"stars ({idx[k, 0]}, {idx[k, 1]})"))
+                                       label=f"stars ({idx[k, 0]}, {idx[k, 1]})", centrelines=arms,
+                                       width_mm=float(w[k])))
     return elements

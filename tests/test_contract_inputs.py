@@ -293,7 +293,7 @@ def test_other_keys_of_the_wrong_kind_name_the_key(table, key, value):
 
 def tables_and_keys():
     """(table, allowed keys) of every checked table of a pattern."""
-    rows = [("", patterns.TOP_LEVEL), ("fabric", patterns.fabric_keys()), ("solver", set(PATTERN_NUMBERS["solver"]))]
+    rows = [("", patterns.TOP_LEVEL), ("fabric", patterns.fabric_keys()), ("solver", patterns.SOLVER_KEYS)]
     rows += [(t, keys) for t, keys in patterns.KEYS.items()]
     rows += [(f"fabric.{n}", {p.name for p in m.parameters}) for n, m in MEMBRANE_MODELS.items() if m.parameters]
     return rows
