@@ -54,6 +54,8 @@ KEYS = {
     "support": {"points", "fix", "position", "boundary"},
     "mesh": {"size_mm", "across"},
     "print": {"gcode", "side", "origin_mm"},
+    "contact": {"enabled"},
+    "ground": {"enabled", "height_mm"},
 }
 #: (key, Fabric attribute, lower bound, bound exclusive) of the numeric [fabric] entries; the
 #: reader checks them against the (tighter) physical ranges of geometry.schema.PATTERN_NUMBERS
@@ -64,7 +66,8 @@ FABRIC_FIELDS = (("thickness_mm", "thickness", 0.0, True), ("young_modulus_mpa",
 #: (key, Plastic attribute) of the [plastic] entries
 PLASTIC_FIELDS = (("young_modulus_mpa", "young_modulus"), ("poisson", "poisson"),
                   ("rest_curvature_per_mm", "rest_curvature"))
-TOP_LEVEL = {"fabric", "plastic", "region", "ribbon", "stars", "support", "mesh", "solver", "print", "meta"}
+TOP_LEVEL = {"fabric", "plastic", "region", "ribbon", "stars", "support", "mesh", "solver", "print", "meta", "contact",
+             "ground"}
 
 
 def fabric_keys() -> set:
@@ -85,6 +88,10 @@ class Pattern:
     None when absent, meaning the solver's default, shellfem.newton.lm_metric). coarse_levels: coarser meshes solved first ([solver]
     coarse_levels, "auto" or an integer >= 0, 0 = none; see shellfem.multilevel). source: file path or "<dict>". raw: the parsed TOML
     (unknown [solver] and [meta] keys are kept here for the solver).
+    contact: self-contact on ([contact] enabled, default true; shellfem.contact). ground: the
+    height (mm) of the ground plane under the sheet ([ground] height_mm, default 0), or None
+    without a ground ([ground] enabled, default true when a [[support]] has fix = "z" or
+    gravity is on, else false).
     """
     fabric: Fabric
     plastic: Plastic
@@ -97,6 +104,8 @@ class Pattern:
     max_iterations: int = 300
     metric_floor: float | None = None
     coarse_levels: int | str = "auto"
+    contact: bool = True
+    ground: float | None = None
     source: str = "<dict>"
     raw: dict = field(default_factory=dict)
 
@@ -140,6 +149,26 @@ def coarse_levels_option(solver: dict, where: str) -> int | str:
     if isinstance(v, str):
         raise SelfshapeError(f"{where}: coarse_levels must be \"auto\" or an integer >= 0, got {v!r:.40}")
     return _num(solver, "coarse_levels", where, section="solver")
+
+
+def _flag(table: dict, key: str, where: str, default: bool) -> bool:
+    """table[key] as true/false (default when absent); anything else is a one-line error."""
+    v = table.get(key, default)
+    if not isinstance(v, bool):
+        raise SelfshapeError(f"{where}: {key} must be true or false, got {v!r:.40}")
+    return v
+
+
+def contact_options(raw: dict, src: str, fabric, supports) -> tuple[bool, float | None]:
+    """([contact] enabled, ground height or None) of a pattern: see :class:`Pattern`."""
+    contact = _flag(_table(raw.get("contact", {}), f"{src}: [contact]", KEYS["contact"]), "enabled",
+                    f"{src}: [contact]", True)
+    where = f"{src}: [ground]"
+    g = _table(raw.get("ground", {}), where, KEYS["ground"])
+    default = any(sp.fix == "z" for sp in supports) or fabric.areal_weight > 0
+    on = _flag(g, "enabled", where, default)
+    height = _num(g, "height_mm", where, 0.0, "ground")
+    return contact, (height if on else None)
 
 
 def _choice(table: dict, key: str, where: str, options: tuple, default: str):
@@ -446,11 +475,12 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".", from_file
     elements = (_regions(raw, src, outline) + _ribbons(raw, src, outline) + _stars(raw, src, outline)
                 + _print(raw, src, outline, base_dir, confine=from_file))
     supports = _supports(raw, src, outline)
+    contact, ground = contact_options(raw, src, fabric, supports)
     if from_file:
         check_printed(elements, fabric, src)
     return Pattern(fabric=fabric, plastic=plastic, outline=outline, elements=elements, supports=supports,
                    mesh_size=mesh_size, seed=seed, mesh_across=across, max_iterations=cap,
-                   metric_floor=floor, coarse_levels=levels, source=src,
+                   metric_floor=floor, coarse_levels=levels, contact=contact, ground=ground, source=src,
                    raw=raw)
 
 

@@ -158,6 +158,9 @@ PATTERN_NUMBERS: dict[str, dict[str, Num]] = {
         "metric_floor": Num(0.0, 1e6, "", "multiples of the median Hessian diagonal"),
         "coarse_levels": Num(0, 20, "", "or \"auto\"", integer=True),
     },
+    "ground": {
+        "height_mm": Num(-COORD_MAX_MM, COORD_MAX_MM, _LEN, "the plane z = height under the sheet's mid-surface"),
+    },
 }
 #: Arm length of a star that is printed (fraction > 0): at least this, mm.
 MIN_ARM_MM = MIN_FEATURE_MM
