@@ -52,7 +52,8 @@ class Simulation:
             return dict(enabled=False, ground=None, min_distance_mm=None, active_pairs=0,
                         in_contact=np.zeros(m, bool))
         rep = c.report(self.positions)
-        return dict(enabled=bool(c.self_contact), ground=c.ground, offset_mm=c.offset, band_mm=c.dhat, **rep)
+        return dict(enabled=bool(c.self_contact), ground=c.ground, offset_mm=c.offset, band_mm=c.dhat,
+                    exclusion_mm=c.exclusion_mm, **rep)
 
     def summary(self) -> dict:
         x = self.positions

@@ -11,21 +11,24 @@ band of width ``dhat`` above the offset (distances in (offset, offset + dhat)) a
 offset: ipctk's barrier in the squared distance, kappa b(d^2 - offset^2, 2 offset dhat + dhat^2).
 
 Neighbour exclusion: a sheet with a thickness offset is "in contact" with its own neighbours
-everywhere, so vertex pairs closer than ``exclusion_mm`` in the printed (flat, rest) state cannot
-collide (ipctk's sparse vertex-pair filter; a pair of primitives is excluded when all its vertex
-pairs are). exclusion_mm = 1.5 (s_max (offset + dhat) + 2 L_max) with s_max the largest pre-stretch
-and L_max the longest printed edge: every pair of primitives closer than offset + dhat in a
-released, moderately curved state is excluded (a released sheet is the printed one contracted by
-up to s_max; two vertices of the pair lie within 2 L_max of the closest points; 1.5 covers
-curvature and strain). Two parts of the sheet whose printed distance exceeds exclusion_mm can only
-meet after the sheet has rolled or folded back onto itself, which is what self-contact is for.
+everywhere, so vertex pairs close in the printed (flat, rest) state cannot collide: those in the
+same cell of any of four printed-state grids of size g = ``exclusion_mm`` shifted by g/2 (ipctk's
+vertex-patch filters, intersected; a pair of primitives is excluded when all its vertex pairs
+are). Every pair closer than g/2 (max-norm) is excluded, every pair farther than g sqrt(2) can
+collide. g/2 = (K + 1) L + 4 L / 3 (L the longest printed edge, K the skip test's patch reach
+below) covers every pair of primitives closer than 1.3 s_max (offset + dhat) + 2 L: all pairs
+that touch in a released, moderately curved state (a released sheet is the printed one
+contracted by up to s_max). Two parts of the sheet farther apart than that in the printed state
+can only meet after the sheet has rolled or folded back onto itself (a roll of radius r brings
+layers 2 pi r s together), which is what self-contact is for. (ipctk's sparse vertex-pair map
+was tried first: with the 2.9M pairs of the 10k-vertex benchmark it took 37 s to build and 7 s
+per broad phase.)
 
-Skip: before building collisions at a state, a cheap test (a KD-tree over the deformed vertices,
-vertex pairs within offset + dhat + 2 L (deformed longest edge) compared with their printed
-distance) proves that no pair of non-excluded primitives is within offset + dhat; then the barrier
-is 0 with zero derivatives and nothing is built, so a sheet that never touches itself pays only that
-test (a pair of primitives within distance delta has a vertex pair within delta + 2 L, and a
-non-excluded pair has some vertex pair at least exclusion_mm apart in the printed state).
+Skip: before building collisions at a state (or running CCD on a move), a cheap test proves that
+no pair of non-excluded primitives is within offset + dhat (:meth:`Contact.maybe_close`: bounding
+boxes of printed-grid patches of vertices, inflated by the longest edge, compared only between
+patches that are not printed neighbours); then the barrier is 0 with zero derivatives and nothing
+is built, so a sheet that never touches itself pays only that test.
 
 Ground: the plane z = height (mm) under the sheet's mid-surface (the plane fix = "z" supports hold
 the sheet on): a barrier on each free vertex's height above it, kappa_g b(z - height, dhat)
@@ -103,8 +106,32 @@ class Contact:
         e = np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]], self.faces[:, [2, 0]]])
         e.sort(axis=1)
         self.edges = np.ascontiguousarray(np.unique(e, axis=0), dtype=np.int32)
-        lengths = np.linalg.norm(self.rest[self.edges[:, 1]] - self.rest[self.edges[:, 0]], axis=1)
-        self.exclusion_mm = 1.5 * (stretch_max * (self.offset + self.dhat) + 2.0 * float(lengths.max()))
+        P = self.rest[:, :2]
+        L = float(np.linalg.norm(P[self.edges[:, 1]] - P[self.edges[:, 0]], axis=1).max())
+        delta = self.offset + self.dhat
+        # skip-test patches: triangles grouped by their centroid's printed-grid cell (size h = L);
+        # patch pairs within K cells of each other hold only excluded pairs (below), the others
+        # are tested. K: in a released, moderately curved state (contracted by up to s_max, 1.3
+        # for curvature) two patches K + 1 cells apart keep their bounding spheres delta apart
+        h = L
+        K = int(np.ceil((1.3 * (stretch_max * delta + 4.0 / 3.0 * L) + 0.41 * h) / h))
+        self.patch_reach = K
+        # exclusion: vertex pairs in the same cell of any of four grids of size g shifted by g/2
+        # cannot collide (ipctk vertex-patch filters, intersected): every pair closer than g/2 in
+        # the printed state (max-norm) is excluded, every pair farther than g sqrt(2) is not;
+        # g/2 = (K + 1) h + 4 L / 3 covers every vertex pair of two patches within K cells
+        self.exclusion_mm = 2.0 * ((K + 1) * h + 4.0 / 3.0 * L)
+        origin = P.min(0)
+        cells = np.floor((P[self.faces].mean(1) - origin) / h).astype(np.int64)
+        ncol = int(cells[:, 1].max()) + 1
+        key = cells[:, 0] * ncol + cells[:, 1]
+        uniq, tri_patch = np.unique(key, return_inverse=True)
+        self._cells = np.stack([uniq // ncol, uniq % ncol], 1)
+        pv = np.unique(np.stack([np.repeat(tri_patch, 3), self.faces.ravel().astype(np.int64)], 1), axis=0)
+        self._pv_patch, self._pv_vertex = pv[:, 0], pv[:, 1]          # sorted by patch
+        self._pv_start = np.searchsorted(self._pv_patch, np.arange(len(uniq)))
+        self._pv_count = np.bincount(self._pv_patch, minlength=len(uniq)).astype(float)
+        self._grid_origin = origin
         self.kappa = 0.0
         self.kappa_ground = 0.0
         self._mesh = None          # ipctk CollisionMesh, built the first time the skip test fails
@@ -123,9 +150,15 @@ class Contact:
         if self._mesh is None:
             ipctk = _ipctk()
             mesh = ipctk.CollisionMesh(self.rest, self.edges, self.faces)
-            pairs = cKDTree(self.rest[:, :2]).query_pairs(self.exclusion_mm, output_type="ndarray")
-            # excluded: printed-state neighbours (i < j from query_pairs)
-            mesh.can_collide = ipctk.make_sparse_filter(dict.fromkeys(map(tuple, pairs.tolist()), False), True)
+            g = self.exclusion_mm
+            P = self.rest[:, :2] - self._grid_origin
+            filt = None
+            for shift in ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5)):
+                ij = np.floor(P / g + shift).astype(np.int64)
+                ids = (ij[:, 0] * (int(ij[:, 1].max()) + 2) + ij[:, 1]).astype(np.int32)
+                f = ipctk.make_vertex_patches_filter(ids)
+                filt = f if filt is None else (filt & f)
+            mesh.can_collide = filt
             self._mesh = mesh
         return self._mesh
 
@@ -133,17 +166,35 @@ class Contact:
         d = x[self.edges[:, 1]] - x[self.edges[:, 0]]
         return float(np.sqrt(np.einsum("ij,ij->i", d, d).max()))
 
-    def maybe_close(self, x, margin: float = 0.0) -> bool:
-        """False when no two non-excluded primitives can be within offset + dhat + margin at x
-        (n, 3) (mm): the skip test of the module docstring."""
+    def maybe_close(self, x, x1=None) -> bool:
+        """False when no two non-excluded primitives can come within offset + dhat of each other
+        at x (n, 3) (mm), or anywhere on the straight move x -> x1: the skip test. Each patch's
+        bounding sphere (centre: the mean of its triangles' vertices, over both states; radius: the
+        farthest of them) holds its triangles all along the move (each point of a moving triangle
+        is a convex combination of its corners' start and end positions); patches within
+        patch_reach printed cells hold only excluded pairs, so if no two other patches' spheres
+        come within offset + dhat, no pair of non-excluded primitives does. O(n) plus a KD-tree
+        over the patch centres."""
         if not self.self_contact:
             return False
-        R = self.offset + self.dhat + margin + 2.0 * self._edge_max(x)
-        pairs = cKDTree(x).query_pairs(R, output_type="ndarray")
+        x = np.asarray(x, float).reshape(self.n, 3)
+        states = [x] if x1 is None else [x, np.asarray(x1, float).reshape(self.n, 3)]
+        cnt = self._pv_count * len(states)
+        centre = sum(np.stack([np.bincount(self._pv_patch, weights=y[self._pv_vertex, k], minlength=len(cnt))
+                               for k in range(3)], 1) for y in states) / cnt[:, None]
+        radius = np.zeros(len(cnt))
+        for y in states:
+            d = y[self._pv_vertex] - centre[self._pv_patch]
+            radius = np.maximum(radius, np.sqrt(np.maximum.reduceat(np.einsum("ij,ij->i", d, d), self._pv_start)))
+        delta = self.offset + self.dhat
+        pairs = cKDTree(centre).query_pairs(2.0 * float(radius.max()) + delta, output_type="ndarray")
         if len(pairs) == 0:
             return False
-        d = self.rest[pairs[:, 0], :2] - self.rest[pairs[:, 1], :2]
-        return bool(np.any(np.einsum("ij,ij->i", d, d) >= self.exclusion_mm ** 2))
+        a, b = pairs[:, 0], pairs[:, 1]
+        far = np.abs(self._cells[a] - self._cells[b]).max(1) > self.patch_reach
+        a, b = a[far], b[far]
+        gap = np.linalg.norm(centre[a] - centre[b], axis=1) - radius[a] - radius[b]
+        return bool(np.any(gap < delta))
 
     def _collisions(self, x):
         """ipctk NormalCollisions at x, or None when the skip test settles it."""
@@ -161,15 +212,20 @@ class Contact:
         return _ipctk().BarrierPotential(self.dhat, self.kappa)
 
     # --- energy -----------------------------------------------------------------------------
-    def evaluate(self, x, order: int = 0, project: bool = True):
+    def evaluate(self, x, order: int = 0, project: bool = False):
         """(E, gradient (3n,), Hessian (3n, 3n) CSR or None) of the contact energy at positions
-        x (n, 3) mm: N mm, N, N/mm. order 0: E only; 1: + gradient; 2: + Hessian, the barrier's
-        per-collision blocks projected to PSD (``project``; ipctk's CLAMP), the ground's diagonal
-        clamped at 0. E = inf if a pair is at or below the offset or a vertex at or below the ground."""
+        x (n, 3) mm: N mm, N, N/mm. order 0: E only; 1: + gradient; 2: + the exact Hessian, or
+        with ``project`` the barrier's per-collision blocks projected to PSD (ipctk's CLAMP) and
+        the ground's diagonal clamped at 0. E = inf if a pair is at or below the offset or a
+        vertex at or below the ground. After order 2, :meth:`projected_hessian` gives the
+        projected Hessian of the same state without rebuilding its collisions."""
         x = np.asarray(x, float).reshape(self.n, 3)
         E = 0.0
         g = np.zeros(3 * self.n) if order >= 1 else None
         H = None
+        if order >= 2:
+            self._last = None
+            self._last_ground = None
         if self.self_contact and self.kappa > 0:
             c = self._collisions(x)
             if c is not None and len(c) > 0:
@@ -184,6 +240,7 @@ class Contact:
                 if order >= 2:
                     H = sp.csr_matrix(pot.hessian(c, mesh, X, ipctk.PSDProjectionMethod.CLAMP if project
                                                   else ipctk.PSDProjectionMethod.NONE))
+                    self._last = (c, X)
         if self.ground is not None and self.kappa_ground > 0:
             free = ~self.held_z
             h = x[free, 2] - self.ground
@@ -195,11 +252,28 @@ class Contact:
                 g[3 * np.flatnonzero(free) + 2] += self.kappa_ground * b1
             if order >= 2:
                 idx = 3 * np.flatnonzero(free) + 2
+                self._last_ground = (idx, self.kappa_ground * b2)
                 w = self.kappa_ground * (np.maximum(b2, 0.0) if project else b2)
                 keep = w != 0
                 Hg = sp.csr_matrix((w[keep], (idx[keep], idx[keep])), shape=(3 * self.n, 3 * self.n))
                 H = Hg if H is None else H + Hg
         return E, g, H
+
+    def projected_hessian(self):
+        """The PSD-projected contact Hessian (3n, 3n) of the state of the last order-2
+        :meth:`evaluate` (ipctk's per-collision CLAMP; the ground's diagonal clamped at 0), or None."""
+        H = None
+        if getattr(self, "_last", None) is not None:
+            ipctk = _ipctk()
+            c, X = self._last
+            H = sp.csr_matrix(self._potential().hessian(c, self._collision_mesh(), X, ipctk.PSDProjectionMethod.CLAMP))
+        if getattr(self, "_last_ground", None) is not None:
+            idx, w = self._last_ground
+            w = np.maximum(w, 0.0)
+            keep = w != 0
+            Hg = sp.csr_matrix((w[keep], (idx[keep], idx[keep])), shape=(3 * self.n, 3 * self.n))
+            H = Hg if H is None else H + Hg
+        return H
 
     # --- step filter ----------------------------------------------------------------------
     def step_fraction(self, x0, x1) -> float:
@@ -218,8 +292,7 @@ class Contact:
             if down.any():        # stop at 5 % of the start height: the barrier is +inf at 0
                 t = min(t, float(np.min(0.95 * z0[down] / (z0[down] - z1[down]))))
         if self.self_contact:
-            move = float(np.sqrt(np.einsum("ij,ij->i", x1 - x0, x1 - x0).max()))
-            if self.maybe_close(x0, margin=2.0 * move):
+            if self.maybe_close(x0, x1):
                 ipctk = _ipctk()
                 # Additive CCD (Li et al. 2021, made for thickness offsets): the Euclidean minimum
                 # separation; Tight Inclusion's is an L-infinity box (a 1.1 mm offset stopped moves
