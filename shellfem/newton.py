@@ -23,6 +23,19 @@ Newton steps follow a rotation-corrected curve instead of a straight line when t
 rotates (shellfem.corotational); optionally an indefinite Hessian is first retried with its
 hinge (dihedral-angle) blocks projected to positive semi-definite before LM takes over.
 
+Contact (a model whose ``contact`` is a shellfem.contact.Contact): its barrier energy and
+gradient are in the model's; its exact Hessian (positions only, a changing sparsity) is added to
+the assembled one on a grow-only union pattern (shellfem.assembly.PatternUnion), and when that
+sum is indefinite its PSD-projected blocks are tried before the trust region takes over (such
+steps never decide convergence). Every trial point - the Newton line search's (cut to the
+collision-free fraction of the move), the LM step, the negative-curvature search, the printed
+relaxation's inner steps - is judged by ``model.trial_energy(q, q_try)``: +inf unless the straight
+move from the current iterate is free of contact (continuous collision detection); along a
+rotation-corrected path the check is on the straight segment to the trial point, so every
+accepted state is reached from the last one without passing through the sheet. The edge-angle
+relaxation moves no position and needs no check. A start that intersects or whose supports
+force penetration stops the solve at once with that reason.
+
 Convergence: ||grad||_2 over the free DOFs <= max(atol, rtol * gradient_reference) (the
 reference defaults to the gradient norm at the start) AND the exact Hessian (lambda = 0)
 factorised, so the state is a local minimum, not a saddle. Anything else is reported as
