@@ -22,7 +22,8 @@ SURFACES = ("deployed.obj", "deployed.stl", "deployed.ply")
 
 def write_vtu(sim, path: str):
     """deployed.vtu: deployed surface with point data `reference` and cell data `region`,
-    `thickness_mm`, `side` (+1 front, -1 back, 0 fabric, 2 both), curvatures (1/mm).
+    `thickness_mm`, `side` (+1 front, -1 back, 0 fabric, 2 both), curvatures (1/mm), `in_contact`
+    (1 on the triangles touching an active self-contact pair or the ground's band, else 0).
     NonFiniteOutput (nothing written) if a position or field is NaN or infinite."""
     import meshio
     sheet = sim.sheet
@@ -31,7 +32,8 @@ def write_vtu(sim, path: str):
     cells = {"region": sheet.region, "thickness_mm": sheet.thickness, "side": sheet.side,
              "thickness_front_mm": sheet.thickness_front, "thickness_back_mm": sheet.thickness_back,
              "k1_per_mm": k[:, 0], "k2_per_mm": k[:, 1], "mean_curvature_per_mm": H,
-             "gaussian_curvature_per_mm2": K}
+             "gaussian_curvature_per_mm2": K,
+             "in_contact": sim.contact_report()["in_contact"].astype(np.int64)}
     check_finite_arrays("deployed.vtu", {"deployed positions": sim.positions, "reference": ref, **cells})
     meshio.write(path, meshio.Mesh(sim.positions, [("triangle", sheet.triangles)],
                                    point_data={"reference": ref},

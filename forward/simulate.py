@@ -42,6 +42,20 @@ class Simulation:
     def positions(self) -> np.ndarray:
         return self.model.split(self.result.q)[0]
 
+    def contact_report(self) -> dict:
+        """The contact state of the result (shellfem.contact.Contact.report): enabled (self-contact),
+        ground (height mm or None), min_distance_mm (smallest distance between non-excluded parts
+        within the barrier's band, None when no pair is), active_pairs, offset_mm, the lowest free
+        vertex's height above the ground, and in_contact (m,) bool per triangle."""
+        c = getattr(self.model, "contact", None)
+        m = self.sheet.n_triangles
+        if c is None:
+            return dict(enabled=False, ground=None, min_distance_mm=None, active_pairs=0,
+                        in_contact=np.zeros(m, bool))
+        rep = c.report(self.positions)
+        return dict(enabled=bool(c.self_contact), ground=c.ground, offset_mm=c.offset, band_mm=c.dhat,
+                    exclusion_mm=c.exclusion_mm, **rep)
+
     def summary(self) -> dict:
         x = self.positions
         r = self.result
@@ -60,28 +74,54 @@ class Simulation:
             "bbox_mm": [float(v) for v in (x.max(0) - x.min(0))],
             **({"max_fibre_kz": float(np.sqrt(self.model.fibre_bending(r.q).max()))}
                if hasattr(self.model, "fibre_bending") else {}),
+            "contact": {k: v for k, v in self.contact_report().items() if k != "in_contact"},
             "timings_s": {k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.timings.items()},
             **({"n_rod_edges": int(len(self.model.rods.edges)), "n_rod_stencils": int(len(self.model.rods.weight))}
                if getattr(self.model, "kind", "shell") == "rods" else {}),
         }
 
 
+def make_contact(sheet: Sheet, fabric, fixed: np.ndarray, self_contact: bool, ground: float | None):
+    """shellfem.contact.Contact of a sheet (None when both are off): the offset is the sheet's
+    largest total thickness (fabric + plastic on both faces, mm), the ground plane at ``ground``
+    (mm, None: no ground) under the vertices whose z is not held by ``fixed``."""
+    if not self_contact and ground is None:
+        return None
+    from shellfem.contact import Contact
+    offset = float(fabric.thickness + np.max(sheet.thickness_front + sheet.thickness_back))
+    held_z = np.zeros(sheet.n_vertices, bool)
+    held_z[fixed[fixed % 3 == 2] // 3] = True
+    return Contact(sheet.points, sheet.triangles, offset, stretch_max=float(max(fabric.stretch)),
+                   self_contact=self_contact, ground=ground, held_z=held_z)
+
+
 def _level_setup(sheet: Sheet, fabric, plastic, supports, seed: int, tol_support: float | None, start=None,
-                 factory=None):
+                 factory=None, contact: bool = False, ground: float | None = None):
     """(model, perturbed flat start, held DOFs, their values, gauge DOFs, free mask) of one mesh;
     ``start``: (n_vertices, 3) start positions instead of the perturbed flat state; ``factory``:
-    (sheet, fabric, plastic) -> model (default ShellModel.from_materials, exact metric)."""
+    (sheet, fabric, plastic) -> model (default ShellModel.from_materials, exact metric). ``contact``,
+    ``ground``: see :func:`make_contact` (with a ground, the flat start's perturbation is lifted
+    above the plane and "z" supports start on it)."""
     model = (factory or ShellModel.from_materials)(sheet, fabric, plastic)
     q = model.initial_state()
     x, _ = model.split(q)
+    edge = np.linalg.norm(sheet.points[sheet.triangles[:, 1]] - sheet.points[sheet.triangles[:, 0]], axis=1)
+    tol = tol_support if tol_support is not None else 2.0 * float(edge.max())
+    fixed, values = support_constraints(sheet, model.topo, supports, fabric, tol)
+    model.contact = make_contact(sheet, fabric, fixed, contact, ground)
     if start is not None:
         x[:] = np.asarray(start, dtype=float).reshape(x.shape)
     else:
         size = float(np.linalg.norm(sheet.points.max(0) - sheet.points.min(0)))
-        x[:, 2] += smooth_perturbation(sheet.points, seed, 0.01 * size)
-    edge = np.linalg.norm(sheet.points[sheet.triangles[:, 1]] - sheet.points[sheet.triangles[:, 0]], axis=1)
-    tol = tol_support if tol_support is not None else 2.0 * float(edge.max())
-    fixed, values = support_constraints(sheet, model.topo, supports, fabric, tol)
+        pert = smooth_perturbation(sheet.points, seed, 0.01 * size)
+        if ground is not None:
+            # above the plane: |perturbation| plus the barrier's band; held z on their values
+            c = model.contact
+            x[:, 2] = ground + c.dhat + np.abs(pert)
+            zf = fixed[fixed % 3 == 2]
+            q[zf] = values[np.isin(fixed, zf)]
+        else:
+            x[:, 2] += pert
     gravity = model.external_force is not None
     from shellfem.boundary import rigid_modes
     gauge = np.zeros(0, dtype=np.int64)
@@ -99,7 +139,8 @@ def _level_setup(sheet: Sheet, fabric, plastic, supports, seed: int, tol_support
 def _release(sheet, model, q, fixed, values, free, fabric, plastic, steps, newton_options, verbose, progress=None,
              factory=None):
     """Continuation from the flat start q over ``steps`` release steps: (result, iterations);
-    the intermediate steps' models from ``factory`` (as for _level_setup; ``model`` is the last step's)."""
+    the intermediate steps' models from ``factory`` (as for _level_setup; ``model`` is the last
+    step's), every one sharing the level's Contact (its stiffness and exclusion filter)."""
     from dataclasses import replace
     start = q[fixed].copy()
     sx, sy = fabric.stretch
@@ -113,6 +154,7 @@ def _release(sheet, model, q, fixed, values, free, fabric, plastic, steps, newto
         fab_k = replace(fabric, stretch=(1 + (sx - 1) * t, 1 + (sy - 1) * t))
         pla_k = replace(plastic, rest_curvature=plastic.rest_curvature * t)
         model_k = model if k == steps else (factory or ShellModel.from_materials)(sheet, fab_k, pla_k)
+        model_k.contact = model.contact
         plain = q.copy()
         plain[fixed] = start + (values - start) * t
         plain = carry_support_motion(model_k, plain, q, fixed, free)
@@ -122,7 +164,7 @@ def _release(sheet, model, q, fixed, values, free, fabric, plastic, steps, newto
             # a rolling motion linearly can push edge angles to the edge of the admissible set
             secant = q + (q - q_prev)
             secant[fixed] = plain[fixed]
-            if model_k.energy(secant) < model_k.energy(plain):
+            if model_k.energy(secant) < model_k.energy(plain) and _admissible(model_k, q, secant):
                 guess = secant
         last = k == steps
         opts = dict(newton_options)
@@ -140,10 +182,17 @@ def _release(sheet, model, q, fixed, values, free, fabric, plastic, steps, newto
     return result, total_it
 
 
+def _admissible(model, q_from, q_to) -> bool:
+    """A guess q_to is admissible under contact when the straight move from q_from (an
+    admissible state) reaches it without a contact (always without contact)."""
+    return model.contact is None or model.step_fraction(q_from, q_to) >= 1.0
+
+
 def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0, max_iterations: int = 300,
                    release_steps: int = 1, tol_support: float | None = None, verbose: bool = False,
                    rtol: float = 1e-8, metric_floor: float | None = None, coarse=(), start=None,
-                   progress=None, model_factory=None) -> Simulation:
+                   progress=None, model_factory=None, contact: bool = False,
+                   ground: float | None = None) -> Simulation:
     """Released equilibrium of a meshed sheet (printed-state mm) with the given materials.
 
     The start is the flat printed state with a smooth out-of-plane perturbation of 1 % of
@@ -178,6 +227,12 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
     52 + 23 + 16 + 12. A sheet without exact-metric layers (bare fabric) is solved once per level.
     ``timings["levels"]`` then has one more entry, its ``metric`` "exact" (the others "truncated").
 
+    ``contact``: self-contact (shellfem.contact; off by default here, on by default for a
+    pattern's :func:`simulate`); ``ground``: the height (mm) of a ground plane under the sheet,
+    None for none. A start that intersects, or a support below the ground, ends the solve
+    unconverged with that reason; an interpolated start of nested iteration that intersects or
+    comes closer than the offset is dropped for the level's flat start.
+
     ``progress``: called with a dict per event, for a progress display (the CLI's status line):
     {"stage": "level", "level", "levels", "n_vertices"} as each mesh level starts, {"stage":
     "release", "step", "steps"} per release step, {"stage": "newton", "iteration", "energy"
@@ -210,7 +265,8 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
         t_level = time.perf_counter()
         last = j == len(sheets) - 1
         model, q, fixed, values, gauge, free = _level_setup(sh, fabric, plastic, supports, seed, tol_support,
-                                                            start=start if last else None, factory=factory(last))
+                                                            start=start if last else None, factory=factory(last),
+                                                            contact=contact, ground=ground)
         opts = dict(max_iterations=max_iterations, verbose=verbose, metric_floor=metric_floor,
                     rtol=rtol if last and not two_stage else COARSE_RTOL)
         if progress is not None:
@@ -226,6 +282,8 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
             guess[fixed] = values
             if not np.isfinite(model.energy(guess)):
                 guess = None
+            elif model.contact is not None and model.contact.check_start(model.split(guess)[0]) is not None:
+                guess = None           # the interpolation intersects or comes within the offset
         if guess is None:
             result, its = _release(sh, model, q, fixed, values, free, fabric, plastic, steps, opts, verbose, progress,
                                    factory=factory(last))
@@ -251,6 +309,7 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
         # the exact metric from the truncated equilibrium (or, if that solve stopped for another
         # reason than its cap, from the same start the truncated solve had)
         t_level = time.perf_counter()
+        exact_model.contact = model.contact          # the finest level's Contact (stiffness, exclusions)
         model = exact_model
         usable = result.converged or result.reason == MAX_ITERATIONS_REASON
         q_exact = result.q if usable else q
@@ -322,7 +381,8 @@ def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=F
     mi = max_iterations or pattern.max_iterations
     return simulate_sheet(sheet, pattern.fabric, pattern.plastic, pattern.supports,
                           seed=pattern.seed if seed is None else seed, max_iterations=mi, verbose=verbose,
-                          metric_floor=pattern.metric_floor, coarse=coarse, progress=progress)
+                          metric_floor=pattern.metric_floor, coarse=coarse, progress=progress,
+                          contact=getattr(pattern, "contact", True), ground=getattr(pattern, "ground", None))
 
 
 def simulate_pattern_file(pattern_path, out_dir, *, size_mm=None, seed=None, render=True, max_iterations=None,

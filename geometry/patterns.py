@@ -54,6 +54,8 @@ KEYS = {
     "support": {"points", "fix", "position", "boundary"},
     "mesh": {"size_mm", "across"},
     "print": {"gcode", "side", "origin_mm"},
+    "contact": {"enabled"},
+    "ground": {"enabled", "height_mm"},
 }
 #: (key, Fabric attribute, lower bound, bound exclusive) of the numeric [fabric] entries; the
 #: reader checks them against the (tighter) physical ranges of geometry.schema.PATTERN_NUMBERS
@@ -67,7 +69,8 @@ PLASTIC_FIELDS = (("young_modulus_mpa", "young_modulus"), ("poisson", "poisson")
 #: [solver] keys: the numeric ones of the schema and the model choice
 SOLVER_KEYS = set(PATTERN_NUMBERS["solver"]) | set(SOLVER_CHOICES)
 SOLVER_MODELS = SOLVER_CHOICES["model"]
-TOP_LEVEL = {"fabric", "plastic", "region", "ribbon", "stars", "support", "mesh", "solver", "print", "meta"}
+TOP_LEVEL = {"fabric", "plastic", "region", "ribbon", "stars", "support", "mesh", "solver", "print", "meta", "contact",
+             "ground"}
 
 
 def fabric_keys() -> set:
@@ -91,6 +94,10 @@ class Pattern:
     seed's chapter-3 model: rods on the centre lines of stars and ribbons on a bare fabric,
     shellfem.rods). source: file path or "<dict>". raw: the parsed TOML
     (unknown [solver] and [meta] keys are kept here for the solver).
+    contact: self-contact on ([contact] enabled, default true; shellfem.contact). ground: the
+    height (mm) of the ground plane under the sheet ([ground] height_mm, default 0), or None
+    without a ground ([ground] enabled, default true when a [[support]] has fix = "z" or
+    gravity is on, else false).
     """
     fabric: Fabric
     plastic: Plastic
@@ -104,6 +111,8 @@ class Pattern:
     metric_floor: float | None = None
     coarse_levels: int | str = "auto"
     solver_model: str = "shell"
+    contact: bool = True
+    ground: float | None = None
     source: str = "<dict>"
     raw: dict = field(default_factory=dict)
 
@@ -147,6 +156,26 @@ def coarse_levels_option(solver: dict, where: str) -> int | str:
     if isinstance(v, str):
         raise SelfshapeError(f"{where}: coarse_levels must be \"auto\" or an integer >= 0, got {v!r:.40}")
     return _num(solver, "coarse_levels", where, section="solver")
+
+
+def _flag(table: dict, key: str, where: str, default: bool) -> bool:
+    """table[key] as true/false (default when absent); anything else is a one-line error."""
+    v = table.get(key, default)
+    if not isinstance(v, bool):
+        raise SelfshapeError(f"{where}: {key} must be true or false, got {v!r:.40}")
+    return v
+
+
+def contact_options(raw: dict, src: str, fabric, supports) -> tuple[bool, float | None]:
+    """([contact] enabled, ground height or None) of a pattern: see :class:`Pattern`."""
+    contact = _flag(_table(raw.get("contact", {}), f"{src}: [contact]", KEYS["contact"]), "enabled",
+                    f"{src}: [contact]", True)
+    where = f"{src}: [ground]"
+    g = _table(raw.get("ground", {}), where, KEYS["ground"])
+    default = any(sp.fix == "z" for sp in supports) or fabric.areal_weight > 0
+    on = _flag(g, "enabled", where, default)
+    height = _num(g, "height_mm", where, 0.0, "ground")
+    return contact, (height if on else None)
 
 
 def _choice(table: dict, key: str, where: str, options: tuple, default: str):
@@ -456,11 +485,13 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".", from_file
     supports = _supports(raw, src, outline)
     if model == "rods":
         check_rods_model(elements, src)
+    contact, ground = contact_options(raw, src, fabric, supports)
     if from_file:
         check_printed(elements, fabric, src)
     return Pattern(fabric=fabric, plastic=plastic, outline=outline, elements=elements, supports=supports,
                    mesh_size=mesh_size, seed=seed, mesh_across=across, max_iterations=cap,
-                   metric_floor=floor, coarse_levels=levels, solver_model=model, source=src,
+                   metric_floor=floor, coarse_levels=levels, solver_model=model, contact=contact, ground=ground,
+                   source=src,
                    raw=raw)
 
 

@@ -158,6 +158,9 @@ PATTERN_NUMBERS: dict[str, dict[str, Num]] = {
         "metric_floor": Num(0.0, 1e6, "", "multiples of the median Hessian diagonal"),
         "coarse_levels": Num(0, 20, "", "or \"auto\"", integer=True),
     },
+    "ground": {
+        "height_mm": Num(-COORD_MAX_MM, COORD_MAX_MM, _LEN, "the plane z = height under the sheet's mid-surface"),
+    },
 }
 #: [solver] keys that are choices, not numbers: key -> allowed values (first = default).
 #: model: "shell" (printed areas as bilayer shell regions) or "rods" (the seed's chapter-3

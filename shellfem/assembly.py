@@ -190,3 +190,72 @@ def scatter_vector(index_sets, values, n_dofs: int) -> np.ndarray:
     for idx, v in zip(index_sets, values):
         out += np.bincount(idx.ravel(), weights=v.ravel(), minlength=n_dofs)
     return out
+
+
+class PatternUnion:
+    """The sum A + B of a fixed-pattern CSR matrix A (a BlockScatter's, over the free DOFs,
+    upper triangle) and a CSR matrix B whose pattern changes between calls (the contact
+    Hessian), on a pattern that only grows: the union of A's pattern and every B's seen so
+    far, with read-only index arrays. The solver keeps its symbolic analysis while the pattern
+    does not grow (shellfem.linalg.SparseSPD recognises it by identity), so a contact set that
+    settles costs no re-analysis; entries of earlier contacts stay as explicit zeros."""
+
+    def __init__(self):
+        self._keys = None          # sorted row * n + col of the union
+        self._base = None          # A's index arrays the union was built for
+        self._pos_a = None
+        self._indptr = self._indices = None
+
+    @staticmethod
+    def _csr_keys(M):
+        rows = np.repeat(np.arange(M.shape[0], dtype=np.int64), np.diff(M.indptr))
+        return rows * M.shape[1] + M.indices.astype(np.int64)
+
+    def add(self, A: sp.csr_matrix, B: sp.csr_matrix | None) -> sp.csr_matrix:
+        """A + B on the union pattern (A itself while B never had an entry)."""
+        if self._keys is None and (B is None or B.nnz == 0):
+            return A
+        n = A.shape[1]
+        base_same = self._base is not None and self._base[0] is A.indptr and self._base[1] is A.indices
+        if not base_same:
+            self._keys = None
+        kb = self._csr_keys(B) if B is not None and B.nnz else np.zeros(0, np.int64)
+        if self._keys is None:
+            self._keys = np.union1d(self._csr_keys(A), kb)
+            self._grow(A)
+        elif len(kb):
+            pos = np.searchsorted(self._keys, kb)
+            pos = np.minimum(pos, len(self._keys) - 1)
+            if not np.array_equal(self._keys[pos], kb):
+                self._keys = np.union1d(self._keys, kb)
+                self._grow(A)
+        data = np.zeros(len(self._keys))
+        data[self._pos_a] = A.data
+        if len(kb):
+            data[np.searchsorted(self._keys, kb)] += B.data
+        M = sp.csr_matrix((data, self._indices, self._indptr), shape=A.shape, copy=False)
+        M.has_canonical_format = True
+        return M
+
+    def _grow(self, A):
+        n = A.shape[1]
+        keys = self._keys
+        rows = keys // n
+        itype = np.int32 if max(len(keys), n) < 2 ** 31 - 1 else np.int64
+        self._indices = (keys % n).astype(itype)
+        self._indptr = np.searchsorted(rows, np.arange(A.shape[0] + 1)).astype(itype)
+        self._indices.flags.writeable = False
+        self._indptr.flags.writeable = False
+        self._pos_a = np.searchsorted(keys, self._csr_keys(A))
+        self._base = (A.indptr, A.indices)
+
+
+def reduce_upper(M: sp.spmatrix, reduced: np.ndarray, n_free: int) -> sp.csr_matrix:
+    """The upper triangle (row <= column) of M (over all DOFs; COO-convertible) restricted to
+    the free DOFs, renumbered by ``reduced`` (BlockScatter.reduced: -1 for held DOFs)."""
+    C = M.tocoo()
+    r, c = reduced[C.row], reduced[C.col]
+    keep = (r >= 0) & (c >= 0) & (r <= c)
+    out = sp.csr_matrix((C.data[keep], (r[keep], c[keep])), shape=(n_free, n_free))
+    out.sum_duplicates()
+    return out

@@ -50,6 +50,11 @@ class ShellModel:
         self.membrane_mask = membrane_mask
         self.membrane = membrane          # callable(a_masked) -> W, g, H
         self.external_force = external_force  # (n, 3) N, dead loads (gravity); potential -f.x
+        # shellfem.contact.Contact or None: barrier energies on the positions (self-contact,
+        # ground), included in energy/gradient; its (PSD-projected) Hessian of the last order-2
+        # evaluation is left in contact_hessian for the solver (scattered outside the blocks)
+        self.contact = None
+        self.contact_hessian = None
         n, ne = sheet.n_vertices, self.topo.n_edges
         self.n_vertices, self.n_edges = n, ne
         self.n_dofs = 3 * n + ne
@@ -179,6 +184,10 @@ class ShellModel:
         E = W.sum()
         if self.external_force is not None:
             E -= float(np.sum(self.external_force * x))
+        contact_g = None
+        if self.contact is not None:
+            Ec, contact_g, self.contact_hessian = self.contact.evaluate(x, order=order)
+            E += Ec                      # +inf when inadmissible (callers test E first)
         if order == 0:
             return E, None, None
         g_face, Hf = face_chain(xf, self.topo.face_sign, self.face_hinge, self._hinge_cols, gphi, Wy,
@@ -186,6 +195,8 @@ class ShellModel:
         grad = np.bincount(self.face_dofs.ravel(), weights=g_face.ravel(), minlength=self.n_dofs)
         if self.external_force is not None:
             grad[:3 * self.n_vertices] -= self.external_force.ravel()
+        if contact_g is not None:
+            grad[:3 * self.n_vertices] += contact_g
         if order == 1:
             return E, grad, None
         # hinge curvature term: w_e d2phi_e with w_e = 1/2 sum over the edge's faces of dW/dpsi
@@ -196,6 +207,21 @@ class ShellModel:
 
     def gradient(self, q):
         return self._evaluate(q, order=1)[1]
+
+    def step_fraction(self, q0, q1) -> float:
+        """Largest fraction t in [0, 1] of the straight move q0 -> q1 that no contact forbids
+        (shellfem.contact.Contact.step_fraction; 1.0 without contact): the solver's step filter."""
+        if self.contact is None:
+            return 1.0
+        n = self.n_vertices
+        return self.contact.step_fraction(q0[:3 * n].reshape(n, 3), q1[:3 * n].reshape(n, 3))
+
+    def trial_energy(self, q0, q1) -> float:
+        """Energy at q1 (N mm), +inf if the straight move from q0 to q1 passes through a contact
+        (:meth:`step_fraction` < 1): how the solver and its relaxations judge trial points."""
+        if self.contact is not None and self.step_fraction(q0, q1) < 1.0:
+            return np.inf
+        return self.energy(q1)
 
     def hessian_blocks(self, q, out=None):
         """(E, gradient, (face blocks (m, 21, 21), hinge blocks (k, 12, 12))) at q (N mm, N, N/mm

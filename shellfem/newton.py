@@ -23,6 +23,19 @@ Newton steps follow a rotation-corrected curve instead of a straight line when t
 rotates (shellfem.corotational); optionally an indefinite Hessian is first retried with its
 hinge (dihedral-angle) blocks projected to positive semi-definite before LM takes over.
 
+Contact (a model whose ``contact`` is a shellfem.contact.Contact): its barrier energy and
+gradient are in the model's; its exact Hessian (positions only, a changing sparsity) is added to
+the assembled one on a grow-only union pattern (shellfem.assembly.PatternUnion), and when that
+sum is indefinite its PSD-projected blocks are tried before the trust region takes over (such
+steps never decide convergence). Every trial point - the Newton line search's (cut to the
+collision-free fraction of the move), the LM step, the negative-curvature search, the printed
+relaxation's inner steps - is judged by ``model.trial_energy(q, q_try)``: +inf unless the straight
+move from the current iterate is free of contact (continuous collision detection); along a
+rotation-corrected path the check is on the straight segment to the trial point, so every
+accepted state is reached from the last one without passing through the sheet. The edge-angle
+relaxation moves no position and needs no check. A start that intersects or whose supports
+force penetration stops the solve at once with that reason.
+
 Convergence: ||grad||_2 over the free DOFs <= max(atol, rtol * gradient_reference) (the
 reference defaults to the gradient norm at the start) AND the exact Hessian (lambda = 0)
 factorised, so the state is a local minimum, not a saddle. Anything else is reported as
@@ -36,7 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from shellfem.assembly import BlockScatter, symmetric_matvec
+from shellfem.assembly import BlockScatter, PatternUnion, reduce_upper, symmetric_matvec
 from shellfem.corotational import RotationPath, rotate
 from shellfem.linalg import NotPositiveDefinite, SparseSPD
 from shellfem.relaxations import EdgeAngleRelaxation, StiffRegionRelaxation
@@ -184,6 +197,8 @@ class _Newton:
         self.model, self.free, self.opts = model, free, opts
         self.q = q0.copy()
         self.scatter = BlockScatter([model.face_dofs, model.hinge_dofs], model.n_dofs, free, upper=True)
+        self.contact = getattr(model, "contact", None)
+        self.union = PatternUnion() if self.contact is not None else None
         self.solver = SparseSPD(opts.backend)
         self.history = []
         self.timings = dict(assembly=0.0, factorisation=0.0, line_search=0.0, factorisations=0, rejected_steps=0,
@@ -260,6 +275,9 @@ class _Newton:
     def solve(self) -> SolveResult:
         self._start()
         it = 0
+        if getattr(self, "contact_reason", None):
+            self.reason = self.contact_reason
+            return self._result(False, 0)
         for it in range(self.opts.max_iterations + 1):
             if self.fresh and not self._assemble():
                 break
@@ -292,6 +310,29 @@ class _Newton:
         if np.isfinite(E0):
             q = self._relaxed(q, E0)
         self.q = q
+        if self.contact is not None:
+            self._contact_start()
+
+    def _contact_start(self):
+        """Contact: the barrier stiffness from the elastic Hessian's position diagonal at the
+        start (once per Contact, shellfem.contact), and the start's admissibility (an
+        intersecting start or a support forcing penetration is the solve's reason to stop)."""
+        contact, model = self.contact, self.model
+        n = self.n
+        if contact.kappa == 0.0:
+            saved, model.contact = model.contact, None
+            try:
+                _, _, (Hf, Hh) = model.hessian_blocks(self.q, out=self.blocks_out)
+            finally:
+                model.contact = saved
+            diag = np.zeros(model.n_dofs)
+            for blocks, dofs in ((Hf, model.face_dofs), (Hh, model.hinge_dofs)):
+                diag += np.bincount(dofs.ravel(), weights=np.diagonal(blocks, axis1=1, axis2=2).ravel(),
+                                    minlength=model.n_dofs)
+            pos = np.zeros(model.n_dofs, bool)
+            pos[:3 * n] = True
+            contact.set_stiffness(diag[pos & self.free])
+        self.contact_reason = contact.check_start(self.q[:3 * n].reshape(n, 3))
 
     def _assemble(self) -> bool:
         """Energy, gradient, Hessian and LM metric at the iterate, and the exact Hessian's
@@ -301,10 +342,15 @@ class _Newton:
         E, g_all, (Hf, Hh) = self.model.hessian_blocks(self.q, out=self.blocks_out)
         self.E = E
         g = self.g = g_all[self.free]
-        H = self.H = scatter.matrix([Hf, Hh])
+        H = scatter.matrix([Hf, Hh])
+        if self.union is not None:
+            Hc = self.model.contact_hessian
+            H = self.union.add(H, None if Hc is None else reduce_upper(Hc, scatter.reduced, scatter.n_free))
+        self.H = H
         timings["assembly"] += time.perf_counter() - t0
         if not np.isfinite(E):
-            self.reason = "energy is not finite at the start (inverted or over-stretched triangles)"
+            self.reason = ("energy is not finite at the start (inverted or over-stretched triangles"
+                           + (", or a contact closer than the offset)" if self.contact is not None else ")"))
             return False
         self.gnorm = float(np.linalg.norm(g))
         if self.g_ref is None:
@@ -322,8 +368,24 @@ class _Newton:
             self.exact = True
         except NotPositiveDefinite:
             self.factor, self.exact = None, False
-            if opts.project_hinges:
+            if self.union is not None and self.model.contact_hessian is not None:
+                # the contact blocks projected to PSD (ipctk): a Newton step that cannot decide
+                # convergence (the exact Hessian, tried first, gives the quadratic end game: with
+                # the projected one the last phase converged linearly, |g| x 0.85 per step)
+                Hp = self.union.add(scatter.matrix([Hf, Hh]),
+                                    reduce_upper(self.contact.projected_hessian(), scatter.reduced, scatter.n_free))
+                timings["factorisations"] += 1
+                try:
+                    self.factor = self.solver.factor(Hp, upper=scatter.upper)
+                    self.exact = self.projected = True
+                    timings["contact_projected_steps"] = timings.get("contact_projected_steps", 0) + 1
+                except NotPositiveDefinite:
+                    pass
+            if not self.exact and opts.project_hinges:
                 Hp = scatter.matrix([Hf, _psd_blocks(Hh)])
+                if self.union is not None:
+                    Hc = self.contact.projected_hessian()
+                    Hp = self.union.add(Hp, None if Hc is None else reduce_upper(Hc, scatter.reduced, scatter.n_free))
                 timings["factorisations"] += 1
                 try:
                     self.factor = self.solver.factor(Hp, upper=scatter.upper)
@@ -372,12 +434,21 @@ class _Newton:
             # the decrease is below the energy's round-off, so Armijo cannot see it (it
             # would cut a good step at random): accept the full step if the gradient falls
             q_try = along(1.0)
-            E_try, g_try = model.energy(q_try), model.gradient(q_try)[free]
+            E_try = model.trial_energy(q, q_try)
+            g_try = model.gradient(q_try)[free] if np.isfinite(E_try) else None
             if np.isfinite(E_try) and float(np.linalg.norm(g_try)) < gnorm:
                 timings["line_search"] += time.perf_counter() - t0
                 return self._accept_newton(it, q_try, E_try, 1.0, "1 (round-off)")
         for _ in range(40):
             q_try = along(a)
+            if self.contact is not None:
+                # the contact step filter: shorten to the collision-free fraction of the move
+                t = model.step_fraction(q, q_try)
+                if t < 1.0:
+                    timings["contact_cuts"] = timings.get("contact_cuts", 0) + 1
+                    a *= min(0.5, max(0.9 * t, 0.01))
+                    E_new = np.inf
+                    continue
             E_new = model.energy(q_try)
             if np.isfinite(E_new) and E_new <= E + 1e-4 * a * slope:
                 break
@@ -386,7 +457,7 @@ class _Newton:
         accepted = np.isfinite(E_new) and E_new <= E + 1e-4 * a * slope and a * step > 1e-14 * self.size
         if accepted and self.stiff is not None and a < 1:
             # the line search had to cut: try twice the step with the printed regions relaxed
-            q2, E2 = self._stiff_relaxed(along(2 * a))
+            q2, E2 = self._stiff_relaxed(along(2 * a)) if model.step_fraction(q, along(2 * a)) >= 1.0 else (q, np.inf)
             if np.isfinite(E2) and E2 < E_new:
                 q_try, E_new, a = q2, E2, 2 * a
         if accepted:
@@ -447,7 +518,7 @@ class _Newton:
         d[free] = d_free
         t0 = time.perf_counter()
         q_new = _path(self.rpath, q, d, self.n, free)(1.0) if self.rpath is not None else q + d
-        E_new = model.energy(q_new)
+        E_new = model.trial_energy(q, q_new)
         timings["line_search"] += time.perf_counter() - t0
         t0 = time.perf_counter()
         if not stable and self.fresh and (not (np.isfinite(E_new) and E_new < E) or lam_try > 1e-2):
@@ -526,7 +597,7 @@ def _negative_curvature_step(model, q, free, H, D, g, factor, E, v_prev, length_
     best_a, best_E = 0.0, E
     a = 1.0
     for _ in range(20):             # shrink until the energy decreases
-        Ea = model.energy(q + a * full)
+        Ea = model.trial_energy(q, q + a * full)
         if np.isfinite(Ea) and Ea < best_E:
             best_a, best_E = a, Ea
             break
@@ -534,7 +605,7 @@ def _negative_curvature_step(model, q, free, H, D, g, factor, E, v_prev, length_
     if best_a == 0.0:
         return None, np.inf
     for _ in range(6):              # then expand while it keeps decreasing
-        Ea = model.energy(q + 2 * best_a * full)
+        Ea = model.trial_energy(q, q + 2 * best_a * full)
         if not (np.isfinite(Ea) and Ea < best_E):
             break
         best_a, best_E = 2 * best_a, Ea

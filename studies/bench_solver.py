@@ -12,7 +12,7 @@ includes meshing every level), and the per-iteration split (assembly vs factoris
 search). Target: under 60 s on 2 cores.
 
 Run: python studies/bench_solver.py [--width 85 --height 60 --across 1] [--fabric-bending-stiffness K]
-     [--coarse-levels auto|N]
+     [--coarse-levels auto|N] [--contact]
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ from validation.cases import star_benchmark
 
 def run(width: float = 85.0, height: float = 60.0, across: float = 1.0, max_iterations: int = 300,
         fabric_bending_stiffness: float | None = None, seed: int = 0,
-        metric_floor: float = DEFAULT_METRIC_FLOOR, coarse_levels="auto") -> dict:
+        metric_floor: float = DEFAULT_METRIC_FLOOR, coarse_levels="auto", contact: bool = False) -> dict:
     import os
     import tempfile
 
@@ -47,7 +47,7 @@ def run(width: float = 85.0, height: float = 60.0, across: float = 1.0, max_iter
     coarse = coarse_meshes(pat, sheet.n_vertices, levels=coarse_levels)
     t_coarse = time.perf_counter() - t0
     sim = simulate_sheet(sheet, pat.fabric, pat.plastic, pat.supports, seed=pat.seed, max_iterations=max_iterations,
-                         metric_floor=pat.metric_floor, coarse=coarse)
+                         metric_floor=pat.metric_floor, coarse=coarse, contact=contact)
     r = sim.result
     tm = r.timings
     its = max(r.iterations, 1)
@@ -80,6 +80,10 @@ def run(width: float = 85.0, height: float = 60.0, across: float = 1.0, max_iter
         "setup_s": round(sim.wall_time_s - tm["total"], 2),
         "median_abs_curvature_ratio": round(float(np.median(kabs[:, 0] / np.maximum(kabs[:, 1], 1e-12))), 3),
         "target_s": 60.0,
+        "contact": {k: v for k, v in sim.summary()["contact"].items()},
+        "contact_builds": int(sim.model.contact.builds) if sim.model.contact is not None else 0,
+        "contact_skips": int(sim.model.contact.skips) if sim.model.contact is not None else 0,
+        "contact_cuts": int(tm.get("contact_cuts", 0)),
     }
 
 
@@ -99,10 +103,12 @@ def main(argv=None):
                     help="trust-region metric floor ([solver] metric_floor, default 10; 0: plain Marquardt scaling)")
     ap.add_argument("--coarse-levels", default="auto",
                     help="coarser meshes solved first (nested iteration): 'auto' (default) or a number, 0 = none")
+    ap.add_argument("--contact", action="store_true",
+                    help="self-contact on (shellfem.contact; as selfshape simulate has it by default)")
     a = ap.parse_args(argv)
     levels = a.coarse_levels if a.coarse_levels == "auto" else int(a.coarse_levels)
     print(json.dumps(run(a.width, a.height, a.across, a.max_iterations, a.fabric_bending_stiffness, a.seed,
-                         a.metric_floor, levels)))
+                         a.metric_floor, levels, a.contact)))
 
 
 if __name__ == "__main__":

@@ -158,7 +158,7 @@ def set_key(raw: dict, table: str, key: str, value) -> None:
         raw["fabric"].pop("rectangle")
         raw["fabric"][key] = value
     else:
-        raw[table][key] = value
+        raw.setdefault(table, {})[key] = value
 
 
 def test_every_key_of_the_readers_is_in_the_schema():
@@ -276,7 +276,7 @@ WRONG_KIND = st.sampled_from([True, {"a": 1}, "zz-not-valid", 12345, [[True, 1.0
 @SETTINGS
 @given(value=WRONG_KIND)
 def test_other_keys_of_the_wrong_kind_name_the_key(table, key, value):
-    assume(not (key == "boundary" and value is True))        # the one valid value among them
+    assume(not (key in ("boundary", "enabled") and value is True))      # the one valid value among them
     raw = base_pattern()
     if table == "support":
         raw["support"][0].update({"fix": "xyz"} if key == "position" else {})
@@ -310,7 +310,8 @@ def test_misspelt_key_names_file_key_and_closest(table, allowed, data):
         return
     raw = base_pattern()
     target = raw if table == "" else (raw["fabric"].setdefault(table[7:], {}) if table.startswith("fabric.") else
-                                      (raw[table][0] if isinstance(raw[table], list) else raw[table]))
+                                      (raw[table][0] if isinstance(raw.get(table), list) else
+                                       raw.setdefault(table, {})))
     target[typo] = 1.0
     with folder() as d:
         line = mesh_error(raw, d)

@@ -30,6 +30,16 @@ class RodShellModel:
     """ShellModel-compatible energy: shell + rods (the interface shellfem.newton uses)."""
 
     kind = "rods"          # what summary.json reports as the model
+    contact = None         # no contact in the rods model yet (shellfem.contact is the shell's)
+    contact_hessian = None
+
+    def step_fraction(self, q0, q1) -> float:
+        """1.0: no contact filters the solver's steps (ShellModel.step_fraction)."""
+        return 1.0
+
+    def trial_energy(self, q0, q1) -> float:
+        """The energy at q1 (N mm; ShellModel.trial_energy without contact)."""
+        return self.energy(q1)
 
     def __init__(self, shell: ShellModel, rods: RodNetwork):
         self.shell, self.rods = shell, rods

@@ -1,0 +1,377 @@
+"""Contact of the sheet with itself and with the ground: barrier energies on the positions (N mm),
+their exact gradients and (PSD-projected) Hessians, and a step filter so that no step passes through.
+
+Self-contact is built on ipctk (the IPC Toolkit's Python bindings: collision mesh, broad phase,
+the smoothly clamped log barrier of Li et al. 2020 with its derivatives, continuous collision
+detection by Additive CCD). Two surfaces of the sheet may not come closer than the sum of their
+half-thicknesses; this is implemented as one global offset ``offset`` = the sheet's largest total
+thickness (fabric + plastic front + back, mm), so two printed layers keep their full thickness apart
+and bare fabric is kept a little farther than it needs (conservative). The barrier is active in a
+band of width ``dhat`` above the offset (distances in (offset, offset + dhat)) and is +inf at the
+offset: ipctk's barrier in the squared distance, kappa b(d^2 - offset^2, 2 offset dhat + dhat^2).
+
+Neighbour exclusion: a sheet with a thickness offset is "in contact" with its own neighbours
+everywhere, so vertex pairs close in the printed (flat, rest) state cannot collide: those in the
+same cell of any of four printed-state grids of size g = ``exclusion_mm`` shifted by g/2 (ipctk's
+vertex-patch filters, intersected; a pair of primitives is excluded when all its vertex pairs
+are). Every pair closer than g/2 (max-norm) is excluded, every pair farther than g sqrt(2) can
+collide. g/2 = (K + 1) L + 4 L / 3 (L the longest printed edge, K the skip test's patch reach
+below) covers every pair of primitives closer than 1.3 s_max (offset + dhat) + 2 L: all pairs
+that touch in a released, moderately curved state (a released sheet is the printed one
+contracted by up to s_max). Two parts of the sheet farther apart than that in the printed state
+can only meet after the sheet has rolled or folded back onto itself (a roll of radius r brings
+layers 2 pi r s together), which is what self-contact is for. (ipctk's sparse vertex-pair map
+was tried first: with the 2.9M pairs of the 10k-vertex benchmark it took 37 s to build and 7 s
+per broad phase.)
+
+Skip: before building collisions at a state (or running CCD on a move), a cheap test proves that
+no pair of non-excluded primitives is within offset + dhat (:meth:`Contact.maybe_close`: bounding
+boxes of printed-grid patches of vertices, inflated by the longest edge, compared only between
+patches that are not printed neighbours); then the barrier is 0 with zero derivatives and nothing
+is built, so a sheet that never touches itself pays only that test.
+
+Ground: the plane z = height (mm) under the sheet's mid-surface (the plane fix = "z" supports hold
+the sheet on): a barrier on each free vertex's height above it, kappa_g b(z - height, dhat)
+(hand-written, vectorised, exact first and second derivatives: the Hessian is diagonal); vertices
+whose z is held are not in it (they sit on the plane by their support), and a held vertex below
+the plane is a support that forces penetration (an error, see :meth:`Contact.check_start`).
+
+Barrier stiffness (scale-free): kappa = 0.01 median(diag H_x) / (offset + dhat)^2, with diag H_x
+the position diagonal of the elastic Hessian at the start of a solve: the barrier's curvature
+(kappa b'' (2 d)^2 ~ kappa (offset + dhat)^2 in the band) is then ~1/100 of a typical elastic
+diagonal, stiff enough to stop a layer within the band and soft enough not to dominate Newton.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from shellfem.errors import SelfshapeError
+
+#: the barrier's activation band above the offset, as a fraction of the offset
+BAND_FRACTION = 0.25
+#: kappa = KAPPA_SCALE median(diag H_x) / (offset + dhat)^2 (see the module docstring)
+KAPPA_SCALE = 0.01
+
+
+_IPCTK = None
+
+
+def _ipctk():
+    """ipctk on one thread: its parallel reductions (gradient, Hessian, minimum distance) sum in
+    a thread-dependent order, and two runs of a sweep case in contact differed at round-off
+    (energy 6.193908571679513 vs ...515 N mm); one thread keeps runs bitwise repeatable."""
+    global _IPCTK
+    if _IPCTK is None:
+        try:
+            import ipctk
+        except ImportError as e:  # pragma: no cover - ipctk is a dependency
+            raise SelfshapeError("contact needs ipctk (pip install ipctk); or set [contact] enabled = false") from e
+        ipctk.set_num_threads(1)
+        _IPCTK = ipctk
+    return _IPCTK
+
+
+def ground_barrier(h, dhat):
+    """IPC's clamped log barrier b(h) = -(h - dhat)^2 log(h / dhat) for 0 < h < dhat (0 above,
+    +inf at h <= 0) with b' and b'' (h in mm; b in mm^2): values, first, second derivatives."""
+    h = np.asarray(h, float)
+    act = h < dhat
+    pos = h > 0
+    b = np.zeros_like(h)
+    b1 = np.zeros_like(h)
+    b2 = np.zeros_like(h)
+    a = act & pos
+    ha = h[a]
+    r = ha - dhat
+    lg = np.log(ha / dhat)
+    b[a] = -r * r * lg
+    b1[a] = -2 * r * lg - r * r / ha
+    b2[a] = -2 * lg - 4 * r / ha + r * r / (ha * ha)
+    b[~pos] = np.inf
+    return b, b1, b2
+
+
+class Contact:
+    """Self-contact and/or ground contact of a sheet (printed-state points, triangles).
+
+    points: (n, 2) printed positions (mm); triangles: (m, 3); offset: minimum surface distance
+    (mm, the largest total thickness); stretch_max: largest pre-stretch of the fabric;
+    self_contact: build the self-contact barrier; ground: None or the plane's height z (mm);
+    held_z: (n,) bool, vertices whose z is held (kept out of the ground barrier).
+    kappa is set by :meth:`set_stiffness` (N/mm^3 for self-contact, N/mm for the ground).
+    """
+
+    def __init__(self, points, triangles, offset: float, stretch_max: float = 1.0, self_contact: bool = True,
+                 ground: float | None = None, held_z=None, band_fraction: float = BAND_FRACTION):
+        self.n = len(points)
+        self.rest = np.column_stack([points, np.zeros(self.n)]).astype(float)
+        self.faces = np.ascontiguousarray(triangles, dtype=np.int32)
+        self.offset = float(offset)
+        self.dhat = band_fraction * self.offset
+        self.self_contact = bool(self_contact)
+        self.ground = None if ground is None else float(ground)
+        self.held_z = np.zeros(self.n, bool) if held_z is None else np.asarray(held_z, bool)
+        e = np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]], self.faces[:, [2, 0]]])
+        e.sort(axis=1)
+        self.edges = np.ascontiguousarray(np.unique(e, axis=0), dtype=np.int32)
+        P = self.rest[:, :2]
+        L = float(np.linalg.norm(P[self.edges[:, 1]] - P[self.edges[:, 0]], axis=1).max())
+        delta = self.offset + self.dhat
+        # skip-test patches: triangles grouped by their centroid's printed-grid cell (size h = L);
+        # patch pairs within K cells of each other hold only excluded pairs (below), the others
+        # are tested. K: in a released, moderately curved state (contracted by up to s_max, 1.3
+        # for curvature) two patches K + 1 cells apart keep their bounding spheres delta apart
+        h = L
+        K = int(np.ceil((1.3 * (stretch_max * delta + 4.0 / 3.0 * L) + 0.41 * h) / h))
+        self.patch_reach = K
+        # exclusion: vertex pairs in the same cell of any of four grids of size g shifted by g/2
+        # cannot collide (ipctk vertex-patch filters, intersected): every pair closer than g/2 in
+        # the printed state (max-norm) is excluded, every pair farther than g sqrt(2) is not;
+        # g/2 = (K + 1) h + 4 L / 3 covers every vertex pair of two patches within K cells
+        self.exclusion_mm = 2.0 * ((K + 1) * h + 4.0 / 3.0 * L)
+        origin = P.min(0)
+        cells = np.floor((P[self.faces].mean(1) - origin) / h).astype(np.int64)
+        ncol = int(cells[:, 1].max()) + 1
+        key = cells[:, 0] * ncol + cells[:, 1]
+        uniq, tri_patch = np.unique(key, return_inverse=True)
+        self._cells = np.stack([uniq // ncol, uniq % ncol], 1)
+        pv = np.unique(np.stack([np.repeat(tri_patch, 3), self.faces.ravel().astype(np.int64)], 1), axis=0)
+        self._pv_patch, self._pv_vertex = pv[:, 0], pv[:, 1]          # sorted by patch
+        self._pv_start = np.searchsorted(self._pv_patch, np.arange(len(uniq)))
+        self._pv_count = np.bincount(self._pv_patch, minlength=len(uniq)).astype(float)
+        self._grid_origin = origin
+        self.kappa = 0.0
+        self.kappa_ground = 0.0
+        self._mesh = None          # ipctk CollisionMesh, built the first time the skip test fails
+        self.builds = 0            # collision builds (skip test failed)
+        self.skips = 0             # evaluations the skip test settled
+
+    # --- set-up ----------------------------------------------------------------------------
+    def set_stiffness(self, diag_positions: np.ndarray):
+        """kappa from the position diagonal of the elastic Hessian (N/mm): see the module docstring."""
+        med = float(np.median(np.abs(diag_positions))) if len(diag_positions) else 1.0
+        med = med if med > 0 and np.isfinite(med) else 1.0
+        self.kappa = KAPPA_SCALE * med / (self.offset + self.dhat) ** 2
+        self.kappa_ground = KAPPA_SCALE * med / self.dhat ** 2
+
+    def _collision_mesh(self):
+        if self._mesh is None:
+            ipctk = _ipctk()
+            mesh = ipctk.CollisionMesh(self.rest, self.edges, self.faces)
+            g = self.exclusion_mm
+            P = self.rest[:, :2] - self._grid_origin
+            filt = None
+            for shift in ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5)):
+                ij = np.floor(P / g + shift).astype(np.int64)
+                ids = (ij[:, 0] * (int(ij[:, 1].max()) + 2) + ij[:, 1]).astype(np.int32)
+                f = ipctk.make_vertex_patches_filter(ids)
+                filt = f if filt is None else (filt & f)
+            mesh.can_collide = filt
+            self._mesh = mesh
+        return self._mesh
+
+    def _edge_max(self, x):
+        d = x[self.edges[:, 1]] - x[self.edges[:, 0]]
+        return float(np.sqrt(np.einsum("ij,ij->i", d, d).max()))
+
+    def maybe_close(self, x, x1=None) -> bool:
+        """False when no two non-excluded primitives can come within offset + dhat of each other
+        at x (n, 3) (mm), or anywhere on the straight move x -> x1: the skip test. Each patch's
+        bounding sphere (centre: the mean of its triangles' vertices, over both states; radius: the
+        farthest of them) holds its triangles all along the move (each point of a moving triangle
+        is a convex combination of its corners' start and end positions); patches within
+        patch_reach printed cells hold only excluded pairs, so if no two other patches' spheres
+        come within offset + dhat, no pair of non-excluded primitives does. O(n) plus a KD-tree
+        over the patch centres."""
+        if not self.self_contact:
+            return False
+        x = np.asarray(x, float).reshape(self.n, 3)
+        states = [x] if x1 is None else [x, np.asarray(x1, float).reshape(self.n, 3)]
+        cnt = self._pv_count * len(states)
+        centre = sum(np.stack([np.bincount(self._pv_patch, weights=y[self._pv_vertex, k], minlength=len(cnt))
+                               for k in range(3)], 1) for y in states) / cnt[:, None]
+        radius = np.zeros(len(cnt))
+        for y in states:
+            d = y[self._pv_vertex] - centre[self._pv_patch]
+            radius = np.maximum(radius, np.sqrt(np.maximum.reduceat(np.einsum("ij,ij->i", d, d), self._pv_start)))
+        delta = self.offset + self.dhat
+        pairs = cKDTree(centre).query_pairs(2.0 * float(radius.max()) + delta, output_type="ndarray")
+        if len(pairs) == 0:
+            return False
+        a, b = pairs[:, 0], pairs[:, 1]
+        far = np.abs(self._cells[a] - self._cells[b]).max(1) > self.patch_reach
+        a, b = a[far], b[far]
+        gap = np.linalg.norm(centre[a] - centre[b], axis=1) - radius[a] - radius[b]
+        return bool(np.any(gap < delta))
+
+    def _collisions(self, x):
+        """ipctk NormalCollisions at x, or None when the skip test settles it."""
+        if not self.maybe_close(x):
+            self.skips += 1
+            return None
+        ipctk = _ipctk()
+        mesh = self._collision_mesh()
+        self.builds += 1
+        c = ipctk.NormalCollisions()
+        c.build(mesh, np.asfortranarray(x), self.dhat, dmin=self.offset)
+        return c
+
+    def _potential(self):
+        return _ipctk().BarrierPotential(self.dhat, self.kappa)
+
+    # --- energy -----------------------------------------------------------------------------
+    def evaluate(self, x, order: int = 0, project: bool = False):
+        """(E, gradient (3n,), Hessian (3n, 3n) CSR or None) of the contact energy at positions
+        x (n, 3) mm: N mm, N, N/mm. order 0: E only; 1: + gradient; 2: + the exact Hessian, or
+        with ``project`` the barrier's per-collision blocks projected to PSD (ipctk's CLAMP) and
+        the ground's diagonal clamped at 0. E = inf if a pair is at or below the offset or a
+        vertex at or below the ground. After order 2, :meth:`projected_hessian` gives the
+        projected Hessian of the same state without rebuilding its collisions."""
+        x = np.asarray(x, float).reshape(self.n, 3)
+        E = 0.0
+        g = np.zeros(3 * self.n) if order >= 1 else None
+        H = None
+        if order >= 2:
+            self._last = None
+            self._last_ground = None
+        if self.self_contact and self.kappa > 0:
+            c = self._collisions(x)
+            if c is not None and len(c) > 0:
+                ipctk = _ipctk()
+                mesh, pot = self._collision_mesh(), self._potential()
+                X = np.asfortranarray(x)
+                if c.compute_minimum_distance(mesh, X) <= self.offset ** 2:
+                    return np.inf, g, None          # at or through the offset: inadmissible
+                E += float(pot(c, mesh, X))
+                if order >= 1:
+                    g += pot.gradient(c, mesh, X)
+                if order >= 2:
+                    H = sp.csr_matrix(pot.hessian(c, mesh, X, ipctk.PSDProjectionMethod.CLAMP if project
+                                                  else ipctk.PSDProjectionMethod.NONE))
+                    self._last = (c, X)
+        if self.ground is not None and self.kappa_ground > 0:
+            free = ~self.held_z
+            h = x[free, 2] - self.ground
+            b, b1, b2 = ground_barrier(h, self.dhat)
+            if not np.all(np.isfinite(b)):
+                return np.inf, g, None
+            E += self.kappa_ground * float(b.sum())
+            if order >= 1:
+                g[3 * np.flatnonzero(free) + 2] += self.kappa_ground * b1
+            if order >= 2:
+                idx = 3 * np.flatnonzero(free) + 2
+                self._last_ground = (idx, self.kappa_ground * b2)
+                w = self.kappa_ground * (np.maximum(b2, 0.0) if project else b2)
+                keep = w != 0
+                Hg = sp.csr_matrix((w[keep], (idx[keep], idx[keep])), shape=(3 * self.n, 3 * self.n))
+                H = Hg if H is None else H + Hg
+        return E, g, H
+
+    def projected_hessian(self):
+        """The PSD-projected contact Hessian (3n, 3n) of the state of the last order-2
+        :meth:`evaluate` (ipctk's per-collision CLAMP; the ground's diagonal clamped at 0), or None."""
+        H = None
+        if getattr(self, "_last", None) is not None:
+            ipctk = _ipctk()
+            c, X = self._last
+            H = sp.csr_matrix(self._potential().hessian(c, self._collision_mesh(), X, ipctk.PSDProjectionMethod.CLAMP))
+        if getattr(self, "_last_ground", None) is not None:
+            idx, w = self._last_ground
+            w = np.maximum(w, 0.0)
+            keep = w != 0
+            Hg = sp.csr_matrix((w[keep], (idx[keep], idx[keep])), shape=(3 * self.n, 3 * self.n))
+            H = Hg if H is None else H + Hg
+        return H
+
+    # --- step filter ----------------------------------------------------------------------
+    def step_fraction(self, x0, x1) -> float:
+        """Largest t in [0, 1] such that the straight motion x0 -> x0 + t (x1 - x0) keeps every
+        non-excluded pair farther apart than the offset (ipctk's conservative Additive CCD) and every free vertex above the ground; 1.0 when the skip test (inflated by
+        the largest vertex move) shows no pair can come within reach. A state reached through
+        an accepted step is therefore intersection-free whatever path produced it (the straight
+        segment from the previous state is collision-free)."""
+        x0 = np.asarray(x0, float).reshape(self.n, 3)
+        x1 = np.asarray(x1, float).reshape(self.n, 3)
+        t = 1.0
+        if self.ground is not None:
+            free = ~self.held_z
+            z0, z1 = x0[free, 2] - self.ground, x1[free, 2] - self.ground
+            down = z1 < 0.05 * z0
+            if down.any():        # stop at 5 % of the start height: the barrier is +inf at 0
+                t = min(t, float(np.min(0.95 * z0[down] / (z0[down] - z1[down]))))
+        if self.self_contact:
+            if self.maybe_close(x0, x1):
+                ipctk = _ipctk()
+                # Additive CCD (Li et al. 2021, made for thickness offsets): the Euclidean minimum
+                # separation; Tight Inclusion's is an L-infinity box (a 1.1 mm offset stopped moves
+                # of 1e-5 mm between layers 1.75 mm apart: the solve stalled)
+                tc = ipctk.compute_collision_free_stepsize(self._collision_mesh(), np.asfortranarray(x0),
+                                                          np.asfortranarray(x1), min_distance=self.offset,
+                                                          narrow_phase_ccd=ipctk.AdditiveCCD())
+                t = min(t, float(tc))
+        return max(t, 0.0)
+
+    # --- checks and reports ---------------------------------------------------------------------
+    def intersects(self, x) -> bool:
+        """True if the surface at x (n, 3) intersects itself (non-excluded primitives; ipctk)."""
+        x = np.asarray(x, float).reshape(self.n, 3)
+        if not self.self_contact or not self.maybe_close(x):
+            return False
+        return bool(_ipctk().has_intersections(self._collision_mesh(), np.asfortranarray(x)))
+
+    def check_start(self, x, where: str = "contact") -> str | None:
+        """None if x is an admissible start; else the reason (one line): a held vertex below the
+        ground, a free vertex at or below it, a self-intersection, or two layers closer than the offset."""
+        x = np.asarray(x, float).reshape(self.n, 3)
+        if self.ground is not None:
+            below = x[:, 2] < self.ground - 1e-9
+            if np.any(below & self.held_z):
+                return (f"{where}: a support holds the sheet {self.ground - x[below & self.held_z, 2].max():.3g} mm "
+                        f"below the ground (z = {self.ground:g} mm): it forces penetration")
+            if np.any(x[~self.held_z, 2] <= self.ground):
+                return f"{where}: the start state reaches below the ground (z = {self.ground:g} mm)"
+        if self.self_contact and self.maybe_close(x):
+            if self.intersects(x):
+                return f"{where}: the start state intersects itself"
+            d = self.minimum_distance(x)
+            if d <= self.offset:
+                return (f"{where}: two layers of the start state are {d:.3g} mm apart, closer than the "
+                        f"thickness offset {self.offset:.3g} mm")
+        return None
+
+    def minimum_distance(self, x) -> float:
+        """Smallest distance (mm) between non-excluded primitives within offset + dhat of each
+        other at x; inf when none is (the skip test or no collision in the band)."""
+        c = self._collisions(np.asarray(x, float).reshape(self.n, 3)) if self.self_contact else None
+        if c is None or len(c) == 0:
+            return float("inf")
+        return float(np.sqrt(max(c.compute_minimum_distance(self._collision_mesh(), np.asfortranarray(x)), 0.0)))
+
+    def report(self, x) -> dict:
+        """{"min_distance_mm", "active_pairs", "ground_min_height_mm", "in_contact" (m,) bool}:
+        the self-contact pairs within the barrier's band at x, the smallest distance among them
+        (None: no pair in the band), the lowest free vertex's height above the ground, and the
+        triangles touching an active pair or the ground band."""
+        x = np.asarray(x, float).reshape(self.n, 3)
+        in_contact_v = np.zeros(self.n, bool)
+        active = 0
+        dmin = None
+        if self.self_contact:
+            c = self._collisions(x)
+            if c is not None and len(c) > 0:
+                active = len(c)
+                dmin = float(np.sqrt(max(c.compute_minimum_distance(self._collision_mesh(), np.asfortranarray(x)),
+                                         0.0)))
+                for k in range(len(c)):          # output only: one pass over the active pairs
+                    ids = np.asarray(c[k].vertex_ids(self.edges, self.faces))
+                    in_contact_v[ids[ids >= 0]] = True
+        ground_min = None
+        if self.ground is not None:
+            free = ~self.held_z
+            ground_min = float((x[free, 2] - self.ground).min()) if free.any() else None
+            in_contact_v[free] |= (x[free, 2] - self.ground) < self.dhat
+        in_contact = in_contact_v[self.faces].any(axis=1)
+        return dict(min_distance_mm=dmin, active_pairs=int(active), ground_min_height_mm=ground_min,
+                    in_contact=in_contact)

@@ -1,0 +1,420 @@
+"""Contact (shellfem.contact): barrier derivatives, the rolled spiral, the ground, the step filter,
+the pattern keys and the outputs (mm, N)."""
+import json
+
+import numpy as np
+import pytest
+from scipy.optimize import minimize_scalar
+from scipy.spatial import cKDTree
+
+from fd import central_difference
+from forward.simulate import make_contact, simulate, simulate_sheet
+from geometry.meshing import mesh_pattern
+from geometry.patterns import load_pattern, parse_pattern
+from shellfem.contact import Contact, ground_barrier
+from shellfem.errors import SelfshapeError
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _strip(L=50.0, W=4.0, size=0.8, stretch=(1.2, 1.0), fabric_t=0.25, plastic_t=0.1, contact=True, **extra):
+    """A bilayer strip pre-stretched along its length only: it rolls about its width (y)."""
+    raw = {"fabric": {"rectangle": [L, W], "stretch": list(stretch), "thickness_mm": fabric_t, "model": "neo-hookean",
+                      "young_modulus_mpa": 1.05, "poisson": 0.3, "bending_stiffness_nmm": 0.0192},
+           "plastic": {"young_modulus_mpa": 72.3, "poisson": 0.5},
+           "region": [{"polygon": [[0, 0], [L, 0], [L, W], [0, W]], "thickness_mm": plastic_t, "side": "front"}],
+           "mesh": {"size_mm": size}, "solver": {"seed": 0, "coarse_levels": 0}, "contact": {"enabled": contact}}
+    raw.update(extra)
+    return parse_pattern(raw)
+
+
+def _rolled(points, r0, pitch, s=1.2):
+    """Positions of a printed strip (points (n, 2)) wound on an Archimedean spiral r = r0 +
+    pitch phi / 2 pi about the y axis (released length x / s along the spiral)."""
+    arc = points[:, 0] / s
+    a = pitch / (4 * np.pi)
+    phi = (-r0 + np.sqrt(r0 ** 2 + 4 * a * arc)) / (2 * a)
+    r = r0 + pitch * phi / (2 * np.pi)
+    return np.column_stack([r * np.sin(phi), points[:, 1], r * np.cos(phi) - r0])     # curling to -z (front plastic)
+
+
+def _point_triangle(p, a, b, c):
+    """Distances (k,) from points p to triangles (a, b, c) (each (k, 3)), vectorised: the
+    distance to the plane where the projection falls inside, else the nearest edge."""
+    ab, ac, ap = b - a, c - a, p - a
+    n = np.cross(ab, ac)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    h = np.einsum("ij,ij->i", ap, n)
+    g11, g12, g22 = (np.einsum("ij,ij->i", ab, ab), np.einsum("ij,ij->i", ab, ac), np.einsum("ij,ij->i", ac, ac))
+    r1, r2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
+    det = g11 * g22 - g12 * g12
+    v, w = (g22 * r1 - g12 * r2) / det, (g11 * r2 - g12 * r1) / det
+    inside = (v >= 0) & (w >= 0) & (v + w <= 1)
+
+    def seg(x0, x1):
+        e = x1 - x0
+        t = np.clip(np.einsum("ij,ij->i", p - x0, e) / np.einsum("ij,ij->i", e, e), 0, 1)
+        return np.linalg.norm(p - (x0 + t[:, None] * e), axis=1)
+    edges = np.minimum(np.minimum(seg(a, b), seg(b, c)), seg(c, a))
+    return np.where(inside, np.abs(h), edges)
+
+
+def _segment_segment(p1, q1, p2, q2):
+    """Distances (k,) between segments p1q1 and p2q2 (Ericson 5.1.9), vectorised."""
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a, e = np.einsum("ij,ij->i", d1, d1), np.einsum("ij,ij->i", d2, d2)
+    f, c, b = np.einsum("ij,ij->i", d2, r), np.einsum("ij,ij->i", d1, r), np.einsum("ij,ij->i", d1, d2)
+    denom = a * e - b * b
+    s = np.where(denom > 1e-14 * a * e, np.clip((b * f - c * e) / np.where(denom > 0, denom, 1), 0, 1), 0.0)
+    t = (b * s + f) / e
+    s = np.where(t < 0, np.clip(-c / a, 0, 1), np.where(t > 1, np.clip((b - c) / a, 0, 1), s))
+    t = np.clip(t, 0, 1)
+    return np.linalg.norm(p1 + s[:, None] * d1 - (p2 + t[:, None] * d2), axis=1)
+
+
+def _segment_crosses(p, q, a, b, c):
+    """True where segment pq crosses triangle abc (Moller-Trumbore on the segment), vectorised."""
+    e1, e2, d = b - a, c - a, q - p
+    h = np.cross(d, e2)
+    det = np.einsum("ij,ij->i", e1, h)
+    ok = np.abs(det) > 1e-14
+    inv = 1.0 / np.where(ok, det, 1.0)
+    s = p - a
+    u = inv * np.einsum("ij,ij->i", s, h)
+    qv = np.cross(s, e1)
+    v = inv * np.einsum("ij,ij->i", d, qv)
+    t = inv * np.einsum("ij,ij->i", e2, qv)
+    return ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
+
+
+def triangle_distances(x, tri, pairs):
+    """Exact distances (k,) between the triangle pairs (k, 2) of a surface (x (n, 3), tri (m, 3)):
+    min over the 6 point-triangle and 9 edge-edge distances, 0 where an edge crosses the other
+    triangle. Independent of ipctk (the engine's contact library)."""
+    A, B = x[tri[pairs[:, 0]]], x[tri[pairs[:, 1]]]
+    d = np.full(len(pairs), np.inf)
+    for i in range(3):
+        d = np.minimum(d, _point_triangle(A[:, i], B[:, 0], B[:, 1], B[:, 2]))
+        d = np.minimum(d, _point_triangle(B[:, i], A[:, 0], A[:, 1], A[:, 2]))
+        for j in range(3):
+            d = np.minimum(d, _segment_segment(A[:, i], A[:, (i + 1) % 3], B[:, j], B[:, (j + 1) % 3]))
+        cross = (_segment_crosses(A[:, i], A[:, (i + 1) % 3], B[:, 0], B[:, 1], B[:, 2])
+                 | _segment_crosses(B[:, i], B[:, (i + 1) % 3], A[:, 0], A[:, 1], A[:, 2]))
+        d = np.where(cross, 0.0, d)
+    return d
+
+
+def far_pairs_min_distance(sheet, x, printed_apart, reach):
+    """Smallest exact distance (mm) between triangles at least ``printed_apart`` mm apart in the
+    printed sheet (centroids), over all such pairs whose deformed centroids are within
+    ``reach`` (a KD-tree on the centroids; ``reach`` >= the distance tested + 2 x the longest
+    edge makes it exhaustive); inf if no pair is that close."""
+    tri = sheet.triangles
+    cd = x[tri].mean(1)
+    cp = sheet.points[tri].mean(1)
+    pairs = cKDTree(cd).query_pairs(reach, output_type="ndarray")
+    if len(pairs) == 0:
+        return np.inf
+    far = np.linalg.norm(cp[pairs[:, 0]] - cp[pairs[:, 1]], axis=1) >= printed_apart
+    pairs = pairs[far]
+    return float(triangle_distances(x, tri, pairs).min()) if len(pairs) else np.inf
+
+
+def centreline_turns(sheet, x, bin_mm=0.5):
+    """(turns, inner radius, outer radius) of a strip rolled about y: the centreline (vertex
+    positions averaged per printed-x bin of bin_mm) in the x-z plane; turns = its tangent's total
+    turning angle / 2 pi, radii = 1 / curvature of its first and last turn."""
+    cols = np.floor(sheet.points[:, 0] / bin_mm).astype(int)          # printed-x bins
+    count = np.bincount(cols)
+    keep = count > 0
+    c = np.stack([np.bincount(cols, weights=x[:, k])[keep] / count[keep] for k in (0, 2)], 1)
+    t = np.diff(c, axis=0)
+    ang = np.unwrap(np.arctan2(t[:, 1], t[:, 0]))
+    ds = np.linalg.norm(t, axis=1)
+    s = np.concatenate([[0], np.cumsum(ds)])[:-1] + ds / 2
+    turn = abs(ang[-1] - ang[0]) / (2 * np.pi)
+    kappa = np.abs(np.gradient(ang, s))
+    per_turn = 2 * np.pi / np.median(kappa)          # arc length of about a turn
+    ends = [s < s[0] + per_turn / 2, s > s[-1] - per_turn / 2]
+    radii = sorted(1.0 / np.median(kappa[e]) for e in ends)
+    return turn, radii[0], radii[1]
+
+
+def hand_spiral(length, kappa0, pitch):
+    """A strip of released length ``length`` (mm) with natural curvature kappa0 (1/mm), wound as an
+    Archimedean spiral r = r_in + pitch phi / 2 pi with its turns in contact: r_in minimises
+    the bending measure int (1/r - kappa0)^2 ds (r taken as the local radius of curvature).
+    Returns (turns, r_in, r_out)."""
+    b = pitch / (2 * np.pi)
+
+    def phi_end(r_in):            # length = int r dphi = r_in phi + b phi^2 / 2
+        return (-r_in + np.sqrt(r_in ** 2 + 2 * b * length)) / b
+
+    def energy(r_in):
+        phi = np.linspace(0, phi_end(r_in), 4001)
+        r = r_in + b * phi
+        f = (1 / r - kappa0) ** 2 * r
+        return float(np.sum((f[1:] + f[:-1]) / 2 * np.diff(phi)))
+
+    r_in = minimize_scalar(energy, bounds=(0.2 / kappa0, 2.0 / kappa0), method="bounded").x
+    phi = phi_end(r_in)
+    return phi / (2 * np.pi), r_in, r_in + b * phi
+
+
+# ----------------------------------------------------------------------------- derivatives
+
+
+def _near_contact_state(seed):
+    pat = _strip(L=30.0, W=2.0, size=1.0)
+    sheet = mesh_pattern(pat)
+    c = Contact(sheet.points, sheet.triangles, offset=0.35, stretch_max=1.2)
+    c.set_stiffness(np.ones(3))
+    rng = np.random.default_rng(seed)
+    x = _rolled(sheet.points, 3.0, 0.35 + 0.9 * c.dhat) + 0.005 * rng.standard_normal((sheet.n_vertices, 3))
+    return c, x
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_self_contact_gradient_and_hessian_match_differences(seed):
+    """The barrier's gradient and exact Hessian against central differences on a randomly
+    perturbed near-contact spiral (many pairs inside the band)."""
+    c, x = _near_contact_state(seed)
+    E, g, H = c.evaluate(x, order=2)
+    assert np.isfinite(E) and E > 0 and c.report(x)["active_pairs"] > 20
+    q = x.ravel()
+    g_fd = central_difference(lambda v: c.evaluate(v.reshape(-1, 3))[0], q, eps=1e-6)
+    assert np.linalg.norm(g - g_fd) <= 1e-6 * np.linalg.norm(g)
+    active = np.flatnonzero(np.abs(g) > 0)[:60]                 # columns of active vertices
+    cols = []
+    for k in active:
+        qp, qm = q.copy(), q.copy()
+        qp[k] += 1e-6
+        qm[k] -= 1e-6
+        cols.append((c.evaluate(qp.reshape(-1, 3), order=1)[1] - c.evaluate(qm.reshape(-1, 3), order=1)[1]) / 2e-6)
+    H_fd = np.stack(cols, 1)
+    Hd = H.toarray()[:, active]
+    assert np.linalg.norm(Hd - H_fd) <= 1e-5 * np.linalg.norm(Hd)
+    # the projected Hessian is positive semi-definite
+    Hp = c.projected_hessian().toarray()
+    assert np.linalg.eigvalsh((Hp + Hp.T) / 2).min() >= -1e-8 * np.abs(Hp).max()
+
+
+def test_ground_barrier_derivatives():
+    h = np.linspace(0.01, 0.2, 37)
+    b, b1, b2 = ground_barrier(h, 0.1)
+    eps = 1e-7
+    bp, bm = ground_barrier(h + eps, 0.1)[0], ground_barrier(h - eps, 0.1)[0]
+    inside = np.abs(h - 0.1) > 2 * eps
+    assert np.allclose(b1[inside], ((bp - bm) / (2 * eps))[inside], rtol=1e-6, atol=1e-9)
+    b1p, b1m = ground_barrier(h + eps, 0.1)[1], ground_barrier(h - eps, 0.1)[1]
+    assert np.allclose(b2[inside], ((b1p - b1m) / (2 * eps))[inside], rtol=1e-5, atol=1e-7)
+    assert np.all(b[h >= 0.1] == 0) and np.all(b[h < 0.1] > 0)
+    assert ground_barrier(np.array([0.0, -1.0]), 0.1)[0].tolist() == [np.inf, np.inf]
+
+
+def test_step_filter_stops_a_move_through_the_other_layer():
+    """CCD: a move that pushes the spiral's turns through each other is cut before the offset;
+    the skip test passes a flat sheet without any collision build."""
+    pat = _strip(L=30.0, W=2.0, size=1.0)
+    sheet = mesh_pattern(pat)
+    c = Contact(sheet.points, sheet.triangles, offset=0.35, stretch_max=1.2)
+    x0 = _rolled(sheet.points, 1.5, 0.6)
+    x1 = _rolled(sheet.points, 1.5, 1e-3)           # all turns on one circle: through each other
+    t = c.step_fraction(x0, x1)
+    assert 0 < t < 1
+    xt = x0 + t * (x1 - x0)
+    assert c.minimum_distance(xt) > c.offset and not c.intersects(xt)
+    assert c.intersects(x1) or c.minimum_distance(x1) < c.offset
+    flat = np.column_stack([sheet.points / [1.2, 1.0], np.zeros(sheet.n_vertices)])
+    assert not c.maybe_close(flat)
+    builds = c.builds
+    c.set_stiffness(np.ones(3))
+    assert c.evaluate(flat, order=2)[0] == 0.0 and c.builds == builds    # skipped: nothing built
+    assert c.step_fraction(flat, flat + [0, 0, 0.5]) == 1.0
+
+
+# ----------------------------------------------------------------------------- the spiral
+
+
+def test_rolled_strip_is_a_spiral_whose_layers_keep_the_thickness():
+    """A free bilayer strip (0.25 mm fabric + 0.1 mm plastic, pre-stretched 1.1 along its 70 mm)
+    rolls 2.9 turns without contact, through itself. With contact, started from a loose spiral
+    (the branch of a single roll; from flat it rolls from both ends), it ends as a spiral whose
+    turns are at least the thickness apart over all pairs of triangles printed more than half a
+    turn apart (exact distances, independent of ipctk), with an energy above the contact-free
+    one, and with the turns and radii of a hand calculation: an Archimedean spiral of the strip's
+    natural curvature (measured on the contact-free roll) with its turns in contact, pitch
+    between the offset and the top of the barrier's band (measured 2.83 turns, radii 3.21 /
+    4.21 mm; hand 2.76-2.78 turns, 3.07-3.15 / 4.13-4.28 mm)."""
+    s, L = 1.1, 70.0
+    pat = _strip(L=L, size=1.0, stretch=(s, 1.0))
+    sheet = mesh_pattern(pat)
+    free = simulate_sheet(sheet, pat.fabric, pat.plastic, contact=False)
+    assert free.result.converged
+    kappa0 = float(np.median(np.abs(free.model.curvatures(free.result.q)[0]).max(1)))
+    assert centreline_turns(sheet, free.positions)[0] > 2.5            # misfit enough for > 2 turns
+    start = _rolled(sheet.points, 1.0 / kappa0, 0.7, s)
+    sim = simulate_sheet(sheet, pat.fabric, pat.plastic, contact=True, start=start)
+    assert sim.result.converged, sim.result.reason
+    offset, band = sim.model.contact.offset, sim.model.contact.dhat
+    assert offset == pytest.approx(0.35)
+    apart = 0.5 * 2 * np.pi / kappa0 * s
+    edge = float(np.linalg.norm(np.diff(sheet.points[sheet.triangles][:, [0, 1, 2, 0]], axis=1), axis=2).max())
+    assert far_pairs_min_distance(sheet, free.positions, apart, offset + 2 * edge) < 0.5 * offset
+    assert far_pairs_min_distance(sheet, sim.positions, apart, offset + 2 * edge) >= offset
+    assert sim.result.energy > free.result.energy
+    turns, r_in, r_out = centreline_turns(sheet, sim.positions)
+    assert turns > 2.0
+    lo, hi = hand_spiral(L / s, kappa0, offset), hand_spiral(L / s, kappa0, offset + band)
+    assert min(lo[0], hi[0]) * 0.95 <= turns <= max(lo[0], hi[0]) * 1.05
+    assert min(lo[1], hi[1]) * 0.93 <= r_in <= max(lo[1], hi[1]) * 1.07
+    assert min(lo[2], hi[2]) * 0.93 <= r_out <= max(lo[2], hi[2]) * 1.07
+    rep = sim.summary()["contact"]
+    assert rep["active_pairs"] > 0 and offset < rep["min_distance_mm"] < offset + band
+
+
+# ----------------------------------------------------------------------------- the ground
+
+
+def _draping(ground=True, **extra):
+    raw = {"fabric": {"rectangle": [20.0, 20.0], "stretch": 1.2, "thickness_mm": 0.8, "areal_weight_n_per_mm2": 1e-5},
+           "support": [{"points": [[10.0, 10.0], [8.0, 10.0], [12.0, 10.0], [10.0, 8.0], [10.0, 12.0]], "fix": "z"}],
+           "mesh": {"size_mm": 2.0}, "solver": {"coarse_levels": 0}, "ground": {"enabled": ground}}
+    raw.update(extra)
+    return parse_pattern(raw)
+
+
+def test_bare_sheet_under_gravity_rests_on_the_ground():
+    """A bare fabric sheet held at its centre (five points) under gravity: without the ground its rim hangs
+    below the table; with it no point is below the plane and the sheet rests on it (in the
+    barrier's band: its distance tolerance)."""
+    hanging = simulate(_draping(ground=False))
+    assert hanging.result.converged and hanging.positions[:, 2].min() < -0.3
+    pat = _draping()
+    assert pat.ground == 0.0                                    # on by default under gravity
+    sim = simulate(pat)
+    assert sim.result.converged, sim.result.reason
+    z = sim.positions[:, 2]
+    c = sim.model.contact
+    held = sim.fixed[sim.fixed % 3 == 2] // 3
+    free_z = np.delete(z, held)
+    assert np.all(z[held] == 0.0) and free_z.min() > 0.0       # nothing below the plane
+    assert free_z.min() < c.dhat and free_z.max() < 2 * c.dhat        # resting on it
+    rep = sim.summary()["contact"]
+    assert rep["ground"] == 0.0 and 0 < rep["ground_min_height_mm"] < c.dhat
+
+
+def _curling(ground=True):
+    raw = {"fabric": {"rectangle": [30.0, 8.0], "stretch": 1.35, "thickness_mm": 0.8},
+           "region": [{"polygon": [[0, 0], [30, 0], [30, 8], [0, 8]], "thickness_mm": 0.3, "side": "front"}],
+           "support": [{"points": [[13.0, 2.0], [17.0, 2.0], [13.0, 6.0], [17.0, 6.0]], "fix": "z"}],
+           "mesh": {"size_mm": 1.5},
+           "solver": {"coarse_levels": 0}, "ground": {"enabled": ground}}
+    return parse_pattern(raw)
+
+
+def test_printed_sheet_on_its_support_has_its_lowest_point_at_the_plane():
+    """Front plastic curls the sheet towards -z: held at four points of its centre on the table, its ends go
+    below the plane without the ground; with the ground (on by default with fix = "z") the
+    lowest point is the support, at the plane."""
+    below = simulate(_curling(ground=False))
+    assert below.result.converged and below.positions[:, 2].min() < -1.0
+    sim = simulate(_curling())
+    assert sim.result.converged, sim.result.reason
+    z = sim.positions[:, 2]
+    assert z.min() == pytest.approx(0.0, abs=1e-12)
+    held = sim.fixed[sim.fixed % 3 == 2] // 3
+    assert np.all(z[held] == 0.0) and np.all(np.delete(z, held) > 0.0)
+    assert sim.result.energy > below.result.energy
+
+
+def test_support_below_the_ground_is_a_reason_not_a_converged_state():
+    raw = {"fabric": {"rectangle": [20.0, 8.0], "stretch": 1.35, "thickness_mm": 0.8},
+           "region": [{"polygon": [[0, 0], [20, 0], [20, 8], [0, 8]], "thickness_mm": 0.3, "side": "front"}],
+           "support": [{"points": [[10.0, 4.0]], "fix": "z"}], "mesh": {"size_mm": 2.0},
+           "solver": {"coarse_levels": 0}, "ground": {"height_mm": 1.0}}
+    sim = simulate(parse_pattern(raw))
+    assert not sim.result.converged and "forces penetration" in sim.result.reason
+
+
+def test_intersecting_start_is_a_reason_not_a_converged_state():
+    pat = _strip(L=30.0, W=2.0, size=1.0)
+    sheet = mesh_pattern(pat)
+    start = _rolled(sheet.points, 1.5, 0.1, 1.2)          # turns 0.1 mm apart: through the 0.35 mm offset
+    sim = simulate_sheet(sheet, pat.fabric, pat.plastic, contact=True, start=start)
+    assert not sim.result.converged
+    assert "intersects itself" in sim.result.reason or "closer than the thickness offset" in sim.result.reason
+
+
+# ----------------------------------------------------------------------------- keys, defaults, outputs
+
+
+def test_contact_disabled_gives_the_answer_without_contact():
+    """[contact] enabled = false is the engine without contact, bit for bit (the README's
+    strip_narrow numbers: 24 iterations, 4.40077 N mm); with contact the strip's ends, which
+    pass through each other without it, are held apart."""
+    pat = load_pattern("examples/strip_narrow.toml")
+    assert pat.contact is True and pat.ground is None
+    pat.contact = False
+    off = simulate(pat)
+    sheet = off.sheet
+    plain = simulate_sheet(sheet, pat.fabric, pat.plastic, seed=pat.seed, coarse=(), contact=False)
+    assert off.model.contact is None and off.result.iterations == 24
+    assert off.result.energy == pytest.approx(4.40077, abs=5e-6)
+    ref = simulate_sheet(off.sheet, pat.fabric, pat.plastic, contact=False)
+    assert np.array_equal(plain.result.q, ref.result.q)
+    c = make_contact(sheet, pat.fabric, off.fixed, True, None)
+    assert c.intersects(off.positions)                          # the contact-free strip passes through itself
+    pat.contact = True
+    on = simulate(pat)
+    assert on.result.converged and not on.model.contact.intersects(on.positions)
+    assert on.model.contact.minimum_distance(on.positions) > on.model.contact.offset
+    assert on.result.energy > off.result.energy
+
+
+@pytest.mark.parametrize("table, message", [
+    ({"contact": {"enabled": 1}}, "[contact]: enabled must be true or false"),
+    ({"contact": {"enable": True}}, "[contact]: unknown key 'enable' (did you mean 'enabled'?)"),
+    ({"ground": {"enabled": "yes"}}, "[ground]: enabled must be true or false"),
+    ({"ground": {"height_mm": "0"}}, "[ground]: height_mm must be a number"),
+    ({"ground": {"height_mm": float("nan")}}, "[ground]: height_mm must be a finite number"),
+    ({"ground": {"hight_mm": 0.0}}, "did you mean 'height_mm'?"),
+    ({"ground": 3}, "[ground] must be a table"),
+])
+def test_contact_keys_bad_input_is_one_line(table, message):
+    raw = {"fabric": {"rectangle": [20.0, 8.0]},
+           "region": [{"polygon": [[0, 0], [20, 0], [20, 8], [0, 8]], "thickness_mm": 0.3}], **table}
+    with pytest.raises(SelfshapeError) as e:
+        parse_pattern(raw, src="p.toml")
+    assert message in str(e.value) and "\n" not in str(e.value)
+
+
+def test_contact_key_defaults():
+    base = {"fabric": {"rectangle": [20.0, 8.0]},
+            "region": [{"polygon": [[0, 0], [20, 0], [20, 8], [0, 8]], "thickness_mm": 0.3}]}
+    p = parse_pattern(dict(base))
+    assert p.contact is True and p.ground is None                     # free sheet: no ground
+    p = parse_pattern({**base, "support": [{"points": [[10.0, 4.0]], "fix": "z"}]})
+    assert p.ground == 0.0                                              # fix = "z": on the ground
+    p = parse_pattern({**base, "support": [{"points": [[10.0, 4.0]], "fix": "z"}],
+                       "ground": {"enabled": False}, "contact": {"enabled": False}})
+    assert p.ground is None and p.contact is False
+    p = parse_pattern({**base, "ground": {"enabled": True, "height_mm": -2.5}})
+    assert p.ground == -2.5
+
+
+def test_outputs_report_contact(tmp_path):
+    """summary.json has the contact entry and deployed.vtu the in_contact cell field."""
+    import meshio
+
+    from forward.simulate import simulate_pattern_file
+    path = tmp_path / "curl.toml"
+    path.write_text(open("examples/strip_narrow.toml").read())
+    summary = simulate_pattern_file(str(path), str(tmp_path / "out"), render=False)
+    saved = json.loads((tmp_path / "out" / "summary.json").read_text())
+    c = saved["contact"]
+    assert c["enabled"] is True and c["active_pairs"] > 0 and c["min_distance_mm"] > c["offset_mm"] == 1.1
+    assert summary["contact"] == c
+    m = meshio.read(tmp_path / "out" / "deployed.vtu")
+    flag = m.cell_data["in_contact"][0]
+    assert set(np.unique(flag)) == {0, 1} and 0 < flag.sum() < len(flag)
