@@ -374,27 +374,26 @@ class _Newton:
                 # the projected one the last phase converged linearly, |g| x 0.85 per step)
                 Hp = self.union.add(scatter.matrix([Hf, Hh]),
                                     reduce_upper(self.contact.projected_hessian(), scatter.reduced, scatter.n_free))
-                timings["factorisations"] += 1
-                try:
-                    self.factor = self.solver.factor(Hp, upper=scatter.upper)
-                    self.exact = self.projected = True
-                    timings["contact_projected_steps"] = timings.get("contact_projected_steps", 0) + 1
-                except NotPositiveDefinite:
-                    pass
+                self._factor_projected(Hp, "contact_projected_steps")
             if not self.exact and opts.project_hinges:
                 Hp = scatter.matrix([Hf, _psd_blocks(Hh)])
                 if self.union is not None:
                     Hc = self.contact.projected_hessian()
                     Hp = self.union.add(Hp, None if Hc is None else reduce_upper(Hc, scatter.reduced, scatter.n_free))
-                timings["factorisations"] += 1
-                try:
-                    self.factor = self.solver.factor(Hp, upper=scatter.upper)
-                    self.exact = self.projected = True
-                    timings["projected_steps"] = timings.get("projected_steps", 0) + 1
-                except NotPositiveDefinite:
-                    pass
+                self._factor_projected(Hp, "projected_steps")
         timings["factorisation"] += time.perf_counter() - t0
         return True
+
+    def _factor_projected(self, Hp, counter: str):
+        """Factor a projected Hessian Hp as the step's (counted under timings[counter]); the
+        state is left as it was if Hp is not positive definite either."""
+        self.timings["factorisations"] += 1
+        try:
+            self.factor = self.solver.factor(Hp, upper=self.scatter.upper)
+            self.exact = self.projected = True
+            self.timings[counter] = self.timings.get(counter, 0) + 1
+        except NotPositiveDefinite:
+            pass
 
     def _accept_newton(self, it, q_try, E_new, a, note):
         self.q = self._relaxed(q_try, E_new)
