@@ -291,7 +291,7 @@ def test_bare_sheet_under_gravity_rests_on_the_ground():
     hanging = simulate(_draping(ground=False))
     assert hanging.result.converged and hanging.positions[:, 2].min() < -0.3
     pat = _draping()
-    assert pat.ground == 0.0                                    # on by default under gravity
+    assert pat.ground == 0.0                                    # [ground] enabled = true
     sim = simulate(pat)
     assert sim.result.converged, sim.result.reason
     z = sim.positions[:, 2]
@@ -315,7 +315,7 @@ def _curling(ground=True):
 
 def test_printed_sheet_on_its_support_has_its_lowest_point_at_the_plane():
     """Front plastic curls the sheet towards -z: held at four points of its centre on the table, its ends go
-    below the plane without the ground; with the ground (on by default with fix = "z") the
+    below the plane without the ground; with the ground ([ground] enabled = true) the
     lowest point is the support, at the plane."""
     below = simulate(_curling(ground=False))
     assert below.result.converged and below.positions[:, 2].min() < -1.0
@@ -332,7 +332,7 @@ def test_support_below_the_ground_is_a_reason_not_a_converged_state():
     raw = {"fabric": {"rectangle": [20.0, 8.0], "stretch": 1.35, "thickness_mm": 0.8},
            "region": [{"polygon": [[0, 0], [20, 0], [20, 8], [0, 8]], "thickness_mm": 0.3, "side": "front"}],
            "support": [{"points": [[10.0, 4.0]], "fix": "z"}], "mesh": {"size_mm": 2.0},
-           "solver": {"coarse_levels": 0}, "ground": {"height_mm": 1.0}}
+           "solver": {"coarse_levels": 0}, "ground": {"enabled": True, "height_mm": 1.0}}
     sim = simulate(parse_pattern(raw))
     assert not sim.result.converged and "forces penetration" in sim.result.reason
 
@@ -395,7 +395,9 @@ def test_contact_key_defaults():
     p = parse_pattern(dict(base))
     assert p.contact is True and p.ground is None                     # free sheet: no ground
     p = parse_pattern({**base, "support": [{"points": [[10.0, 4.0]], "fix": "z"}]})
-    assert p.ground == 0.0                                              # fix = "z": on the ground
+    assert p.ground is None                                             # the ground only when asked for
+    p = parse_pattern({**base, "support": [{"points": [[10.0, 4.0]], "fix": "z"}], "ground": {"enabled": True}})
+    assert p.ground == 0.0
     p = parse_pattern({**base, "support": [{"points": [[10.0, 4.0]], "fix": "z"}],
                        "ground": {"enabled": False}, "contact": {"enabled": False}})
     assert p.ground is None and p.contact is False
