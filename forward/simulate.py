@@ -225,7 +225,8 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
     benchmark the direct exact solve took 423 iterations to a state of higher energy (465 N mm);
     the predictor reaches the exact equilibrium of the truncated one's branch (208.09 N mm) in
     52 + 23 + 16 + 12. A sheet without exact-metric layers (bare fabric) is solved once per level.
-    ``timings["levels"]`` then has one more entry, its ``metric`` "exact" (the others "truncated").
+    ``timings["levels"]`` then has one more entry, its ``metric`` "exact" (the others "truncated";
+    None on a bare sheet, which has no exact metric to choose).
 
     ``contact``: self-contact (shellfem.contact; off by default here, on by default for a
     pattern's :func:`simulate`); ``ground``: the height (mm) of a ground plane under the sheet,
@@ -254,21 +255,34 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
     exact_model = ShellModel.from_materials(sheet, fabric, plastic) if model_factory is None else None
     two_stage = exact_model is not None and bool(exact_model.quad.thick.any())   # truncated predictor first
 
+    # the metric of the loop's levels: "truncated" where the exact solve follows, None for a bare
+    # sheet or another model (no metric to choose)
+    level_metric = "truncated" if two_stage else None
+
     def factory(last):
         """The model of a level: the given factory, else the shell with the truncated metric
         wherever the exact one follows."""
         if model_factory is not None:
             return model_factory
-        exact = last and not two_stage
-        return lambda sh, fab, pla: ShellModel.from_materials(sh, fab, pla, exact_metric=exact)
+        return lambda sh, fab, pla: ShellModel.from_materials(sh, fab, pla, exact_metric=last and not two_stage)
+
+    def log_level(result, n_vertices, iterations, interpolated, t_level, metric):
+        """Sum the level's numeric timings into ``sums`` and append its entry to ``level_log``."""
+        for key, v in result.timings.items():
+            if isinstance(v, (int, float)):
+                sums[key] = sums.get(key, 0) + v
+        level_log.append(dict(n_vertices=int(n_vertices), iterations=int(iterations),
+                              converged=bool(result.converged), interpolated=bool(interpolated),
+                              seconds=round(time.perf_counter() - t_level, 3), metric=metric))
     for j, sh in enumerate(sheets):
         t_level = time.perf_counter()
         last = j == len(sheets) - 1
+        final = last and not two_stage          # this level's solve decides the result
         model, q, fixed, values, gauge, free = _level_setup(sh, fabric, plastic, supports, seed, tol_support,
                                                             start=start if last else None, factory=factory(last),
                                                             contact=contact, ground=ground)
         opts = dict(max_iterations=max_iterations, verbose=verbose, metric_floor=metric_floor,
-                    rtol=rtol if last and not two_stage else COARSE_RTOL)
+                    rtol=rtol if final else COARSE_RTOL)
         if progress is not None:
             progress({"stage": "level", "level": j + 1, "levels": len(sheets) + two_stage,
                       "n_vertices": int(sh.n_vertices)})
@@ -291,12 +305,7 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
             result = newton(model, guess, free, **opts)
             its = result.iterations
         total_it += its
-        for key, v in result.timings.items():
-            if isinstance(v, (int, float)):
-                sums[key] = sums.get(key, 0) + v
-        level_log.append(dict(n_vertices=int(sh.n_vertices), iterations=int(its), converged=bool(result.converged),
-                              interpolated=guess is not None, seconds=round(time.perf_counter() - t_level, 3),
-                              metric="exact" if last and not two_stage else "truncated"))
+        log_level(result, sh.n_vertices, its, guess is not None, t_level, level_metric)
         if verbose and len(sheets) > 1:
             print(f"level {j + 1}/{len(sheets)} ({sh.n_vertices} vertices): {its} iterations, "
                   f"{'converged' if result.converged else result.reason}", flush=True)
@@ -321,12 +330,7 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
         opts["rtol"] = rtol
         result = newton(model, q_exact, free, **opts)
         total_it += result.iterations
-        for key, v in result.timings.items():
-            if isinstance(v, (int, float)):
-                sums[key] = sums.get(key, 0) + v
-        level_log.append(dict(n_vertices=int(sheet.n_vertices), iterations=int(result.iterations),
-                              converged=bool(result.converged), interpolated=False,
-                              seconds=round(time.perf_counter() - t_level, 3), metric="exact"))
+        log_level(result, sheet.n_vertices, result.iterations, False, t_level, "exact")
         rho = model.fibre_bending(result.q)
         folded = int(np.count_nonzero(rho >= RHO_TRUNCATED))
         if result.converged and folded:
