@@ -51,10 +51,59 @@ def stretch_bounds(s: float = 1.6, ribbon_length: float = 15.0, ribbon_width: fl
 
 
 def _check_bounds(bounds):
-    b = tuple(float(x) for x in bounds)
+    """A box (s1min, s1max, s2min, s2max) as a tuple, or a simple polygon of (sigma1, sigma2)
+    vertices as a (k, 2) array (inverse.contraction: what a pattern's spacings realise)."""
+    a = np.asarray(bounds, dtype=float)
+    if a.ndim == 2:
+        if a.shape[1] != 2 or len(a) < 3 or not np.isfinite(a).all() or a.min() <= 0:
+            raise SelfshapeError(f"flatten: polygon bounds must be (k >= 3, 2) positive stretches, got shape {a.shape}")
+        e = np.roll(a, -1, axis=0)
+        if not abs(np.sum(a[:, 0] * e[:, 1] - e[:, 0] * a[:, 1])) > 0:
+            raise SelfshapeError("flatten: polygon bounds enclose no area")
+        return a
+    b = tuple(float(x) for x in np.ravel(a))
     if len(b) != 4 or not all(np.isfinite(b)) or min(b) <= 0 or b[0] > b[1] or b[2] > b[3]:
         raise SelfshapeError(f"flatten: bounds must be 0 < s1min <= s1max, 0 < s2min <= s2max, got {bounds}")
     return b
+
+
+def project_stretches(t1, t2, bounds):
+    """Nearest (sigma1, sigma2) to (t1, t2) (arrays) inside the bounds: a box clips each
+    stretch; a polygon ((k, 2), geometry.flattening._check_bounds; convex or not) keeps the
+    pairs inside it and moves the others to the nearest point of its boundary: the local step's
+    minimiser of (s1 - t1)^2 + (s2 - t2)^2 over the admissible set."""
+    t1 = np.asarray(t1, dtype=float)
+    t2 = np.asarray(t2, dtype=float)
+    if not isinstance(bounds, np.ndarray):
+        return np.clip(t1, bounds[0], bounds[1]), np.clip(t2, bounds[2], bounds[3])
+    P = np.stack([t1, t2], -1).reshape(-1, 2)
+    A = bounds
+    B = np.roll(A, -1, axis=0)
+    # crossing number: edges (A -> B) straddling each point's horizontal line, crossed to its right
+    ya, yb = A[None, :, 1], B[None, :, 1]
+    py = P[:, None, 1]
+    straddle = (ya > py) != (yb > py)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xc = A[None, :, 0] + (py - ya) * (B[None, :, 0] - A[None, :, 0]) / (yb - ya)
+    inside = (np.count_nonzero(straddle & (xc > P[:, None, 0]), axis=1) % 2) == 1
+    out = P.copy()
+    outside = ~inside
+    if outside.any():
+        E = B - A
+        r = P[outside][:, None, :] - A[None]
+        u = np.clip((r * E[None]).sum(-1) / (E * E).sum(-1)[None], 0.0, 1.0)   # (n', k)
+        Q = A[None] + u[..., None] * E[None]
+        j = np.argmin(((P[outside][:, None, :] - Q) ** 2).sum(-1), axis=1)
+        out[outside] = Q[np.arange(len(j)), j]
+    return out[:, 0].reshape(t1.shape), out[:, 1].reshape(t2.shape)
+
+
+def bounds_box(bounds) -> tuple:
+    """The bounding box (s1min, s1max, s2min, s2max) of box or polygon bounds."""
+    if isinstance(bounds, np.ndarray):
+        return (float(bounds[:, 0].min()), float(bounds[:, 0].max()), float(bounds[:, 1].min()),
+                float(bounds[:, 1].max()))
+    return tuple(float(b) for b in bounds)
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -127,7 +176,8 @@ class FlatResult:
     one whose right singular vector is closest to k1); dir1 (m, 2): unit pushforward of k1;
     energy: Eq. 5.3 (mm^2); residual_energy: energy / target area (the Table 5.1 average);
     k1_deviation_deg: mean angle between the sigma1 right singular vector and k1;
-    sigma_bound_violation: [max excess of sigma1, of sigma2] outside the bounds;
+    sigma_bound_violation: [max excess of sigma1, of sigma2] outside the bounds (for polygon
+    bounds: the components of the distance to the nearest admissible pair);
     sigma_out_of_bounds_pct: [% faces with sigma1, sigma2 outside the bounds];
     flipped: faces with det J <= 0; times: seconds per stage.
     """
@@ -143,7 +193,7 @@ class FlatResult:
     sigma_bound_violation: list
     sigma_out_of_bounds_pct: list
     flipped: int
-    bounds: tuple
+    bounds: object            # box tuple or (k, 2) polygon
     times: dict = field(default_factory=dict)
     history: list = field(default_factory=list)   # (mean |d sigma1|, mean |d sigma2|) per iteration
 
@@ -175,8 +225,7 @@ def _local_step(P0, P1, s1, s2, bounds):
     h[h == 0] = 1.0
     c, s = x / h, y / h
     c[h == 0] = 1.0
-    s1 = np.clip(P0[:, 0] * c + P0[:, 1] * s, bounds[0], bounds[1])
-    s2 = np.clip(P1[:, 1] * c - P1[:, 0] * s, bounds[2], bounds[3])
+    s1, s2 = project_stretches(P0[:, 0] * c + P0[:, 1] * s, P1[:, 1] * c - P1[:, 0] * s, bounds)
     return c, s, s1, s2
 
 
@@ -277,7 +326,8 @@ def flatten(V: np.ndarray, F: np.ndarray, dir1: np.ndarray, bounds=None, *, max_
             stop: str = "norm") -> FlatResult:
     """Bounded-stretch flattening of a disk-topology target (V mm, F) with per-face k1
     directions ``dir1`` (m, 3). bounds = (s1min, s1max, s2min, s2max), default
-    `stretch_bounds()`.
+    `stretch_bounds()`, or a polygon of admissible (sigma1, sigma2) pairs ((k, 2);
+    inverse.contraction: what a pattern's spacings realise), onto which the local step projects.
 
     Init: Tutte (unit circle) + ``slim_iterations`` of SLIM (or ``uv_init``), then up to
     ``isometric_iterations`` of the same solver with all bounds 1 (ARAP: polishes the start to
@@ -352,8 +402,8 @@ def flatten(V: np.ndarray, F: np.ndarray, dir1: np.ndarray, bounds=None, *, max_
     d1 = np.einsum("kab,kb->ka", J, k1)
     d1 /= np.linalg.norm(d1, axis=1)[:, None]
     viol, pct = [], []
-    for sig, lo, hi in ((sigma1, bounds[0], bounds[1]), (sigma2, bounds[2], bounds[3])):
-        excess = np.maximum(np.maximum(lo - sig, sig - hi), 0.0)
+    for sig, proj in zip((sigma1, sigma2), project_stretches(sigma1, sigma2, bounds)):
+        excess = np.abs(sig - proj)        # a box: the excess over the violated bound
         viol.append(float(excess.max()))
         pct.append(float(100.0 * np.mean(excess > 1e-6)))
     detJ = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]

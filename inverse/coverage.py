@@ -71,9 +71,8 @@ def printed_over_asked(d) -> float:
     where clipping, trimming, separation or the dash placement thin the pattern."""
     import shapely
 
-    b = d.bounds
-    s1 = np.clip(d.flat.sigma1, b[0], b[1])
-    s2 = np.clip(d.flat.sigma2, b[2], b[3])
+    from geometry.flattening import project_stretches
+    s1, s2 = project_stretches(d.flat.sigma1, d.flat.sigma2, d.bounds)
     area = np.abs(signed_areas(d.flat.uv, d.F))
     asked = float(np.sum(area * asked_coverage(s1, s2, d.stretch)))
     printed = float(shapely.intersection(ribbon_union(d.ribbons), shapely.Polygon(d.outline)).area)

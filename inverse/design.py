@@ -42,7 +42,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from geometry.meshops import face_areas
+from geometry.meshops import face_areas, signed_areas
 from inverse.plots import plot_pattern
 from inverse.record import Design
 from inverse.report import report_dict
@@ -173,15 +173,20 @@ class DesignOptions:
     (<= 0, 1/mm^2). thickness_law: a ThicknessLaw, a CSV path or None (the shipped law made at
     ``stretch``; a law stating another stretch is refused).
     edge_mm: Loop-refine until the mean edge is below it (None: no refinement), while the
-    face count stays <= max_faces. bounds: (s1min, s1max, s2min, s2max), default
-    stretch_bounds(stretch, ribbon_length, ribbon_width). ribbon_length, ribbon_width: the
+    face count stays <= max_faces. bounds: (s1min, s1max, s2min, s2max), default the
+    contraction model's (Eq. 5.15's: geometry.flattening.stretch_bounds). ribbon_length, ribbon_width: the
     printed dash size. seed: seed of the stagger of the dashes (also the pattern's [solver]
     seed). stop, flatten_max_iter: the flattening's stop rule ("mean": the seed's, "norm":
     ||d sigma||_2 / m) and its iteration cap on the fine mesh (reported as flatten_converged =
     false when reached). gap_mm: minimum distance between printed ribbons and to the outline
     (`inverse.separation.separate_ribbons`). layout_edge_mm: the ribbon layout runs on the
     coarsest level of the refinement hierarchy whose mean edge is below it (None: on the
-    flattening's mesh)."""
+    flattening's mesh). contraction: how stretches map to row spacings and which stretches a
+    pattern can realise (inverse.contraction.contraction_for): "seed" (Eq. 5.15, default),
+    "table" (the shipped table of simulated patches made at ``stretch``), a table path or a
+    model; it also gives the default ``bounds``. Whatever the model, the report's
+    ``contraction_check`` compares the layout's spacings with the shipped table at the stretch,
+    where there is one."""
     stretch: float = 1.6
     diagonal_mm: float | None = 110.0
     printer: object = None
@@ -197,6 +202,7 @@ class DesignOptions:
     flatten_max_iter: int = 1000
     gap_mm: float = 0.5
     layout_edge_mm: float | None = 2.0
+    contraction: object = "seed"
 
 
 def _check_fits_bed(uv, printer, ribbon_length, diagonal_mm, where):
@@ -246,7 +252,7 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     of DESIGN_STAGES starts (the CLI's status line)."""
     from geometry.curvature import principal_curvature
     from geometry.fields import curvature_line_field
-    from geometry.flattening import stretch_bounds
+    from geometry.flattening import project_stretches
     from geometry.target import check_disk, normalize, refine
     from geometry.stripes import MeshTooCoarse
     from inverse.layout import ribbon_layout
@@ -284,7 +290,9 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     else:
         law = law_for_stretch(stretch) if thickness_law is None else load_thickness_law(thickness_law)
     check_law_stretch(law, stretch)
-    bounds = stretch_bounds(stretch, ribbon_length, ribbon_width) if bounds is None else tuple(bounds)
+    from inverse.contraction import contraction_for
+    contraction = contraction_for(stretch, ribbon_length, ribbon_width, o.contraction)
+    bounds = contraction.bounds() if bounds is None else bounds
     V0, F0 = check_disk(V, F, where=where)
     V0 = normalize(V0, o.diagonal_mm)
     total_area = float(face_areas(V0, F0).sum())
@@ -313,8 +321,7 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     _check_fits_bed(flat.uv, printer, ribbon_length, o.diagonal_mm, where)
     kappa1 = normal_curvature_along(curv, lf.face_dirs)
     outline = boundary_polygon(flat.uv, Ff)
-    s1 = np.clip(flat.sigma1, bounds[0], bounds[1])
-    s2 = np.clip(flat.sigma2, bounds[2], bounds[3])
+    s1, s2 = project_stretches(flat.sigma1, flat.sigma2, bounds)
     # the stripes need a few edges per period (2 mu2 >= 7.8 mm), not the flattening's resolution
     lay_levels = levels
     if o.layout_edge_mm is not None:
@@ -328,13 +335,22 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
         try:
             ribbons = ribbon_layout(uv_l, Ff if F_l is None else F_l, d_l, s1_l, s2_l, k_l, stretch,
                                     outline=outline, ribbon_length=ribbon_length, ribbon_width=ribbon_width,
-                                    seed=o.seed)
+                                    seed=o.seed, contraction=contraction)
             break
         except MeshTooCoarse as e:
             if lay_levels >= levels:
                 raise SelfshapeError(f"{where}: the target's mesh is too coarse for the ribbon spacing after "
                                      f"{levels} refinements ({e}); give a finer target mesh") from None
             lay_levels += 1
+    # the layout's spacings against the simulated contraction (the shipped table at this stretch)
+    from inverse.contraction import TableContraction, realisation_check, shipped_table
+    table = contraction if isinstance(contraction, TableContraction) else \
+        shipped_table(stretch, ribbon_length, ribbon_width)
+    check = None
+    if table is not None:
+        Fl = Ff if F_l is None else F_l
+        mu1_l, mu2_l, _ = contraction.spacing(s1_l, s2_l)
+        check = realisation_check(table, s1_l, s2_l, mu1_l, mu2_l, np.abs(signed_areas(uv_l, Fl)))
     if not ribbons:
         raise SelfshapeError(f"{where}: the layout produced no ribbons (surface too small for "
                              f"{ribbon_length:g} x {ribbon_width:g} mm ribbons?)")
@@ -352,11 +368,13 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     reach["warning"] = reach_warning(reach)
     lap("thickness")
     return Design(V=Vf, F=Ff, V_input=V0, F_input=F0, curvature=curv, field=lf, flat=flat, kappa1=kappa1,
-                  outline=outline, ribbons=ribbons, stretch=float(stretch), bounds=tuple(bounds),
+                  outline=outline, ribbons=ribbons, stretch=float(stretch),
+                  bounds=bounds if isinstance(bounds, np.ndarray) else tuple(bounds),
                   refine_levels=levels, layout_levels=lay_levels, lam=float(o.lam), stop=stop, thickness_info=tinfo,
                   law_source=law.source, law_plastic_mpa=law.plastic_young_modulus_mpa,
                   times=times, cpu_times=cpu, separation=sep, curvature_reach=reach,
-                  coarse_iterations=coarse.iterations if coarse is not None else 0)
+                  coarse_iterations=coarse.iterations if coarse is not None else 0,
+                  contraction={**contraction.describe(), "check": check})
 
 
 def reach_score(d: Design) -> dict:
@@ -437,11 +455,27 @@ def _write_design_files(out, d, raw, printer, title):
         out.write(n, lambda tmp: cad.write_drawing(tmp, drawing))
 
 
+def _deviation_score(rep) -> float | None:
+    """Mean of the two one-way mean deviations (% of the diagonal) of a verification, None if
+    it has none (did not converge)."""
+    a, b = rep.get("deviation_pct_bbox"), rep.get("deviation_target_to_deployed_pct_bbox")
+    if not rep.get("verify_converged") or not a or not b:
+        return None
+    return 0.5 * (float(a[0]) + float(b[0]))
+
+
+def _fmt(x) -> str:
+    return "n/a (not converged)" if x is None else f"{x:.2f}"
+
+
 def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smoothness, verbose, pattern_kw,
-                        progress=None):
+                        raw=None, progress=None):
     """The --refine stage of design_file: refine, then rewrite pattern.toml, G-code, pattern.png
     and the verification (into the OutputDir ``out``) for the rounded refined thicknesses; on
-    failure keep the open-loop design and record why (report "refine": {"ok": false, "reason": ...})."""
+    failure keep the open-loop design and record why (report "refine": {"ok": false, "reason": ...}).
+    A refined design whose release from flat deploys farther from the target than the open loop
+    (mean of both one-way mean deviations) is not kept either: the open-loop files (``raw``, its
+    pattern dict) are written again and re-verified, and "refine" records both ("kept")."""
     from geometry.patterns import parse_pattern
     from inverse.design_refine import refine_design
     from inverse.printer import Printer
@@ -483,6 +517,29 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
         if not same:
             block["release_note"] = ("release from flat lands in another equilibrium than the one nearest the target; "
                                      "[[support]] pins at the target's positions would select the intended branch")
+    refined_score = _deviation_score(rep)
+    open_score = _deviation_score(rep["open_loop"])
+    if open_score is not None and (refined_score is None or refined_score > open_score):
+        # the refined design, rounded and released from flat, deploys farther from the target
+        # than the open loop (another equilibrium, or no converged one): keep the open loop
+        block["refined_released"] = {k: rep[k] for k in VERIFY_KEYS if k in rep}
+        block["refined_thickness_mm"] = [r.thickness_mm for r in d.ribbons]
+        for r, t0 in zip(d.ribbons, before):
+            r.thickness_mm = t0
+        _write_design_files(out, d, raw, o.printer, name)
+        rep.update(report_dict(d))
+        for k in VERIFY_KEYS:
+            rep.pop(k, None)
+        pattern0 = parse_pattern(raw, p_toml, os.path.dirname(os.path.abspath(p_toml)))
+        if progress is not None:
+            progress({"stage": "verify"})
+        rep.update(verify_design(d, pattern0, out, progress=progress))
+        block["kept"] = "open loop"
+        block["kept_note"] = (f"the refined design deploys from flat farther from the target than the open loop "
+                              f"(mean of both directions {_fmt(refined_score)} % against {open_score:.2f} %): "
+                              "the open-loop design is kept and written")
+    else:
+        block["kept"] = "refined"
     if oob is not None and max(oob) > 1.0:
         block["feasibility"] = (f"the flattening is out of the stretch bounds on {oob[0]:.1f} % / {oob[1]:.1f} % "
                                 f"of the area (sigma1 / sigma2): the fabric cannot reach the target there; "
@@ -574,7 +631,8 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
                     progress({"stage": "refine"})
                 _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, refine_smoothness, verbose,
                                     dict(mesh_size_mm=mesh_size_mm, mesh_across=mesh_across,
-                                         max_iterations=verify_iterations, metric_floor=metric_floor), progress)
+                                         max_iterations=verify_iterations, metric_floor=metric_floor),
+                                    raw=raw, progress=progress)
         rep["total_time_s"] = round(time.perf_counter() - t_start, 3)
         from forward.view import folder_page
         out.write_text("index.html", folder_page(out.path, rep))        # the 3D page (forward.view)

@@ -335,7 +335,8 @@ def _split_sides(paths: _Paths) -> tuple[_Paths, np.ndarray]:
 
 def ribbon_layout(uv, F, dir1, sigma1, sigma2, kappa1, s: float, outline=None,
                   ribbon_length: float = 15.0, ribbon_width: float = 1.5, min_length: float = 2.0,
-                  max_angle_deg: float = 25.0, seed: int = 0, bound_tol: float = 0.05) -> list[Ribbon]:
+                  max_angle_deg: float = 25.0, seed: int = 0, bound_tol: float = 0.05,
+                  contraction=None) -> list[Ribbon]:
     """Staggered dashed ribbons over a flattened mesh (seed 5.4.2).
 
     uv: (n, 2) flat vertices (mm); F: (m, 3) faces. Per face: dir1 (m, 2) ribbon direction,
@@ -349,6 +350,8 @@ def ribbon_layout(uv, F, dir1, sigma1, sigma2, kappa1, s: float, outline=None,
     law assigns it, side "front"/"back") with meta: "kappa" (k,) samples along the path,
     "kappa_mean_abs" (length-weighted mean |kappa1|), "mu2" (local transverse spacing, mm),
     "mu1" (local dash period, mm), "grid" ("A" or "B").
+    ``contraction``: the model that maps the stretches to the spacings (inverse.contraction;
+    None: the seed's Eq. 5.15, inverse.spacing.ribbon_spacing).
     """
     uv = np.asarray(uv, dtype=float)
     F = np.asarray(F)
@@ -373,7 +376,10 @@ def ribbon_layout(uv, F, dir1, sigma1, sigma2, kappa1, s: float, outline=None,
         raise SelfshapeError(f"ribbon_layout: dir1[{int(np.argmax(bad))}] is zero")
     sigma1 = np.where((sigma1 < 1.0) & (sigma1 >= 1.0 - bound_tol), 1.0, sigma1)
     sigma2 = np.where((sigma2 < 1.0) & (sigma2 >= 1.0 - bound_tol), 1.0, sigma2)
-    mu1, mu2 = ribbon_spacing(sigma1, sigma2, s, ribbon_length, ribbon_width)
+    if contraction is None:
+        mu1, mu2 = ribbon_spacing(sigma1, sigma2, s, ribbon_length, ribbon_width)
+    else:
+        mu1, mu2, _ = contraction.spacing(sigma1, sigma2)
     region = _outline_polygon(outline, uv, F)
 
     e1, e2 = uv[F[:, 1]] - uv[F[:, 0]], uv[F[:, 2]] - uv[F[:, 0]]

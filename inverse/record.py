@@ -37,5 +37,6 @@ class Design:
     times: dict = field(default_factory=dict)
     cpu_times: dict = field(default_factory=dict)
     coarse_iterations: int = 0
+    contraction: dict | None = None      # the contraction model (inverse.contraction describe())
     separation: dict = field(default_factory=dict)
     curvature_reach: dict = field(default_factory=dict)   # inverse.thickness_law.curvature_reach

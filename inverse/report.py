@@ -28,7 +28,7 @@ def report_dict(d: Design) -> dict:
         "sigma_bound_violation": [float(x) for x in f.sigma_bound_violation],
         "sigma_out_of_bounds_pct": [float(x) for x in f.sigma_out_of_bounds_pct],
         "residual_energy": float(f.residual_energy),
-        "stretch": d.stretch, "stretch_bounds": list(d.bounds),
+        "stretch": d.stretch, "stretch_bounds": np.asarray(d.bounds).tolist(), "contraction": d.contraction,
         "flatten_iterations": int(f.iterations), "flatten_coarse_iterations": int(d.coarse_iterations),
         "flatten_converged": bool(f.converged), "flatten_stop": d.stop,
         "flatten_last_change": [float(x) for x in f.history[-1]] if f.history else None,

@@ -27,7 +27,7 @@ def pattern_dict(d: Design, *, fabric=None, plastic=None, mesh_size_mm: float = 
     r4 = lambda a: np.round(np.asarray(a, float), 4).tolist()  # noqa: E731
     return {
         "meta": {"generator": "selfshape design (inverse.design)", "target": target_name,
-                 "stretch_bounds": list(d.bounds), "thickness_law": os.path.basename(d.law_source)},
+                 "stretch_bounds": np.asarray(d.bounds).tolist(), "thickness_law": os.path.basename(d.law_source)},
         "fabric": {"outline": r4(d.outline), **fabric_table(fab), "stretch": d.stretch},
         "plastic": plastic_table(pla),
         "ribbon": [{"path": r4(r.path), "width_mm": float(r.width_mm), "thickness_mm": float(r.thickness_mm),

@@ -144,7 +144,9 @@ def _cmd_design(a):
     r = design_file(a.target, a.output, verify=a.verify, diagonal_mm=a.diagonal, stretch=a.stretch,
                     thickness_law=a.law, lam=a.lam, printer=printer, verify_iterations=a.verify_iterations,
                     refine=a.refine, mesh_size_mm=a.mesh_size, mesh_across=a.mesh_across, verbose=a.verbose,
-                    inputs=[a.printer] if a.printer else (), progress=a.progress)
+                    contraction=a.contraction,
+                    inputs=[p for p in (a.printer, a.contraction) if p and p not in ("seed", "table")],
+                    progress=a.progress)
     a.progress.close()
     print(f"design written to {a.output} in {r['time_s']:.1f} s")
     if r.get("stretch_choice"):
@@ -165,8 +167,12 @@ def _cmd_design(a):
     if ref is not None:
         if ref.get("ok"):
             o = ref and r.get("open_loop", {}).get("deviation_pct_bbox")
-            print(f"refined in {ref['outer_iterations']} outer iterations, {ref['seconds']:.0f} s ({ref['reason']})"
-                  + (f"; open loop was {o[0]:.2f} / {o[1]:.2f} %" if o else ""))
+            if ref.get("kept") == "open loop":
+                print(f"refined in {ref['outer_iterations']} outer iterations, {ref['seconds']:.0f} s, not kept: "
+                      f"{ref['kept_note']}")
+            else:
+                print(f"refined in {ref['outer_iterations']} outer iterations, {ref['seconds']:.0f} s ({ref['reason']})"
+                      + (f"; open loop was {o[0]:.2f} / {o[1]:.2f} %" if o else ""))
         else:
             print(f"refinement failed, open-loop design kept: {ref['reason']}")
 
@@ -368,6 +374,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--stretch", type=_stretch, default=1.6,
                    help="fabric pre-stretch s, or 'auto': the shipped law's stretch that fits the target best")
     d.add_argument("--law", default=None, help="curvature-law CSV (default: the shipped inverse/data table)")
+    d.add_argument("--contraction", default="seed",
+                   help="how stretch maps to ribbon spacing: 'seed' (Eq. 5.15, default), 'table' (the shipped "
+                        "table of simulated patches at the stretch) or a contraction-table CSV")
     d.add_argument("--lam", type=_number(hi=0.0), default=0.0, help="line-field lambda of the seed (<= 0, 1/mm^2)")
     d.add_argument("--printer", default=None,
                    help="printer TOML (inverse.printer.Printer fields: bed_size, nozzle_mm, print_speed_mm_s, ...)")

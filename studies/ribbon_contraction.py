@@ -98,7 +98,7 @@ def run_patch(t, mu2, stretch, plastic, *, rows, motifs, mesh_size, across, max_
     c_al, c_ac = chord_stretch(sim, box)
     e1, e2 = stretch_from_spacing(mu1, mu2, stretch, RIBBON_LENGTH, RIBBON_WIDTH)
     st = curvature_state(sim, box)
-    return {"thickness_mm": t, "spacing_mm": mu2, "side": side, "mu1_mm": mu1, "stretch": stretch,
+    return {"thickness_mm": t, "spacing_mm": mu2, "side": side, "both_sides": bool(both_sides), "mu1_mm": mu1, "stretch": stretch,
             "rows": rows, "motifs": n_m, "patch_mm": [W, H], "mesh_size_mm": mesh_size, "across": across,
             "n_triangles": int(sheet.n_triangles), "converged": bool(sim.result.converged),
             "reason": sim.result.reason, "newton_iterations": int(sim.result.iterations),
@@ -130,7 +130,20 @@ def main(argv=None):
     ap.add_argument("--calibration", default=DEFAULT_CALIBRATION)
     ap.add_argument("--out", default=None, help="JSON file with all rows, the command and the git hash")
     ap.add_argument("--append", action="store_true", help="add the rows to an existing --out file")
+    ap.add_argument("--from-json", nargs="+", default=None,
+                    help="no simulation: read the rows of these --out files (for --table)")
+    ap.add_argument("--table", default=None,
+                    help="write the contraction table (inverse.contraction format) of the converged one-sided "
+                         "rows at --stretch and the first --thickness to this CSV")
     a = ap.parse_args(argv)
+    if a.from_json:
+        rows = []
+        for path in a.from_json:
+            with open(path) as f:
+                rows += json.load(f)["rows"]
+        if a.table:
+            write_table(a.table, rows, a.stretch, a.thickness[0], a.from_json)
+        return 0
     fabric = Fabric()
     ratio, se, _ = read_modulus_ratio(a.calibration)
     plastic = replace(Plastic(), young_modulus=ratio * fabric.young_modulus)
@@ -157,7 +170,30 @@ def main(argv=None):
         with open(a.out, "w") as f:
             json.dump(doc, f, indent=1)
             f.write("\n")
+    if a.table:
+        write_table(a.table, rows, a.stretch, a.thickness[0], [a.out or "(this run)"])
     return 0
+
+
+def write_table(path, rows, stretch, thickness, sources):
+    """The inverse.contraction table of the converged one-sided rows at (stretch, thickness)."""
+    from inverse.contraction import format_contraction, parse_contraction
+    keep = [r for r in rows if r.get("converged") and not r.get("both_sides") and r.get("side", "front") == "front"
+            and abs(r["stretch"] - stretch) < 1e-9 and abs(r["thickness_mm"] - thickness) < 1e-9]
+    data = sorted({(float(r["mu1_mm"]), float(r["spacing_mm"])): (float(r["sigma_along"]), float(r["sigma_across"]))
+                   for r in keep}.items())
+    head = ["selfshape contraction table: homogenised stretch (printed / deployed length) of staggered dashed-ribbon",
+            "patches (studies/ribbon_contraction.py: intrinsic, over the patch's central quarter) against the dash",
+            "period mu1 and row spacing mu2 (printed mm); sigma1 along the ribbons, sigma2 across",
+            f"rows from {', '.join(os.path.basename(str(x)) for x in sources)}, git {git_hash()}",
+            f"fabric_stretch = {stretch:g}", f"ribbon_length_mm = {RIBBON_LENGTH:g}",
+            f"ribbon_width_mm = {RIBBON_WIDTH:g}", f"thickness_mm = {thickness:g}"]
+    text = format_contraction([(k[0], k[1], v[0], v[1]) for k, v in data], head)
+    m = parse_contraction(text, path)          # refuses a table the design could not use
+    with open(path, "w") as f:
+        f.write(text)
+    print(f"{path}: {len(data)} patches, fit rms {m.rms[0]:.4f} / {m.rms[1]:.4f}, "
+          f"polygon {np.round(m.bounds(), 3).tolist()}", flush=True)
 
 
 if __name__ == "__main__":

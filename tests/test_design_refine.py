@@ -47,6 +47,51 @@ def test_failed_refinement_keeps_the_open_loop_design(tmp_path, monkeypatch):
     assert on_disk["refine"]["ok"] is False
 
 
+def test_a_refinement_that_deploys_worse_keeps_the_open_loop_design(tmp_path, monkeypatch):
+    """The refined thicknesses, released from flat, land farther from the target than the open
+    loop (here: a fake simulation flattens the sheet whenever a ribbon is not 0.4 mm): the
+    open-loop pattern and verification are written again, "refine" records both."""
+    from types import SimpleNamespace
+
+    import forward.simulate
+    import inverse.design_refine
+
+    V, F = cylinder_patch(n_arc=40, n_len=32)
+    target = write_obj(tmp_path / "c.obj", V, F)
+    real_design = design_module.design
+    box = {}
+
+    def keep(*args, **kw):
+        box["d"] = real_design(*args, **kw)
+        return box["d"]
+
+    def fake(pattern, **kw):
+        d = box["d"]
+        refined = any(abs(e.thickness_mm - 0.4) > 1e-9 for e in pattern.elements if e.thickness_mm > 0)
+        X = d.V * np.array([1.0, 1.0, 0.3]) if refined else d.V
+        sheet = SimpleNamespace(points=d.flat.uv, triangles=d.F, side=np.zeros(len(d.F), int))
+        summary = {"converged": True, "reason": "converged", "newton_iterations": 7, "n_triangles": len(d.F)}
+        return SimpleNamespace(sheet=sheet, positions=X, summary=lambda: summary)
+
+    def refine(d, *a, **k):
+        for r in d.ribbons:
+            r.thickness_mm = 0.6
+        return {"outer_iterations": 2, "reason": "test", "seconds": 0.0, "rounded": {}}
+    monkeypatch.setattr(design_module, "design", keep)
+    monkeypatch.setattr(forward.simulate, "simulate", fake)
+    monkeypatch.setattr(inverse.design_refine, "refine_design", refine)
+    rep = design_file(target, tmp_path / "out", refine=True, edge_mm=None)
+    ref = rep["refine"]
+    assert ref["ok"] and ref["kept"] == "open loop" and "kept" in ref["kept_note"]
+    assert ref["refined_released"]["deviation_pct_bbox"][0] > 1.0          # the flattened deployment
+    assert set(ref["refined_thickness_mm"]) == {0.6}
+    assert rep["deviation_pct_bbox"][1] < 1e-6 and rep["open_loop"]["deviation_pct_bbox"][1] < 1e-6
+    pat = load_pattern(tmp_path / "out" / "pattern.toml")
+    assert {e.thickness_mm for e in pat.elements if e.thickness_mm > 0} == {0.4}
+    on_disk = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert on_disk["refine"]["kept"] == "open loop" and on_disk["deviation_pct_bbox"][1] < 1e-6
+
+
 @pytest.mark.slow
 def test_refine_a_small_cap_lands_closer_than_the_open_loop(tmp_path):
     """40 mm spherical cap (sag 3.77 mm), 4k triangles, 3 outer iterations (~6 min on 2 cores).
