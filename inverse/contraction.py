@@ -19,14 +19,17 @@ Two models with one interface (``stretch_at``, ``spacing``, ``bounds``):
   table's spacing box. The fit must increase in both spacings over the
   box (more bare fabric contracts more), else the table is refused.
 
-Table format (``inverse/data/contraction_s<s>.csv``, like the curvature law): ``#`` provenance
+Shipped tables (``inverse/data/contraction_s<s>.csv``, used by `design` by default at their
+stretch) and measured ones kept for comparison (``contraction_measured_s<s>.csv``, given by
+path). Table format (like the curvature law): ``#`` provenance
 lines, of which ``# fabric_stretch = s``, ``# ribbon_length_mm = l``, ``# ribbon_width_mm = w``
 and ``# thickness_mm = t`` are read, then the header ``mu1_mm, mu2_mm, sigma1, sigma2`` (extra
 columns ignored) and at least 8 rows spanning at least 2 values of each spacing.
 
-Bounds (`bounds`): the seed model's are its box (geometry.flattening.stretch_bounds); a
-table's are the admissible (sigma1, sigma2) pairs as a polygon, the image of the spacing box's
-boundary under the fit. Its stretches move together (a wider row spacing contracts more along
+Bounds (`bounds`): Eq. 5.15's box (geometry.flattening.stretch_bounds) for both models, the
+table only choosing the spacings; with ``polygon_bounds`` a table's are the admissible
+(sigma1, sigma2) pairs as a polygon (`polygon`), the image of the spacing box's boundary under
+the fit. Its stretches move together (a wider row spacing contracts more along
 the ribbons too), so no box of useful size lies inside the set; the bounded flattening projects
 each face's stretches onto the polygon (geometry.flattening.project_stretches).
 """
@@ -100,6 +103,7 @@ class TableContraction:
     source: str = "<table>"
     provenance: list = field(default_factory=list)
     name: str = "simulated patches"
+    polygon_bounds: bool = False     # bounds(): the admissible polygon instead of Eq. 5.15's box
 
     def _eval(self, x, y):
         """Fitted (sigma1, sigma2) (..., 2) at (x, y) = (ln mu1, ln mu2) and d sigma / d(x, y)
@@ -166,15 +170,23 @@ class TableContraction:
         return mu[:, 0].reshape(shape), mu[:, 1].reshape(shape), (res <= tol).reshape(shape)
 
     def bounds(self, n: int = 8):
-        """The admissible stretches as a polygon ((4 n, 2); see the module): the fit on the
-        spacing box's boundary, n samples per side."""
+        """The flattening's bounds: Eq. 5.15's box (geometry.flattening.stretch_bounds), or with
+        ``polygon_bounds`` the admissible stretches as a polygon ((4 n, 2); see the module)."""
+        if not self.polygon_bounds:
+            from geometry.flattening import stretch_bounds
+            return stretch_bounds(self.stretch, self.ribbon_length, self.ribbon_width)
+        return self.polygon()
+
+    def polygon(self, n: int = 8):
+        """The admissible (sigma1, sigma2): the fit on the spacing box's boundary, n samples per side."""
         return _image_polygon(self, n)
 
     def describe(self) -> dict:
         return {"model": self.name, "table": os.path.basename(self.source), "stretch": self.stretch,
                 "thickness_mm": self.thickness, "mu1_range_mm": list(self.mu1_range),
                 "mu2_range_mm": list(self.mu2_range), "fit_rms": [round(r, 5) for r in self.rms],
-                "bounds_polygon": np.round(self.bounds(), 4).tolist()}
+                "bounds": "admissible polygon" if self.polygon_bounds else "seed Eq. 5.15 box",
+                "polygon": np.round(self.polygon(), 4).tolist()}
 
 
 def _image_polygon(model: "TableContraction", n: int):
@@ -289,22 +301,33 @@ def shipped_table(stretch: float, ribbon_length: float = 15.0, ribbon_width: flo
     return m
 
 
-def contraction_for(stretch: float, ribbon_length: float = 15.0, ribbon_width: float = 1.5, model="seed"):
-    """The contraction model of a design: ``model`` "seed" (Eq. 5.15), "table" (the shipped
-    table made at this stretch and ribbon size; a one-line error if there is none), a table
-    path, or a model object."""
-    if isinstance(model, SeedContraction):
-        return model
-    if isinstance(model, str) and model == "seed":
+def contraction_for(stretch: float, ribbon_length: float = 15.0, ribbon_width: float = 1.5, model="auto"):
+    """The contraction model of a design: ``model`` "auto" (the shipped table at this stretch and
+    ribbon size for the spacings, with Eq. 5.15's bounds; Eq. 5.15 where there is none), "seed"
+    (Eq. 5.15), "table" (the shipped table; a one-line error if there is none), "table-polygon"
+    (the same with the table's admissible polygon as the flattening's bounds), a table path (or
+    "PATH:polygon"), or a model object."""
+    if isinstance(model, (SeedContraction, TableContraction)):
+        m = model
+    elif model == "seed":
         return SeedContraction(stretch, ribbon_length, ribbon_width)
-    if isinstance(model, str) and model == "table":
+    elif model == "auto":
+        m = shipped_table(stretch, ribbon_length, ribbon_width)
+        return SeedContraction(stretch, ribbon_length, ribbon_width) if m is None else m
+    elif model in ("table", "table-polygon"):
         m = shipped_table(stretch, ribbon_length, ribbon_width)
         if m is None:
             have = ", ".join(f"{s:g}" for s in shipped_contractions()) or "none"
             raise SelfshapeError(f"contraction: no shipped table at fabric stretch {stretch:g} for {ribbon_length:g} x "
                                  f"{ribbon_width:g} mm ribbons (tables at stretch {have}); give a table file or 'seed'")
+        m.polygon_bounds = model == "table-polygon"
         return m
-    m = model if isinstance(model, TableContraction) else load_contraction(model)
+    else:
+        path, polygon = str(model), False
+        if path.endswith(":polygon"):
+            path, polygon = path[: -len(":polygon")], True
+        m = load_contraction(path)
+        m.polygon_bounds = polygon
     if abs(m.stretch - stretch) > 1e-9:
         raise SelfshapeError(f"{m.source}: the contraction table is made at fabric stretch {m.stretch:g}, "
                              f"the design is at {stretch:g}")

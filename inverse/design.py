@@ -182,9 +182,10 @@ class DesignOptions:
     (`inverse.separation.separate_ribbons`). layout_edge_mm: the ribbon layout runs on the
     coarsest level of the refinement hierarchy whose mean edge is below it (None: on the
     flattening's mesh). contraction: how stretches map to row spacings and which stretches a
-    pattern can realise (inverse.contraction.contraction_for): "seed" (Eq. 5.15, default),
-    "table" (the shipped table of simulated patches made at ``stretch``), a table path or a
-    model; it also gives the default ``bounds``. Whatever the model, the report's
+    pattern can realise (inverse.contraction.contraction_for): "auto" (default: the shipped
+    table of simulated patches at ``stretch`` for the spacings where there is one, else Eq.
+    5.15), "seed" (Eq. 5.15), "table", "table-polygon" (the table's admissible polygon as the
+    flattening's bounds too), a table path or a model; it also gives the default ``bounds``. Whatever the model, the report's
     ``contraction_check`` compares the layout's spacings with the shipped table at the stretch,
     where there is one."""
     stretch: float = 1.6
@@ -202,7 +203,7 @@ class DesignOptions:
     flatten_max_iter: int = 1000
     gap_mm: float = 0.5
     layout_edge_mm: float | None = 2.0
-    contraction: object = "seed"
+    contraction: object = "auto"
 
 
 def _check_fits_bed(uv, printer, ribbon_length, diagonal_mm, where):

@@ -145,7 +145,8 @@ def _cmd_design(a):
                     thickness_law=a.law, lam=a.lam, printer=printer, verify_iterations=a.verify_iterations,
                     refine=a.refine, mesh_size_mm=a.mesh_size, mesh_across=a.mesh_across, verbose=a.verbose,
                     contraction=a.contraction,
-                    inputs=[p for p in (a.printer, a.contraction) if p and p not in ("seed", "table")],
+                    inputs=[p for p in (a.printer, a.contraction.removesuffix(":polygon"))
+                            if p and p not in ("auto", "seed", "table", "table-polygon")],
                     progress=a.progress)
     a.progress.close()
     print(f"design written to {a.output} in {r['time_s']:.1f} s")
@@ -374,9 +375,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--stretch", type=_stretch, default=1.6,
                    help="fabric pre-stretch s, or 'auto': the shipped law's stretch that fits the target best")
     d.add_argument("--law", default=None, help="curvature-law CSV (default: the shipped inverse/data table)")
-    d.add_argument("--contraction", default="seed",
-                   help="how stretch maps to ribbon spacing: 'seed' (Eq. 5.15, default), 'table' (the shipped "
-                        "table of simulated patches at the stretch) or a contraction-table CSV")
+    d.add_argument("--contraction", default="auto",
+                   help="how stretch maps to ribbon spacing: 'auto' (default: the shipped table of simulated patches "
+                        "at the stretch where there is one, else the seed's Eq. 5.15), 'seed', 'table', "
+                        "'table-polygon' (its admissible stretches bound the flattening too) or a table CSV")
     d.add_argument("--lam", type=_number(hi=0.0), default=0.0, help="line-field lambda of the seed (<= 0, 1/mm^2)")
     d.add_argument("--printer", default=None,
                    help="printer TOML (inverse.printer.Printer fields: bed_size, nozzle_mm, print_speed_mm_s, ...)")
