@@ -281,13 +281,9 @@ def load_contraction(path) -> TableContraction:
 
 
 def shipped_contractions() -> dict:
-    """{stretch: path} of the tables in inverse/data."""
-    out = {}
-    for name in sorted(os.listdir(DATA_DIR)):
-        m = _SHIPPED.match(name)
-        if m:
-            out[float(m.group(1))] = os.path.join(DATA_DIR, name)
-    return out
+    """{stretch: path} of the tables in inverse/data (contraction_s<s>.csv)."""
+    from inverse.thickness_law import files_by_stretch
+    return files_by_stretch(DATA_DIR, _SHIPPED)
 
 
 def shipped_table(stretch: float, ribbon_length: float = 15.0, ribbon_width: float = 1.5):

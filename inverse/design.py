@@ -499,16 +499,18 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
         return
     rep["open_loop"] = {k: rep[k] for k in VERIFY_KEYS if k in rep}
     rep["open_loop"]["thickness_histogram"] = rep.get("thickness_histogram")
-    p_toml = out.file("pattern.toml")
-    raw2 = pattern_dict(d, seed=o.seed, target_name=name, **pattern_kw)
-    _write_design_files(out, d, raw2, o.printer, name + " (refined)")
-    rep.update(report_dict(d))
-    for k in VERIFY_KEYS:
-        rep.pop(k, None)
-    pattern2 = parse_pattern(raw2, p_toml, os.path.dirname(os.path.abspath(p_toml)))
-    if progress is not None:
-        progress({"stage": "verify"})
-    rep.update(verify_design(d, pattern2, out, progress=progress))
+    def write_and_verify(raw_, title):
+        """Write the design files of ``raw_`` and replace the report's verification by its own."""
+        p_toml = out.file("pattern.toml")
+        _write_design_files(out, d, raw_, o.printer, title)
+        rep.update(report_dict(d))
+        for k in VERIFY_KEYS:
+            rep.pop(k, None)
+        if progress is not None:
+            progress({"stage": "verify"})
+        rep.update(verify_design(d, parse_pattern(raw_, p_toml, os.path.dirname(os.path.abspath(p_toml))), out,
+                                 progress=progress))
+    write_and_verify(pattern_dict(d, seed=o.seed, target_name=name, **pattern_kw), name + " (refined)")
     near, rel = block.get("rounded", {}), rep.get("deviation_pct_bbox")
     if near.get("deviation_pct_bbox") and rel:
         # release from flat reaches the refined state if its deviations match the state nearest the target
@@ -527,14 +529,7 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
         block["refined_thickness_mm"] = [r.thickness_mm for r in d.ribbons]
         for r, t0 in zip(d.ribbons, before):
             r.thickness_mm = t0
-        _write_design_files(out, d, raw, o.printer, name)
-        rep.update(report_dict(d))
-        for k in VERIFY_KEYS:
-            rep.pop(k, None)
-        pattern0 = parse_pattern(raw, p_toml, os.path.dirname(os.path.abspath(p_toml)))
-        if progress is not None:
-            progress({"stage": "verify"})
-        rep.update(verify_design(d, pattern0, out, progress=progress))
+        write_and_verify(raw, name)
         block["kept"] = "open loop"
         block["kept_note"] = (f"the refined design deploys from flat farther from the target than the open loop "
                               f"(mean of both directions {_fmt(refined_score)} % against {open_score:.2f} %): "

@@ -172,14 +172,20 @@ def load_thickness_law(path=None) -> ThicknessLaw:
     return parse_thickness_law(text, path)
 
 
+def files_by_stretch(folder: str, pattern) -> dict:
+    """{fabric stretch: path} of the files in ``folder`` whose name matches ``pattern`` (a
+    compiled regex whose group 1 is the stretch), e.g. the shipped laws and contraction tables."""
+    out = {}
+    for name in sorted(os.listdir(folder)):
+        m = pattern.match(name)
+        if m:
+            out[float(m.group(1))] = os.path.join(folder, name)
+    return out
+
+
 def shipped_laws() -> dict:
     """{fabric stretch: path} of the laws shipped in ``inverse/data`` (thickness_law_s<s>.csv)."""
-    out = {}
-    for name in sorted(os.listdir(DATA_DIR)):
-        m = _SHIPPED.match(name)
-        if m:
-            out[float(m.group(1))] = os.path.join(DATA_DIR, name)
-    return out
+    return files_by_stretch(DATA_DIR, _SHIPPED)
 
 
 def law_for_stretch(stretch: float) -> ThicknessLaw:
