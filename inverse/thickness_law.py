@@ -341,7 +341,8 @@ def curvature_reach(law: ThicknessLaw, kappa, spacing_mm, side, length_mm, layer
         above = float(w[k > k_max].sum() / w.sum())
         out[s] = {"asked_per_mm": q, "law_range_per_mm": [k_min, k_max], "at_spacing_mm": mu_med,
                   "printable_thickness_mm": [t_lo, t_hi], "length_below_range": round(below, 4),
-                  "length_above_range": round(above, 4), "log_excess": round(excess, 4)}
+                  "length_above_range": round(above, 4), "log_excess": round(excess, 4),
+                  "law_thickness_mm": [float(tab.thickness.min()), float(tab.thickness.max())]}
         if diagonal_mm is not None and q["p50"] > 0:
             lo_d = max(lo_d, diagonal_mm * q["p50"] / k_max)
             hi_d = min(hi_d, diagonal_mm * q["p50"] / k_min) if k_min > 0 else hi_d
@@ -371,6 +372,13 @@ def reach_warning(reach: dict, threshold: float = 0.5) -> str | None:
                          f"(median {r['asked_per_mm']['p50']:.3g} 1/mm) than the law's highest {hi:.3g} 1/mm")
     if not parts:
         return None
+    # the law has a thicker row than the printer's layers can print (e.g. 0.5 mm with 0.2 mm layers)
+    thicker = [r for s in SIDES if (r := reach.get(s)) and r["length_below_range"] > threshold
+               and r.get("law_thickness_mm") and r["law_thickness_mm"][1] > r["printable_thickness_mm"][1] + 1e-9]
+    if thicker:
+        t = max(r["law_thickness_mm"][1] for r in thicker)
+        parts.append(f"the law's {t:g} mm row is not a multiple of the printer's layers: a printer file with finer "
+                     f"layers (--printer, e.g. inverse/data/printers/layer_0.1mm.toml) reaches lower curvature")
     rng = reach.get("diagonal_in_range_mm")
     if rng:
         hint = f"; at a diagonal of {rng[0]:.0f}-{rng[1]:.0f} mm (--diagonal) it would be in range"

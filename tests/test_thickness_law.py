@@ -344,3 +344,9 @@ def test_curvature_reach_fractions_and_size_hint():
     assert r["diagonal_in_range_mm"] is None                   # it would need < 60 mm
     assert "100 % of the ribbon length asks for less curvature" in reach_warning(r)
     assert "no size of this target" in reach_warning(r)
+    assert "finer layers" not in reach_warning(r)            # 1.0 mm, the law's thickest, is printable
+    # with 0.3 mm layers the thickest printable row is 0.9 mm: the warning names the finer printer
+    r = curvature_reach(law, kappa / 10, [6.0] * 4, ["front"] * 4, length, 0.3, diagonal_mm=100.0,
+                        min_diagonal_mm=60.0)
+    assert r["front"]["law_thickness_mm"][1] == 1.0 and r["front"]["printable_thickness_mm"][1] < 1.0
+    assert "the law's 1 mm row is not a multiple of the printer's layers" in reach_warning(r)
