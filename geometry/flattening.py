@@ -50,6 +50,12 @@ def stretch_bounds(s: float = 1.6, ribbon_length: float = 15.0, ribbon_width: fl
     return s1min, mid, mid, float(s2max)
 
 
+def polygon_area(P: np.ndarray) -> float:
+    """Signed area of the polygon P (k, 2) (shoelace; > 0 counter-clockwise)."""
+    e = np.roll(P, -1, axis=0)
+    return 0.5 * float(np.sum(P[:, 0] * e[:, 1] - e[:, 0] * P[:, 1]))
+
+
 def _check_bounds(bounds):
     """A box (s1min, s1max, s2min, s2max) as a tuple, or a simple polygon of (sigma1, sigma2)
     vertices as a (k, 2) array (inverse.contraction: what a pattern's spacings realise)."""
@@ -57,8 +63,7 @@ def _check_bounds(bounds):
     if a.ndim == 2:
         if a.shape[1] != 2 or len(a) < 3 or not np.isfinite(a).all() or a.min() <= 0:
             raise SelfshapeError(f"flatten: polygon bounds must be (k >= 3, 2) positive stretches, got shape {a.shape}")
-        e = np.roll(a, -1, axis=0)
-        if not abs(np.sum(a[:, 0] * e[:, 1] - e[:, 0] * a[:, 1])) > 0:
+        if not abs(polygon_area(a)) > 0:
             raise SelfshapeError("flatten: polygon bounds enclose no area")
         return a
     b = tuple(float(x) for x in np.ravel(a))

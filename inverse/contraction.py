@@ -165,9 +165,8 @@ class TableContraction:
             lam = np.where(ok, lam * 0.3, lam * 10.0)
             if np.all((ok & (np.abs(dz).max(1) < 1e-12)) | (lam > 1e8) | (cost < 1e-24)):
                 break
-        res = np.linalg.norm(self._eval(z[:, 0], z[:, 1])[0] - want, axis=1)
         mu = np.exp(z)
-        return mu[:, 0].reshape(shape), mu[:, 1].reshape(shape), (res <= tol).reshape(shape)
+        return mu[:, 0].reshape(shape), mu[:, 1].reshape(shape), (np.sqrt(cost) <= tol).reshape(shape)
 
     def bounds(self, n: int = 8):
         """The flattening's bounds: Eq. 5.15's box (geometry.flattening.stretch_bounds), or with
@@ -175,7 +174,7 @@ class TableContraction:
         if not self.polygon_bounds:
             from geometry.flattening import stretch_bounds
             return stretch_bounds(self.stretch, self.ribbon_length, self.ribbon_width)
-        return self.polygon()
+        return self.polygon(n)
 
     def polygon(self, n: int = 8):
         """The admissible (sigma1, sigma2): the fit on the spacing box's boundary, n samples per side."""
@@ -197,9 +196,9 @@ def _image_polygon(model: "TableContraction", n: int):
     l1, l2 = np.log(model.mu1_range), np.log(model.mu2_range)
     x = np.r_[l1[0] + g * (l1[1] - l1[0]), np.full(n, l1[1]), l1[1] - g * (l1[1] - l1[0]), np.full(n, l1[0])]
     y = np.r_[np.full(n, l2[0]), l2[0] + g * (l2[1] - l2[0]), np.full(n, l2[1]), l2[1] - g * (l2[1] - l2[0])]
+    from geometry.flattening import polygon_area
     P = np.column_stack(model.stretch_at(np.exp(x), np.exp(y)))
-    e = np.roll(P, -1, axis=0)
-    if not abs(np.sum(P[:, 0] * e[:, 1] - e[:, 0] * P[:, 1])) > 1e-12:
+    if not abs(polygon_area(P)) > 1e-12:
         raise SelfshapeError(f"contraction {model.source}: the table realises no range of stretches "
                              "(sigma1 and sigma2 move together over its whole spacing box)")
     return P
@@ -333,21 +332,19 @@ def contraction_for(stretch: float, ribbon_length: float = 15.0, ribbon_width: f
     return m
 
 
-def realisation_check(table: TableContraction, sigma1, sigma2, mu1, mu2, area, tol: float = 0.01) -> dict:
+def realisation_check(table: TableContraction, sigma1, sigma2, area, mu1=None, mu2=None, tol: float = 0.01) -> dict:
     """How far the stretches a layout asks for (sigma1, sigma2 per face) are from what its
-    spacings (mu1, mu2 per face, mm) realise by the simulated table: area-weighted median and
-    90th percentile of |realised - asked| per direction, the area fraction (%) whose asked pair
-    lies within ``tol`` of the table's realisable set, and the table's file."""
+    spacings (mu1, mu2 per face, mm; None: the table's own nearest spacings) realise by the
+    simulated table: area-weighted median and 90th percentile of |realised - asked| per
+    direction, the area fraction (%) whose asked pair lies within ``tol`` of the table's
+    realisable set, and the table's file."""
+    from inverse.thickness_law import weighted_quantile
     w = np.asarray(area, float)
     w = w / w.sum()
-    r1, r2 = table.stretch_at(mu1, mu2)
+    t1, t2, ok = table.spacing(sigma1, sigma2, tol=tol)
+    r1, r2 = table.stretch_at(t1 if mu1 is None else mu1, t2 if mu2 is None else mu2)
     e1, e2 = np.abs(r1 - sigma1), np.abs(r2 - sigma2)
-    _, _, ok = table.spacing(sigma1, sigma2, tol=tol)
-
-    def wq(x, q):
-        i = np.argsort(x)
-        c = np.cumsum(w[i])
-        return float(x[i][min(np.searchsorted(c, q), len(x) - 1)])
+    wq = lambda x, q: weighted_quantile(x, w, q)  # noqa: E731
     return {"table": os.path.basename(table.source), "realisable_area_pct": round(100.0 * float(w[ok].sum()), 2),
             "sigma1_error_median_p90": [round(wq(e1, 0.5), 4), round(wq(e1, 0.9), 4)],
             "sigma2_error_median_p90": [round(wq(e2, 0.5), 4), round(wq(e2, 0.9), 4)],

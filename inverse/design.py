@@ -185,9 +185,9 @@ class DesignOptions:
     pattern can realise (inverse.contraction.contraction_for): "auto" (default: the shipped
     table of simulated patches at ``stretch`` for the spacings where there is one, else Eq.
     5.15), "seed" (Eq. 5.15), "table", "table-polygon" (the table's admissible polygon as the
-    flattening's bounds too), a table path or a model; it also gives the default ``bounds``. Whatever the model, the report's
-    ``contraction_check`` compares the layout's spacings with the shipped table at the stretch,
-    where there is one."""
+    flattening's bounds too), a table path or a model; it also gives the default ``bounds``.
+    Whatever the model, the report's ``contraction.check`` compares the layout's spacings with
+    the shipped table at the stretch, where there is one."""
     stretch: float = 1.6
     diagonal_mm: float | None = 110.0
     printer: object = None
@@ -349,9 +349,10 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
         shipped_table(stretch, ribbon_length, ribbon_width)
     check = None
     if table is not None:
-        Fl = Ff if F_l is None else F_l
-        mu1_l, mu2_l, _ = contraction.spacing(s1_l, s2_l)
-        check = realisation_check(table, s1_l, s2_l, mu1_l, mu2_l, np.abs(signed_areas(uv_l, Fl)))
+        area_l = np.abs(signed_areas(uv_l, Ff if F_l is None else F_l))
+        # the table as the model: its own nearest spacings; else the model's
+        mu_l = (None, None) if contraction is table else contraction.spacing(s1_l, s2_l)[:2]
+        check = realisation_check(table, s1_l, s2_l, area_l, *mu_l)
     if not ribbons:
         raise SelfshapeError(f"{where}: the layout produced no ribbons (surface too small for "
                              f"{ribbon_length:g} x {ribbon_width:g} mm ribbons?)")
@@ -470,7 +471,7 @@ def _fmt(x) -> str:
 
 
 def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smoothness, verbose, pattern_kw,
-                        raw=None, progress=None):
+                        raw, progress=None):
     """The --refine stage of design_file: refine, then rewrite pattern.toml, G-code, pattern.png
     and the verification (into the OutputDir ``out``) for the rounded refined thicknesses; on
     failure keep the open-loop design and record why (report "refine": {"ok": false, "reason": ...}).

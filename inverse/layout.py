@@ -23,7 +23,6 @@ import shapely
 from geometry.elements import Ribbon
 from geometry.meshops import mesh_edges
 from geometry.stripes import isoline_set, stripe_field
-from inverse.spacing import ribbon_spacing
 from shellfem.errors import SelfshapeError
 
 
@@ -351,7 +350,7 @@ def ribbon_layout(uv, F, dir1, sigma1, sigma2, kappa1, s: float, outline=None,
     "kappa_mean_abs" (length-weighted mean |kappa1|), "mu2" (local transverse spacing, mm),
     "mu1" (local dash period, mm), "grid" ("A" or "B").
     ``contraction``: the model that maps the stretches to the spacings (inverse.contraction;
-    None: the seed's Eq. 5.15, inverse.spacing.ribbon_spacing).
+    None: the seed's Eq. 5.15, inverse.contraction.SeedContraction).
     """
     uv = np.asarray(uv, dtype=float)
     F = np.asarray(F)
@@ -377,9 +376,9 @@ def ribbon_layout(uv, F, dir1, sigma1, sigma2, kappa1, s: float, outline=None,
     sigma1 = np.where((sigma1 < 1.0) & (sigma1 >= 1.0 - bound_tol), 1.0, sigma1)
     sigma2 = np.where((sigma2 < 1.0) & (sigma2 >= 1.0 - bound_tol), 1.0, sigma2)
     if contraction is None:
-        mu1, mu2 = ribbon_spacing(sigma1, sigma2, s, ribbon_length, ribbon_width)
-    else:
-        mu1, mu2, _ = contraction.spacing(sigma1, sigma2)
+        from inverse.contraction import SeedContraction
+        contraction = SeedContraction(s, ribbon_length, ribbon_width)
+    mu1, mu2, _ = contraction.spacing(sigma1, sigma2)
     region = _outline_polygon(outline, uv, F)
 
     e1, e2 = uv[F[:, 1]] - uv[F[:, 0]], uv[F[:, 2]] - uv[F[:, 0]]

@@ -183,6 +183,15 @@ def files_by_stretch(folder: str, pattern) -> dict:
     return out
 
 
+def weighted_quantile(x, w, q: float) -> float:
+    """The ``q`` quantile of the values x (n,) weighted by w (n,): the smallest x whose
+    cumulative weight fraction reaches q."""
+    x, w = np.asarray(x, float), np.asarray(w, float)
+    order = np.argsort(x)
+    cw = np.cumsum(w[order]) / w.sum()
+    return float(x[order][min(np.searchsorted(cw, q), len(x) - 1)])
+
+
 def shipped_laws() -> dict:
     """{fabric stretch: path} of the laws shipped in ``inverse/data`` (thickness_law_s<s>.csv)."""
     return files_by_stretch(DATA_DIR, _SHIPPED)
@@ -327,9 +336,7 @@ def curvature_reach(law: ThicknessLaw, kappa, spacing_mm, side, length_mm, layer
         if not m.any() or s not in law.sides:
             continue
         k, w = np.abs(kappa[m]), length_mm[m]
-        order = np.argsort(k)
-        cw = np.cumsum(w[order]) / w.sum()
-        q = {f"p{int(p * 100)}": float(k[order][min(np.searchsorted(cw, p), len(k) - 1)]) for p in (0.1, 0.5, 0.9)}
+        q = {f"p{int(p * 100)}": weighted_quantile(k, w, p) for p in (0.1, 0.5, 0.9)}
         mu_med = float(np.median(spacing_mm[m]))
         tab = law.table(s)
         t_lo, t_hi = printable_range(tab, layer_height_mm)
