@@ -16,6 +16,12 @@ from scipy.sparse.csgraph import connected_components
 
 from shellfem.errors import SelfshapeError
 
+try:  # CHOLMOD (scikit-sparse) when installed; loaded with this module so that a caller's BLAS
+    # thread limit (threadpoolctl) also holds the BLAS it brings
+    from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
+except ImportError:  # pragma: no cover - optional dependency
+    cholesky = None
+
 
 class NotPositiveDefiniteError(SelfshapeError):
     """The sparse Cholesky factorisation met a non-positive pivot."""
@@ -206,9 +212,7 @@ def factorize(A: sp.spmatrix, ordering: str = "default", check_definite: bool = 
     that the pivots are D, and refuses a non-positive or zero one).
     """
     A = sp.csc_matrix(A)
-    try:
-        from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
-    except ImportError:  # pragma: no cover - optional dependency
+    if cholesky is None:  # pragma: no cover - optional dependency
         from scipy.sparse.linalg import splu
 
         if not check_definite:

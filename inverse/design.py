@@ -41,6 +41,7 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from geometry.meshops import face_areas, signed_areas
 from inverse.plots import plot_pattern
@@ -243,6 +244,11 @@ def _check_curved(V, where: str) -> None:
 DESIGN_STAGES = ("load and refine", "curvature", "line field", "flattening", "ribbon layout", "thickness")
 
 
+# The design is the same at every thread count: multithreaded OpenBLAS (CHOLMOD's supernodal
+# factorisations and numpy's products) sums in an order that depends on the thread count, and the
+# flattening's iterations carry that round-off into an outline up to ~0.01 mm apart, which a
+# multistable sheet can turn into another equilibrium. One BLAS thread here (restored on return).
+@threadpool_limits.wrap(limits=1, user_api="blas")
 def design(V, F, options: DesignOptions | None = None, *, where: str = "target", progress=None,
            **overrides) -> Design:
     """Inverse design of a disk-topology target (V (n, 3), F (m, 3)); see the module doc.
