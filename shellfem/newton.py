@@ -43,11 +43,12 @@ not converged, with the reason.
 """
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from shellfem.assembly import BlockScatter, PatternUnion, reduce_upper, symmetric_matvec
 from shellfem.corotational import RotationPath, rotate
@@ -160,10 +161,21 @@ class NewtonOptions:
         return DEFAULT_METRIC_FLOOR if self.metric_floor is None else self.metric_floor
 
 
-# numpy's OpenBLAS threads busy-wait after its many small batched products and take the
-# second core from the compiled kernels and PARDISO: one OpenBLAS thread while solving
-# (restored on return)
-@threadpool_limits.wrap(limits={"openblas": 1})
+def _one_openblas_thread(solve):
+    """Run ``solve`` with every loaded OpenBLAS (numpy's, scipy's, CHOLMOD's) on one thread.
+
+    OpenBLAS threads busy-wait after the many small batched products of the assembly and take
+    the second core from the compiled kernels and PARDISO, and their round-off depends on the
+    thread count; MKL (PARDISO) keeps its threads. The libraries are looked up at each call
+    (a solver backend may load its BLAS after import); the counts are restored on return."""
+    @functools.wraps(solve)
+    def limited(*args, **kwargs):
+        with ThreadpoolController().select(internal_api="openblas").limit(limits=1):
+            return solve(*args, **kwargs)
+    return limited
+
+
+@_one_openblas_thread
 def newton(model, q0: np.ndarray, free: np.ndarray, **options) -> SolveResult:
     """Minimise model energy over the DOFs where ``free`` is True, starting from q0.
 

@@ -49,8 +49,9 @@ def test_simulate_strip():
     assert out["converged"] == "True"
     # with self-contact (on by default): the strip's ends, which pass through each other without
     # it (27 iterations, 4.40077 N mm, bbox 7.80 x 3.86 x 7.83; tests/test_contact.py), are held
-    # a thickness apart
-    assert int(out["iterations"]) == 49
+    # a thickness apart; the contact's step filter makes the count move by one or two with BLAS
+    # round-off (49 with multithreaded OpenBLAS in the solver, 50 with one thread), the state not
+    assert 45 <= int(out["iterations"]) <= 55
     assert int(out["vertices"]) == 155
     assert float(out["energy_nmm"]) == pytest.approx(4.40742, rel=1e-4)
     assert float(out["curvature_k1_per_mm"]) == pytest.approx(-0.23109, abs=2e-5)

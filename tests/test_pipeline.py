@@ -202,9 +202,10 @@ def test_written_ribbons_are_separated_and_inside(written):
     assert 0.6 < rep["printed_over_asked_area"] <= 1.05
     sep = rep["ribbons_separated"]
     # which few centre lines end up too short after clipping is decided by tie-level float
-    # differences between machines (0 dropped on one, 2 of ~100 on another, same versions): the
-    # invariant is that separation removes few, and the printed area above holds
-    assert 10 <= sep["clipped"] <= 40 and sep["trimmed"] <= 2 and sep["dropped"] <= 0.05 * rep["n_ribbons"]
+    # differences between machines and BLAS kernels (same versions: 0 dropped on one machine; on
+    # an AMD EPYC 2 of 124 with OpenBLAS's Sandybridge kernels, 7 of 115 with its Haswell or Zen
+    # kernels): the invariant is that separation removes few, and the printed area above holds
+    assert 10 <= sep["clipped"] <= 40 and sep["trimmed"] <= 2 and sep["dropped"] <= 0.08 * rep["n_ribbons"]
 
 
 def test_separate_ribbons_trims_overlaps_and_clips():

@@ -109,3 +109,32 @@ def test_lm_metric_floors_each_dof_kind_at_its_own_median():
     assert np.allclose(D[:5], [10 * med_pos] * 3 + [1000.0 + shift, 10 * med_pos])
     assert np.allclose(D[5:], 10 * med_ang)
     assert (D > 0).all() and (D >= plain).all()
+
+
+def test_newton_runs_with_one_openblas_thread_and_restores_the_count(monkeypatch):
+    # OpenBLAS round-off depends on its thread count, and its busy-waiting threads take the
+    # second core from PARDISO: the solver holds every loaded OpenBLAS to one thread
+    from threadpoolctl import ThreadpoolController
+    import sksparse.cholmod  # noqa: F401  (loads the system OpenBLAS CHOLMOD uses)
+    import shellfem.newton as nt
+
+    openblas = ThreadpoolController().select(internal_api="openblas")
+    if not openblas.lib_controllers:
+        pytest.skip("no OpenBLAS loaded")
+    with openblas.limit(limits=2):
+        before = [c.num_threads for c in ThreadpoolController().select(internal_api="openblas").lib_controllers]
+        seen = []
+
+        class Recorder:
+            def __init__(self, *args):
+                pass
+
+            def solve(self):
+                seen.extend(c.num_threads for c in ThreadpoolController().select(internal_api="openblas").lib_controllers)
+                return "solved"
+
+        monkeypatch.setattr(nt, "_Newton", Recorder)
+        assert nt.newton(None, None, None) == "solved"
+        after = [c.num_threads for c in ThreadpoolController().select(internal_api="openblas").lib_controllers]
+    assert seen and all(n == 1 for n in seen)
+    assert after == before
