@@ -118,11 +118,14 @@ def test_newton_runs_with_one_openblas_thread_and_restores_the_count(monkeypatch
     import sksparse.cholmod  # noqa: F401  (loads the system OpenBLAS CHOLMOD uses)
     import shellfem.newton as nt
 
+    def counts():
+        return [c.num_threads for c in ThreadpoolController().select(internal_api="openblas").lib_controllers]
+
     openblas = ThreadpoolController().select(internal_api="openblas")
     if not openblas.lib_controllers:
         pytest.skip("no OpenBLAS loaded")
     with openblas.limit(limits=2):
-        before = [c.num_threads for c in ThreadpoolController().select(internal_api="openblas").lib_controllers]
+        before = counts()
         seen = []
 
         class Recorder:
@@ -130,11 +133,11 @@ def test_newton_runs_with_one_openblas_thread_and_restores_the_count(monkeypatch
                 pass
 
             def solve(self):
-                seen.extend(c.num_threads for c in ThreadpoolController().select(internal_api="openblas").lib_controllers)
+                seen.extend(counts())
                 return "solved"
 
         monkeypatch.setattr(nt, "_Newton", Recorder)
         assert nt.newton(None, None, None) == "solved"
-        after = [c.num_threads for c in ThreadpoolController().select(internal_api="openblas").lib_controllers]
+        after = counts()
     assert seen and all(n == 1 for n in seen)
     assert after == before
