@@ -321,7 +321,12 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
         exact_model.contact = model.contact          # the finest level's Contact (stiffness, exclusions)
         model = exact_model
         usable = result.converged or result.reason == MAX_ITERATIONS_REASON
-        q_exact = result.q if usable else q
+        if usable:
+            q_exact = result.q
+        else:       # the supports at their positions, their motion carried as the release does
+            q_exact = q.copy()
+            q_exact[fixed] = values
+            q_exact = carry_support_motion(model, q_exact, q, fixed, free)
         if progress is not None:
             progress({"stage": "level", "level": len(sheets) + 1, "levels": len(sheets) + 1,
                       "n_vertices": int(sheet.n_vertices), "metric": "exact"})
@@ -339,6 +344,9 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
                              f"shortened by more than {np.sqrt(RHO_TRUNCATED):.0%}, where the exact metric is "
                              "faded out): a folded state, not an elastic equilibrium")
     result.iterations = total_it
+    if result.converged and len(fixed) and np.max(np.abs(result.q[fixed] - values)) > 1e-9 * (1.0 + np.abs(values).max()):
+        result.converged = False
+        result.reason = "the supports did not reach their positions: no equilibrium with them held there was found"
     if len(level_log) > 1:
         result.timings = {**sums, "levels": level_log}
     if result.converged and len(gauge):
@@ -377,7 +385,8 @@ def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=F
         mi = max_iterations or pattern.max_iterations
         sim = simulate_sheet(rm.sheet, pattern.fabric, pattern.plastic, pattern.supports,
                              seed=pattern.seed if seed is None else seed, max_iterations=mi, verbose=verbose,
-                             metric_floor=pattern.metric_floor, progress=progress, model_factory=factory)
+                             metric_floor=pattern.metric_floor, progress=progress, model_factory=factory,
+                             release_steps=getattr(pattern, "release_steps", 1))
         return sim
     sheet = mesh_pattern(pattern, size_mm=size_mm)
     levels = getattr(pattern, "coarse_levels", "auto") if coarse_levels is None else coarse_levels
@@ -386,7 +395,8 @@ def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=F
     return simulate_sheet(sheet, pattern.fabric, pattern.plastic, pattern.supports,
                           seed=pattern.seed if seed is None else seed, max_iterations=mi, verbose=verbose,
                           metric_floor=pattern.metric_floor, coarse=coarse, progress=progress,
-                          contact=getattr(pattern, "contact", True), ground=getattr(pattern, "ground", None))
+                          release_steps=getattr(pattern, "release_steps", 1), contact=getattr(pattern, "contact", True),
+                          ground=getattr(pattern, "ground", None))
 
 
 def simulate_pattern_file(pattern_path, out_dir, *, size_mm=None, seed=None, render=True, max_iterations=None,

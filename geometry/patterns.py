@@ -89,7 +89,9 @@ class Pattern:
     solver's symmetry-breaking seed. max_iterations: the Newton cap ([solver] max_iterations,
     default 300). metric_floor: the solver's trust-region metric floor ([solver] metric_floor;
     None when absent, meaning the solver's default, shellfem.newton.lm_metric). coarse_levels: coarser meshes solved first ([solver]
-    coarse_levels, "auto" or an integer >= 0, 0 = none; see shellfem.multilevel). solver_model:
+    coarse_levels, "auto" or an integer >= 0, 0 = none; see shellfem.multilevel). release_steps:
+    continuation steps over which the release ramps the pre-stretch, the plastic's set and the
+    supports' motion ([solver] release_steps, default 1). solver_model:
     [solver] model, "shell" (default: printed areas as bilayer shell regions) or "rods" (the
     seed's chapter-3 model: rods on the centre lines of stars and ribbons on a bare fabric,
     shellfem.rods). source: file path or "<dict>". raw: the parsed TOML
@@ -109,6 +111,7 @@ class Pattern:
     max_iterations: int = 300
     metric_floor: float | None = None
     coarse_levels: int | str = "auto"
+    release_steps: int = 1
     solver_model: str = "shell"
     contact: bool = True
     ground: float | None = None
@@ -476,6 +479,7 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".", from_file
     solver = _table(raw.get("solver", {}), f"{src}: [solver]", SOLVER_KEYS)
     seed, cap, floor = solver_options(solver, f"{src}: [solver]")
     levels = coarse_levels_option(solver, f"{src}: [solver]")
+    release_steps = _num(solver, "release_steps", f"{src}: [solver]", 1, "solver")
     model = _choice(solver, "model", f"{src}: [solver]", SOLVER_MODELS, "shell")
     _table(raw.get("meta", {}), f"{src}: [meta]", None)
     fabric, outline = _fabric(raw, src, mesh_size)
@@ -490,7 +494,8 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".", from_file
         check_printed(elements, fabric, src)
     return Pattern(fabric=fabric, plastic=plastic, outline=outline, elements=elements, supports=supports,
                    mesh_size=mesh_size, seed=seed, mesh_across=across, max_iterations=cap,
-                   metric_floor=floor, coarse_levels=levels, solver_model=model, contact=contact, ground=ground,
+                   metric_floor=floor, coarse_levels=levels, release_steps=release_steps, solver_model=model,
+                   contact=contact, ground=ground,
                    source=src,
                    raw=raw)
 

@@ -157,6 +157,7 @@ PATTERN_NUMBERS: dict[str, dict[str, Num]] = {
         "max_iterations": Num(1, 100_000, "", "Newton iterations per mesh level", integer=True),
         "metric_floor": Num(0.0, 1e6, "", "multiples of the median Hessian diagonal"),
         "coarse_levels": Num(0, 20, "", "or \"auto\"", integer=True),
+        "release_steps": Num(1, 100, "", "continuation steps of the release", integer=True),
     },
     "ground": {
         "height_mm": Num(-COORD_MAX_MM, COORD_MAX_MM, _LEN, "the plane z = height under the sheet's mid-surface"),

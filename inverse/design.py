@@ -477,6 +477,40 @@ def _fmt(x) -> str:
     return "n/a (not converged)" if x is None else f"{x:.2f}"
 
 
+#: (posts, release steps) of the jig releases tried in turn: more posts hold more of the shape,
+#: continuation steps move them from flat in smaller increments
+JIG_TRIALS = ((4, 1), (8, 1), (8, 4))
+
+
+def _try_jig(block, rep, candidates, printed_points, near_x, refined_raw, name, write_and_verify, reaches_near):
+    """Release the refined design held on jig posts (inverse.jig) at its state nearest the target,
+    with the JIG_TRIALS posts and release steps in turn until one reaches that state; records block["jig"] (posts, the
+    deviations, the largest post reaction in N, whether the state was reached) and, when reached,
+    candidates["jig"] = (score, verification, pattern dict with the posts as [[support]])."""
+    from inverse.jig import jig_supports, support_reactions
+
+    tried = []
+    for k, steps in JIG_TRIALS:
+        raw_j = {**refined_raw, "support": jig_supports(printed_points, near_x, k)}
+        if steps > 1:
+            raw_j["solver"] = {**raw_j.get("solver", {}), "release_steps": steps}
+        sims_j: list = []
+        write_and_verify(raw_j, name + " (refined, on a jig)", sims_j)
+        reached = reaches_near(rep)
+        reaction = float(support_reactions(sims_j[0]).max(initial=0.0)) if sims_j and rep.get("verify_converged") \
+            else None
+        tried.append({"posts": k, "release_steps": steps, "reached": bool(reached), "max_post_reaction_n": reaction,
+                      **{key: rep.get(key) for key in ("deviation_pct_bbox", "deviation_target_to_deployed_pct_bbox",
+                                                       "verify_newton_iterations", "verify_reason")}})
+        if reached:
+            candidates["jig"] = (_deviation_score(rep), {key: rep[key] for key in VERIFY_KEYS if key in rep}, raw_j)
+            block["jig"] = {**tried[-1], "tried": tried}
+            return
+    block["jig"] = {"posts": None, "reached": False, "tried": tried,
+                    "note": "no jig tried (posts, release steps: " + ", ".join(map(str, JIG_TRIALS))
+                            + ") selected the refined state"}
+
+
 def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smoothness, verbose, pattern_kw,
                         raw, progress=None):
     """The --refine stage of design_file: refine, then rewrite pattern.toml, G-code, pattern.png
@@ -484,7 +518,10 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
     failure keep the open-loop design and record why (report "refine": {"ok": false, "reason": ...}).
     A refined design whose release from flat deploys farther from the target than the open loop
     (mean of both one-way mean deviations) is not kept either: the open-loop files (``raw``, its
-    pattern dict) are written again and re-verified, and "refine" records both ("kept")."""
+    pattern dict) are written again and re-verified, and "refine" records both ("kept"). When
+    release from flat misses the refined state (the equilibrium nearest the target), the
+    release is tried again held on jig posts at that state (_try_jig); a jig that reaches it and
+    deploys nearest the target is written into pattern.toml as [[support]] ("refined, on a jig")."""
     from geometry.patterns import parse_pattern
     from inverse.design_refine import refine_design
     from inverse.printer import Printer
@@ -497,8 +534,8 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
         return
     before = [r.thickness_mm for r in d.ribbons]
     try:
-        block = refine_design(d, pattern, sims[0], printer, refine_options, smoothness=smoothness, verbose=verbose,
-                              progress=progress)
+        block, near_x = refine_design(d, pattern, sims[0], printer, refine_options, smoothness=smoothness,
+                                      verbose=verbose, progress=progress)
     except SelfshapeError as e:
         for r, t0 in zip(d.ribbons, before):
             r.thickness_mm = t0
@@ -507,7 +544,8 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
         return
     rep["open_loop"] = {k: rep[k] for k in VERIFY_KEYS if k in rep}
     rep["open_loop"]["thickness_histogram"] = rep.get("thickness_histogram")
-    def write_and_verify(raw_, title):
+
+    def write_and_verify(raw_, title, sims_=None):
         """Write the design files of ``raw_`` and replace the report's verification by its own."""
         p_toml = out.file("pattern.toml")
         _write_design_files(out, d, raw_, o.printer, title)
@@ -517,33 +555,53 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
         if progress is not None:
             progress({"stage": "verify"})
         rep.update(verify_design(d, parse_pattern(raw_, p_toml, os.path.dirname(os.path.abspath(p_toml))), out,
-                                 progress=progress))
-    write_and_verify(pattern_dict(d, seed=o.seed, target_name=name, **pattern_kw), name + " (refined)")
-    near, rel = block.get("rounded", {}), rep.get("deviation_pct_bbox")
-    if near.get("deviation_pct_bbox") and rel:
-        # release from flat reaches the refined state if its deviations match the state nearest the target
-        same = all(abs(a - b) <= 0.25 + 0.1 * b for a, b in zip(rel + rep["deviation_target_to_deployed_pct_bbox"],
-                   near["deviation_pct_bbox"] + near["deviation_target_to_deployed_pct_bbox"]))
-        block["release_reaches_refined_state"] = bool(same)
-        if not same:
-            block["release_note"] = ("release from flat lands in another equilibrium than the one nearest the target; "
-                                     "[[support]] pins at the target's positions would select the intended branch")
-    refined_score = _deviation_score(rep)
+                                 sims=sims_, progress=progress))
+    refined_raw = pattern_dict(d, seed=o.seed, target_name=name, **pattern_kw)
+    write_and_verify(refined_raw, name + " (refined)")
+    near = block.get("rounded", {})
+
+    def reaches_near(rep_):
+        """Release reaches the refined state if its deviations match the state nearest the target."""
+        rel = rep_.get("deviation_pct_bbox")
+        if not (near.get("deviation_pct_bbox") and rel and rep_.get("verify_converged")):
+            return False
+        return all(abs(a - b) <= 0.25 + 0.1 * b for a, b in zip(
+            rel + rep_["deviation_target_to_deployed_pct_bbox"],
+            near["deviation_pct_bbox"] + near["deviation_target_to_deployed_pct_bbox"]))
+    if near.get("deviation_pct_bbox"):
+        block["release_reaches_refined_state"] = reaches_near(rep)
+    candidates = {"refined": (_deviation_score(rep), {k: rep[k] for k in VERIFY_KEYS if k in rep}, refined_raw)}
+    if near_x is not None and near.get("deviation_pct_bbox") and not block["release_reaches_refined_state"]:
+        _try_jig(block, rep, candidates, sims[0].sheet.points, near_x, refined_raw, name, write_and_verify,
+                 reaches_near)
     open_score = _deviation_score(rep["open_loop"])
-    if open_score is not None and (refined_score is None or refined_score > open_score):
-        # the refined design, rounded and released from flat, deploys farther from the target
-        # than the open loop (another equilibrium, or no converged one): keep the open loop
-        block["refined_released"] = {k: rep[k] for k in VERIFY_KEYS if k in rep}
+    scored = {k: v for k, v in candidates.items() if v[0] is not None}
+    best = min(scored, key=lambda k: scored[k][0]) if scored else None
+    if best is not None and (open_score is None or scored[best][0] <= open_score):
+        block["kept"] = "refined" if best == "refined" else "refined, on a jig"
+        if best != "refined":
+            block["release_note"] = (f"release from flat lands in another equilibrium than the one nearest the target "
+                                     f"(mean of both directions {_fmt(candidates['refined'][0])} %); held on the "
+                                     f"{block['jig']['posts']} jig posts of pattern.toml's [[support]] while "
+                                     f"released, the sheet reaches it ({scored[best][0]:.2f} %)")
+        on_disk = "refined" if "jig" not in block else ("jig" if block["jig"]["reached"] else None)
+        if on_disk != best:
+            write_and_verify(scored[best][2], name + (" (refined)" if best == "refined" else " (refined, on a jig)"))
+    else:
+        # the refined design, rounded and released from flat (and on a jig, if one was tried),
+        # deploys farther from the target than the open loop: keep the open loop
+        block["refined_released"] = candidates["refined"][1]
         block["refined_thickness_mm"] = [r.thickness_mm for r in d.ribbons]
         for r, t0 in zip(d.ribbons, before):
             r.thickness_mm = t0
         write_and_verify(raw, name)
         block["kept"] = "open loop"
         block["kept_note"] = (f"the refined design deploys from flat farther from the target than the open loop "
-                              f"(mean of both directions {_fmt(refined_score)} % against {open_score:.2f} %): "
-                              "the open-loop design is kept and written")
-    else:
-        block["kept"] = "refined"
+                              f"(mean of both directions {_fmt(candidates['refined'][0])} % against {_fmt(open_score)} %"
+                              + (f"; on a jig {_fmt(candidates['jig'][0])} %" if "jig" in candidates else "")
+                              + "): the open-loop design is kept and written")
+        if block.get("release_reaches_refined_state") is False and "jig" not in candidates:
+            block["release_note"] = "release from flat lands in another equilibrium than the one nearest the target"
     if oob is not None and max(oob) > 1.0:
         block["feasibility"] = (f"the flattening is out of the stretch bounds on {oob[0]:.1f} % / {oob[1]:.1f} % "
                                 f"of the area (sigma1 / sigma2): the fabric cannot reach the target there; "

@@ -54,10 +54,12 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
                   progress=None) -> dict:
     """Refine the thicknesses of the design ``d`` (whose pattern is ``pattern`` and whose
     verification simulation is ``sim``, forward.simulate.Simulation). Sets the ribbons'
-    thickness_mm to the rounded refined values and returns the report block "refine":
-    per outer iteration objective, RMS distance (mm), deviations both ways (%), seconds;
-    continuous and rounded thicknesses; the rounded design's deviations at the equilibrium
-    nearest the target; the reason the iteration stopped. Raises SelfshapeError if no
+    thickness_mm to the rounded refined values and returns (block, positions): the report block
+    "refine" (per outer iteration objective, RMS distance (mm), deviations both ways (%),
+    seconds; continuous and rounded thicknesses; the rounded design's deviations at the
+    equilibrium nearest the target; the reason the iteration stopped) and that equilibrium's
+    vertex positions on sim.sheet (n, 3) mm, None if its solve did not converge: the state a
+    jig selects (inverse.jig) when release from flat misses it. Raises SelfshapeError if no
     equilibrium near the target can be found (the caller keeps the open-loop design).
     ``progress``: called with {"stage": "outer", "iteration", "rms_mm"} at each accepted outer
     iterate (the CLI's status line)."""
@@ -114,13 +116,15 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
         "thickness_rounded_mm": p_round.round(4).tolist(),
         "continuous": {"rms_mm": res.rms_mm, **res.history[-1]},
     }
+    near = None
     if rr.converged:
-        block["rounded"] = {"rms_mm": float(np.sqrt(prob.objective(model_r.split(rr.q)[0], p_round)[1])),
-                            **deviations(d, model_r.split(rr.q)[0], sheet.triangles, T)}
+        near = model_r.split(rr.q)[0]
+        block["rounded"] = {"rms_mm": float(np.sqrt(prob.objective(near, p_round)[1])), "stable": bool(rr.stable),
+                            **deviations(d, near, sheet.triangles, T)}
     else:
         block["rounded"] = {"converged": False, "reason": rr.reason}
     for g, t in zip(groups, p_round):
         for i in g:
             d.ribbons[i].thickness_mm = float(round(t, 6))
     block["seconds"] = round(time.perf_counter() - t0, 2)
-    return block
+    return block, near

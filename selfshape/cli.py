@@ -174,6 +174,8 @@ def _cmd_design(a):
             else:
                 print(f"refined in {ref['outer_iterations']} outer iterations, {ref['seconds']:.0f} s ({ref['reason']})"
                       + (f"; open loop was {o[0]:.2f} / {o[1]:.2f} %" if o else ""))
+                if ref.get("kept") == "refined, on a jig":
+                    print(ref["release_note"])
         else:
             print(f"refinement failed, open-loop design kept: {ref['reason']}")
 

@@ -7,7 +7,8 @@ iterations, the reason the refinement stopped, whether release from flat reaches
 state, seconds per stage; and a final summary line. Long: minutes to tens of minutes per
 target on 2 cores; not part of the test run.
 
-    python studies/refine_targets.py [--mesh-size 3] [--across 1] [--max-outer 12]
+    python studies/refine_targets.py [--mesh-size 3] [--across 1] [--max-outer 12] [--stretch 1.2]
+                                     [--printer inverse/data/printers/layer_0.1mm.toml]
                                      [--verify-iterations 3000] [--out out/refine] [names...]
 """
 from __future__ import annotations
@@ -23,15 +24,15 @@ from study_cli import target_paths
 
 def run_target(path, out_dir, args) -> dict:
     from inverse.design import design_file
-    from inverse.printer import Printer
+    from inverse.printer import Printer, load_printer
     from inverse.refine import RefineOptions
 
-    printer = Printer(layer_height_mm=args.layer)
-    opts = RefineOptions(bounds=(args.layer, args.max_thickness), max_outer=args.max_outer, verbose=args.verbose)
+    printer = load_printer(args.printer) if args.printer else Printer(layer_height_mm=args.layer)
+    opts = RefineOptions(bounds=(printer.layer_height_mm, args.max_thickness), max_outer=args.max_outer, verbose=args.verbose)
     t0 = time.perf_counter()
     rep = design_file(path, out_dir, refine=True, mesh_size_mm=args.mesh_size, mesh_across=args.across,
                       verify_iterations=args.verify_iterations, refine_options=opts, printer=printer,
-                      verbose=args.verbose)
+                      verbose=args.verbose, **({} if args.stretch is None else {"stretch": args.stretch}))
     ref, ol = rep.get("refine", {}), rep.get("open_loop", {})
     return {
         "target": os.path.splitext(os.path.basename(path))[0],
@@ -43,7 +44,8 @@ def run_target(path, out_dir, args) -> dict:
                     "nearest_target": ref.get("rounded")} if ref.get("ok") else None,
         "refine_ok": bool(ref.get("ok")), "refine_reason": ref.get("reason"),
         "outer_iterations": ref.get("outer_iterations"), "start": ref.get("start"),
-        "release_reaches_refined_state": ref.get("release_reaches_refined_state"),
+        "release_reaches_refined_state": ref.get("release_reaches_refined_state"), "kept": ref.get("kept"),
+        "jig": ref.get("jig"), "refined_released": ref.get("refined_released"),
         "feasibility": ref.get("feasibility"), "n_triangles": rep.get("verify_n_triangles"),
         "thickness_rounded_mm": ref.get("thickness_rounded_mm"),
         "out_of_bounds_pct": rep.get("sigma_out_of_bounds_pct"), "stages_s": rep.get("stages_s"),
@@ -59,7 +61,9 @@ def main(argv=None) -> int:
     ap.add_argument("--across", type=float, default=1.0, help="[mesh] across: triangle rows across a ribbon")
     ap.add_argument("--verify-iterations", type=int, default=3000, help="Newton cap of the release from flat")
     ap.add_argument("--max-outer", type=int, default=12, help="outer (Gauss-Newton) iterations")
-    ap.add_argument("--layer", type=float, default=0.2, help="printer layer height (mm)")
+    ap.add_argument("--layer", type=float, default=0.2, help="printer layer height (mm), without --printer")
+    ap.add_argument("--printer", help="printer file (TOML), e.g. inverse/data/printers/layer_0.1mm.toml")
+    ap.add_argument("--stretch", type=float, help="pre-stretch s (default: the design's own choice)")
     ap.add_argument("--max-thickness", type=float, default=1.6, help="thickest printable ribbon (mm)")
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args(argv)

@@ -76,7 +76,7 @@ def test_a_refinement_that_deploys_worse_keeps_the_open_loop_design(tmp_path, mo
     def refine(d, *a, **k):
         for r in d.ribbons:
             r.thickness_mm = 0.6
-        return {"outer_iterations": 2, "reason": "test", "seconds": 0.0, "rounded": {}}
+        return {"outer_iterations": 2, "reason": "test", "seconds": 0.0, "rounded": {}}, None
     monkeypatch.setattr(design_module, "design", keep)
     monkeypatch.setattr(forward.simulate, "simulate", fake)
     monkeypatch.setattr(inverse.design_refine, "refine_design", refine)
@@ -90,6 +90,61 @@ def test_a_refinement_that_deploys_worse_keeps_the_open_loop_design(tmp_path, mo
     assert {e.thickness_mm for e in pat.elements if e.thickness_mm > 0} == {0.4}
     on_disk = json.loads((tmp_path / "out" / "report.json").read_text())
     assert on_disk["refine"]["kept"] == "open loop" and on_disk["deviation_pct_bbox"][1] < 1e-6
+
+
+def test_a_jig_that_selects_the_refined_state_is_written_as_supports(tmp_path, monkeypatch):
+    """Released from flat, the refined design lands in another state (a fake simulation flattens
+    it); held on jig posts at the refined state it reaches that state (the fake returns the
+    target when the pattern has supports): the refined design is kept with the posts as
+    [[support]] in pattern.toml, and the report says which release reaches what."""
+    from types import SimpleNamespace
+
+    import forward.simulate
+    import inverse.design_refine
+
+    V, F = cylinder_patch(n_arc=40, n_len=32)
+    target = write_obj(tmp_path / "c.obj", V, F)
+    real_design = design_module.design
+    box = {}
+
+    def keep(*args, **kw):
+        box["d"] = real_design(*args, **kw)
+        return box["d"]
+
+    def fake(pattern, **kw):
+        d = box["d"]
+        refined = any(abs(e.thickness_mm - 0.4) > 1e-9 for e in pattern.elements if e.thickness_mm > 0)
+        scale = 1.0 if pattern.supports else (0.3 if refined else 0.6)      # open loop 0.6, refined free 0.3
+        X = d.V * np.array([1.0, 1.0, scale])
+        sheet = SimpleNamespace(points=d.flat.uv, triangles=d.F, side=np.zeros(len(d.F), int))
+        summary = {"converged": True, "reason": "converged", "newton_iterations": 7, "n_triangles": len(d.F)}
+        box.setdefault("supports", []).append(len(pattern.supports))
+        return SimpleNamespace(sheet=sheet, positions=X, summary=lambda: summary, fixed=np.zeros(0, np.int64))
+
+    def refine(d, *a, **k):
+        for r in d.ribbons:
+            r.thickness_mm = 0.6
+        zero = {"deviation_pct_bbox": [0.0, 0.0], "deviation_target_to_deployed_pct_bbox": [0.0, 0.0]}
+        return {"outer_iterations": 2, "reason": "test", "seconds": 0.0, "rounded": zero}, d.V
+    monkeypatch.setattr(design_module, "design", keep)
+    monkeypatch.setattr(forward.simulate, "simulate", fake)
+    monkeypatch.setattr(inverse.design_refine, "refine_design", refine)
+    rep = design_file(target, tmp_path / "out", refine=True, edge_mm=None)
+    ref = rep["refine"]
+    assert ref["kept"] == "refined, on a jig" and ref["release_reaches_refined_state"] is False
+    assert ref["jig"]["reached"] and ref["jig"]["posts"] == 4 and "jig posts" in ref["release_note"]
+    assert box["supports"] == [0, 0, 1]                   # open loop, refined free, refined on the jig
+    assert rep["deviation_pct_bbox"][1] < 1e-6 < rep["open_loop"]["deviation_pct_bbox"][1]
+    pat = load_pattern(tmp_path / "out" / "pattern.toml")
+    assert len(pat.supports) == 1 and pat.supports[0].fix == "xyz" and len(pat.supports[0].points) == 4
+    np.testing.assert_allclose(pat.supports[0].position, box["d"].V[[_nearest(box["d"].flat.uv, p)
+                                                                     for p in pat.supports[0].points]], atol=1e-3)
+    assert {e.thickness_mm for e in pat.elements if e.thickness_mm > 0} == {0.6}
+    assert json.loads((tmp_path / "out" / "report.json").read_text())["refine"]["kept"] == "refined, on a jig"
+
+
+def _nearest(P, p):
+    return int(np.argmin(np.sum((np.asarray(P)[:, :2] - p) ** 2, 1)))
 
 
 @pytest.mark.slow
