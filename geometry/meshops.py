@@ -256,6 +256,31 @@ def smallest_eigenvector(A: sp.spmatrix, mass: np.ndarray, start: np.ndarray, *,
     no longer changes up to a global phase).
     Returns (x (n,) M-normalised, lambda, iterations used).
     """
+    ritz, X, it = smallest_ritz_pairs(A, mass, start, rtol=rtol, max_iter=max_iter, stop=stop,
+                                      ordering=ordering, sigma=sigma, solve=solve)
+    x = X[:, 0]
+    if X.shape[1] > 1:                                 # the Ritz vector is M-unit up to round-off
+        x = x / np.sqrt(np.vdot(x, mass * x).real)
+    lam = float(ritz[0])
+    return x, (max(lam, 0.0) if sigma is None else lam), it
+
+
+def smallest_ritz_pairs(A: sp.spmatrix, mass: np.ndarray, start: np.ndarray, *, rtol: float,
+                        max_iter: int, stop: str = "eigenvalue", ordering: str = "default",
+                        sigma: float | None = None, solve=None, converged=None):
+    """The iteration of `smallest_eigenvector` (same arguments), returning the whole block.
+
+    converged: None, or an extra test converged(ritz, X) -> bool called after every
+    iteration with that iteration's Ritz values and vectors; the iteration then stops when
+    both ``stop``'s rule and this test hold (or at max_iter).
+
+    Returns (ritz (k,) ascending Ritz values, units of lambda; X (n, k) the Ritz vectors,
+    M-orthonormal up to round-off; iterations used), k = the start block's width (1 for a
+    single start vector: then ritz[0] is the Rayleigh quotient of the M-unit X[:, 0]).
+    The values are not clamped at 0 (round-off may make them slightly negative for a
+    singular A). Callers that must choose within a cluster of (nearly) equal low eigenvalues
+    read the block.
+    """
     if stop not in ("eigenvalue", "vector"):
         raise ValueError(f"stop must be 'eigenvalue' or 'vector', got {stop!r}")
     scale = float(np.abs(A.diagonal()).mean()) / float(mass.mean())
@@ -273,6 +298,7 @@ def smallest_eigenvector(A: sp.spmatrix, mass: np.ndarray, start: np.ndarray, *,
     block = X.shape[1] > 1
     lam_prev = np.inf
     it = 0
+    ritz = np.array([np.nan])
     for it in range(1, max_iter + 1):
         Y = solve(mass[:, None] * X)
         Y /= np.sqrt(_m_norms2(Y, mass))
@@ -285,21 +311,21 @@ def smallest_eigenvector(A: sp.spmatrix, mass: np.ndarray, start: np.ndarray, *,
                 YH = Y.conj().T if np.iscomplexobj(Y) else Y.T
                 ritz, Q = np.linalg.eigh(YH @ (A @ Y))
             Y = Y @ Q
-            lam = max(float(ritz[0]), floor)
+            ritz = np.asarray(ritz, dtype=float)
         else:
-            lam = max(float(np.vdot(Y[:, 0], A @ Y[:, 0]).real), floor)
+            ritz = np.array([float(np.vdot(Y[:, 0], A @ Y[:, 0]).real)])
+        lam = max(float(ritz[0]), floor)
         if stop == "eigenvalue":
             done = abs(lam_prev - lam) <= rtol * abs(lam) + 1e-12 * scale
         else:
             done = 1.0 - abs(np.vdot(X[:, 0], mass * Y[:, 0])) < rtol
+        if converged is not None:
+            done = bool(converged(ritz, Y)) and done
         X = Y
         if done:
             break
         lam_prev = lam
-    x = X[:, 0]
-    if block:                                          # the Ritz vector is M-unit up to round-off
-        x = x / np.sqrt(np.vdot(x, mass * x).real)
-    return x, lam, it
+    return ritz, X, it
 
 
 def definite_factor(A: sp.spmatrix, mass: np.ndarray, sigma: float, margin: float, ordering: str = "default"):

@@ -29,7 +29,7 @@ import scipy.sparse as sp
 from scipy.sparse import csgraph
 
 from geometry.meshops import (NotPositiveDefiniteError, cotan_weights, face_areas, face_normals, lumped_mass,
-                              mesh_edges, smallest_eigenvector, tangent_frames, vertex_normals)
+                              mesh_edges, smallest_ritz_pairs, tangent_frames, vertex_normals)
 from shellfem.errors import SelfshapeError
 
 TWO_PI = 2.0 * np.pi
@@ -220,8 +220,77 @@ def _energy_matrix(n, E, w, s, omega) -> sp.csr_matrix:
     return sp.csr_matrix((val, (r, q)), shape=(2 * n, 2 * n))
 
 
-def _smallest_stripe_mode(A, mass, seed, rtol, max_iter, block=6):
-    """Smallest eigenpair of A x = lambda M x (M = diag(mass)), x M-normalised.
+def _gauge_references(V: np.ndarray, mass: np.ndarray) -> list[np.ndarray]:
+    """Fixed reference vectors (2n,) in the x[0::2] + 1j x[1::2] layout of the energy, in the
+    order `_gauge_fixed` tries them; they depend only on the vertex positions V (n, 3) mm and
+    the mass (2n,).
+
+    Both are real (zero imaginary part): Re psi_a does not change when vertex a's sheet is
+    conjugated, so the gauge they fix does not depend on which of the two line-field signs a
+    vertex got (that choice flips with round-off where the field is at +-90 degrees to the
+    vertex frame). r1 = 1 + sum_j (V_j - c_j) / L (c the M-weighted centroid, L the bounding
+    box diagonal): the constant alone projects to ~0 when a domain holds a whole number of
+    periods (it keeps 1.5e-4 of its M-norm on a 40 mm square with 4 mm stripes along x), the
+    centred ramps have the opposite parity and do not (r1 keeps 0.010 there). r2 =
+    |V - c|^2 / L^2 (even, quadratic): the fallback. Measured fractions kept, r1 / r2: the
+    pipeline's cylinder layout fields 0.029-0.053 / 0.051-0.091; that square with stripes at
+    30 or 45 degrees 3.9e-4 / 2.9e-4 (below `_gauge_fixed`'s 1e-3, so r1, which keeps more, is
+    used; the phase still agrees to 1e-9 between start seeds there, the basis having converged
+    to round-off).
+    """
+    m = mass[0::2]
+    c = (m[:, None] * V).sum(axis=0) / m.sum()
+    L = float(np.linalg.norm(np.ptp(V, axis=0)))
+    d = (V - c) / L
+    out = []
+    for r in (1.0 + d.sum(axis=1), np.sum(d * d, axis=1)):
+        x = np.zeros(2 * len(V))
+        x[0::2] = r
+        out.append(x)
+    return out
+
+
+def _gauge_fixed(Q: np.ndarray, mass: np.ndarray, references, rho_min: float = 1e-3) -> np.ndarray:
+    """The M-normalised M-orthogonal projection of a fixed reference onto span(Q) (2n,).
+
+    Q (2n, k): a basis of the (nearly) degenerate lowest eigenspace; mass (2n,).
+    ``references`` are tried in order; the first whose projection keeps at least ``rho_min``
+    of its M-norm is used (a smaller projection makes the phase sensitive to the basis'
+    convergence error e: it turns by ~e / rho), else the one that keeps most. For k = 1 this
+    is +-Q[:, 0] / |Q[:, 0]|_M. The sign is fixed by <r, M x> > 0, which holds by
+    construction (<r, M P r> = |P r|_M^2).
+    """
+    R = np.linalg.cholesky(Q.T @ (mass[:, None] * Q))       # M-orthonormalise the basis
+    Q = np.linalg.solve(R, Q.T).T
+    best = None
+    for r in references:
+        c = Q.T @ (mass * r)
+        rho = float(np.linalg.norm(c)) / float(np.sqrt(r @ (mass * r)))
+        if best is None or rho > best[0]:
+            best = (rho, c)
+        if rho >= rho_min:
+            break
+    x = Q @ best[1]
+    return x / np.sqrt(x @ (mass * x))
+
+
+# A pair's gauge-fixed vector is iterated until it changes by less than this (M-norm of the
+# change of the M-unit vector): the eigenvalue test alone leaves it ~1e-7 from its limit on a
+# frustrated rectangle (spacing growing along the isolines, contraction 0.16 per iteration),
+# enough to turn psi by ~1e-5 rad between start seeds; the round-off floor is ~2e-15.
+_PHASE_TOL = 1e-10
+
+
+def _cluster_size(ritz: np.ndarray, rtol: float, scale: float) -> int:
+    """How many of the ascending Ritz values count as the lowest eigenvalue (see
+    `_smallest_stripe_mode`); scale: mean A_ii / mean M_i (1/mm^2)."""
+    window = 100.0 * (rtol * abs(float(ritz[0])) + 1e-12 * scale)
+    return int(np.sum(ritz - ritz[0] <= window))
+
+
+def _smallest_stripe_mode(A, mass, V, seed, rtol, max_iter, block=6):
+    """Smallest eigenpair of A x = lambda M x (M = diag(mass)), x M-normalised, with a
+    deterministic global phase. V (n, 3): vertex positions (mm), for the phase's reference.
 
     Block inverse power iteration (subspace iteration with a Rayleigh-Ritz step) on ``block``
     vectors from a seeded normal random start, one sparse Cholesky factor (AMD ordering).
@@ -229,14 +298,45 @@ def _smallest_stripe_mode(A, mass, seed, rtol, max_iter, block=6):
     single-vector inverse iteration crawls at rate lambda_1 / lambda_2 ~ 1; the block
     converges at lambda_1 / lambda_(block + 1). Stops when the smallest Ritz value changes by
     less than rtol * lambda + atol.
+
+    The energy is invariant under a global phase rotation when the line field is orientable:
+    its lowest eigenvalue is then a pair, and the lowest Ritz vector an arbitrary member of
+    the pair's span, decided by the start block and round-off (BLAS kernels). The Ritz
+    vectors within ``100 (rtol lambda_1 + 1e-12 s)`` of lambda_1 (s = mean A_ii / mean M_i,
+    1/mm^2; 1e-12 s is the iteration's absolute stopping tolerance) are taken as one
+    eigenspace, and the returned x is the projection of a fixed reference onto it
+    (`_gauge_fixed`, `_gauge_references`), iterated until it changes by < _PHASE_TOL.
+    Measured at rtol = 1e-9: exact pairs split by <= 4.1e-10 lambda_1 or <= 7e-15 s (the
+    layout's fields of the pipeline's cylinder, planar rectangles, an annulus); the closest
+    genuinely distinct eigenvalue, a disk with a +1/2 singularity, 1.3e-4 lambda_1 = 1.0e-7 s
+    above lambda_1, whose Ritz vector is reproducible to 1e-6 rad over start seeds; the next
+    modes >= 1.7e-4 s above. The window lies between by >= 100x on each side. An isolated
+    lambda_1 gives the lowest Ritz vector (iterated as before), its sign fixed.
     """
     start = np.random.default_rng(seed).standard_normal((A.shape[0], min(block, A.shape[0])))
+    scale = float(np.abs(A.diagonal()).mean()) / float(mass.mean())
+    refs = _gauge_references(V, mass)
+    last = {}
+
+    def phase_converged(ritz, X):
+        k = _cluster_size(ritz, rtol, scale)
+        if k == 1:
+            last.clear()
+            return True
+        x = _gauge_fixed(X[:, :k], mass, refs)
+        prev = last.get(k)
+        last.clear()
+        last[k] = x
+        return prev is not None and float(np.sqrt((x - prev) @ (mass * (x - prev)))) <= _PHASE_TOL
+
     try:
-        return smallest_eigenvector(A, mass, start, rtol=rtol, max_iter=max_iter, stop="eigenvalue",
-                                    ordering="amd")
+        ritz, X, it = smallest_ritz_pairs(A, mass, start, rtol=rtol, max_iter=max_iter, stop="eigenvalue",
+                                          ordering="amd", converged=phase_converged)
     except NotPositiveDefiniteError as err:
         raise SelfshapeError("stripes: energy matrix is not positive definite (mesh with "
                              "degenerate or flipped faces?)") from err
+    x = _gauge_fixed(X[:, :_cluster_size(ritz, rtol, scale)], mass, refs)
+    return x, max(float(ritz[0]), 0.0), it
 
 
 # ----------------------------------------------------------------------------- texture coordinates
@@ -275,8 +375,10 @@ def stripe_field(V, F, direction, spacing, seed: int = 0, direction_on: str = "a
     V: (n, 2|3) vertices (mm), F: (m, 3) faces. direction: per-face (m, 2|3) or per-vertex
     (n, 2|3) line field (sign ignored) giving the isoline direction; ``direction_on`` = "face"
     or "vertex" resolves m == n. spacing: scalar or (n,) per-vertex stripe spacing (mm).
-    seed: start block of the inverse power iteration (deterministic). Iteration stops when the
-    eigenvalue estimate changes by less than rtol (relative) in one iteration.
+    seed: start block of the inverse power iteration; the result does not depend on it beyond
+    the iteration's convergence (the global phase is fixed by a reference, see
+    `_smallest_stripe_mode`). Iteration stops when the eigenvalue estimate changes by less
+    than rtol (relative) in one iteration.
     """
     V3, F, _ = _mesh(V, F)
     n = len(V3)
@@ -311,7 +413,7 @@ def stripe_field(V, F, direction, spacing, seed: int = 0, direction_on: str = "a
     he_w = np.where(np.repeat(branch, 3), 0.0, cotan_weights(V3, F))
     w = np.maximum(np.bincount(face_edge.ravel(), weights=he_w, minlength=len(E)), 0.0)
     A = _energy_matrix(n, E, w, s_edge, omega)
-    x, lam, iters = _smallest_stripe_mode(A, np.repeat(lumped_mass(V3, F), 2), seed, rtol, max_iter)
+    x, lam, iters = _smallest_stripe_mode(A, np.repeat(lumped_mass(V3, F), 2), V3, seed, rtol, max_iter)
 
     z = x[0::2] + 1j * x[1::2]
     amp = np.abs(z)

@@ -10,6 +10,7 @@ from geometry.meshops import (NotPositiveDefiniteError, boundary_loop_count, cor
                               definite_factor, face_areas, face_frames, face_normals, factorize, halfedges,
                               lumped_mass, mesh_edges,
                               remove_unreferenced, rotation_between, signed_areas, smallest_eigenvector,
+                              smallest_ritz_pairs,
                               tangent_frames, triangle_angles, unique_edges, vertex_normals)
 from geometry.target import grid_triangles, plane_patch, sphere_cap
 from shellfem.errors import SelfshapeError
@@ -153,6 +154,26 @@ def test_smallest_eigenvector_matches_a_dense_solve(twist, mode):
     assert lam == pytest.approx(max(lam_ref[0], 0.0), abs=1e-9)
     overlap = abs(np.vdot(X_ref[:, 0], mass * x))            # same M-unit vector up to a phase
     assert overlap == pytest.approx(1.0, abs=1e-6)
+
+
+def test_smallest_ritz_pairs_returns_the_block_and_obeys_an_extra_stopping_test():
+    n = 60
+    A = path_laplacian(n, 0.3)
+    mass = np.linspace(1.0, 2.0, n)
+    lam_ref = eigh(A.toarray(), np.diag(mass), eigvals_only=True)
+    start = np.random.default_rng(0).standard_normal((n, 4)).astype(A.dtype)
+    ritz, X, it = smallest_ritz_pairs(A, mass, start, rtol=1e-13, max_iter=500, ordering="amd")
+    assert np.all(np.diff(ritz) >= 0)
+    assert ritz[0] == pytest.approx(lam_ref[0], rel=1e-9)
+    assert ritz[1] == pytest.approx(lam_ref[1], rel=1e-6)              # converges at lambda_2 / lambda_5
+    np.testing.assert_allclose(X.conj().T @ (mass[:, None] * X), np.eye(4), atol=1e-10)
+    x, lam, it1 = smallest_eigenvector(A, mass, start, rtol=1e-13, max_iter=500, ordering="amd")
+    assert it1 == it and lam == ritz[0]
+    np.testing.assert_allclose(x, X[:, 0] / np.sqrt(np.vdot(X[:, 0], mass * X[:, 0]).real), atol=1e-15)
+    calls = []
+    *_, it2 = smallest_ritz_pairs(A, mass, start, rtol=1e-13, max_iter=500, ordering="amd",
+                                  converged=lambda r, Y: calls.append(len(r)) or len(calls) >= it + 3)
+    assert it2 == it + 3 and calls == [4] * it2
 
 
 def test_factorize_solves_and_an_unknown_stopping_rule_is_refused():

@@ -201,11 +201,12 @@ def test_written_ribbons_are_separated_and_inside(written):
     # the printed area against what Eq. 5.15 asks the flattening for (inverse.coverage)
     assert 0.6 < rep["printed_over_asked_area"] <= 1.05
     sep = rep["ribbons_separated"]
-    # which few centre lines end up too short after clipping is decided by tie-level float
-    # differences between machines and BLAS kernels (same versions: 0 dropped on one machine; on
-    # an AMD EPYC 2 of 124 with OpenBLAS's Sandybridge kernels, 7 of 115 with its Haswell or Zen
-    # kernels): the invariant is that separation removes few, and the printed area above holds
-    assert 10 <= sep["clipped"] <= 40 and sep["trimmed"] <= 2 and sep["dropped"] <= 0.08 * rep["n_ribbons"]
+    # which few centre lines end up too short after clipping depends on where the stripes fall;
+    # their global phase is fixed by a reference (geometry.stripes), so the layout no longer
+    # moves with the BLAS kernels (22 clipped, 0 dropped of 116 with OpenBLAS's Sandybridge,
+    # Haswell, Zen and Prescott kernels alike): the invariant is that separation removes few,
+    # and the printed area above holds
+    assert 10 <= sep["clipped"] <= 40 and sep["trimmed"] <= 2 and sep["dropped"] <= 0.05 * rep["n_ribbons"]
 
 
 def test_separate_ribbons_trims_overlaps_and_clips():

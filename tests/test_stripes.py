@@ -1,7 +1,10 @@
 import numpy as np
 import pytest
+import scipy.sparse as sp
+from scipy.sparse.linalg import eigsh
 from scipy.spatial import Delaunay
 
+import geometry.stripes as stripes
 from geometry.meshops import mesh_edges
 from geometry.stripes import isoline_set, isolines, stripe_field
 from shellfem.errors import SelfshapeError
@@ -121,7 +124,7 @@ def test_closed_isolines_on_an_annulus():
     d = np.column_stack([-P[:, 1], P[:, 0]])                # tangential: concentric stripes
     fld = stripe_field(P, F, d, 3.0, direction_on="vertex")
     S = isoline_set(P, F, fld, np.pi)
-    # the field's global phase is free (it depends on the BLAS thread count), so a level may fall
+    # the field's global phase is set by a reference, not by the geometry, so a level may fall
     # within a triangle of the inner rim (r ~ 7.7) and leave open 2-point pieces there: only
     # isolines clear of both rims must be closed circles
     rmin = np.array([np.hypot(*q.T).min() for q in S.polylines()])
@@ -177,6 +180,101 @@ def test_deterministic_for_a_seed(square):
     a = stripe_field(V, F, d, 5.0, seed=7)
     b = stripe_field(V, F, d, 5.0, seed=7)
     np.testing.assert_array_equal(a.psi, b.psi)
+
+
+# planar rectangles with a constant isoline direction: the line field is orientable, so the
+# energy is invariant under a global phase and its lowest eigenvalue is a pair. "exact": constant
+# spacing, lambda_1 = 0; "fan": the spacing grows along the isolines, lambda_1 > 0
+PHASE_CASES = {"exact": lambda V: 3.0, "fan": lambda V: 2.0 + 0.1 * V[:, 0]}
+
+
+@pytest.fixture(scope="module")
+def rectangle():
+    return grid_mesh(20.0, 10.0, 0.5)
+
+
+def _captured_system(monkeypatch):
+    """Record (A, mass, V) of every stripe solve."""
+    seen = []
+    solve = stripes._smallest_stripe_mode
+
+    def spy(A, mass, V, *args, **kwargs):
+        seen.append((A, mass, V))
+        return solve(A, mass, V, *args, **kwargs)
+
+    monkeypatch.setattr(stripes, "_smallest_stripe_mode", spy)
+    return seen
+
+
+@pytest.mark.parametrize("case", PHASE_CASES)
+def test_global_phase_does_not_depend_on_the_start_seed(rectangle, case):
+    V, F = rectangle
+    d = np.tile([np.cos(0.5), np.sin(0.5)], (len(F), 1))
+    fields = [stripe_field(V, F, d, PHASE_CASES[case](V), seed=s) for s in (0, 1, 5)]
+    for f in fields[1:]:
+        np.testing.assert_allclose(f.psi, fields[0].psi, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(f.amplitude, fields[0].amplitude, rtol=0, atol=1e-6 * fields[0].amplitude.max())
+
+
+@pytest.mark.parametrize("case", PHASE_CASES)
+def test_phase_fixed_field_is_a_lowest_eigenvector(rectangle, case, monkeypatch):
+    V, F = rectangle
+    seen = _captured_system(monkeypatch)
+    fld = stripe_field(V, F, np.tile([1.0, 0.0], (len(F), 1)), PHASE_CASES[case](V))
+    A, mass, _ = seen[0]
+    M = sp.diags(mass)
+    scale = float(np.abs(A.diagonal()).mean() / mass.mean())
+    lam_ref = np.sort(eigsh(A.tocsc(), k=4, M=M.tocsc(), sigma=-1e-3 * scale, which="LM")[0])
+    assert lam_ref[1] - lam_ref[0] <= 1e-9 * scale       # a pair: the phase is free
+    z = fld.amplitude * fld.psi
+    x = np.column_stack([z.real, z.imag]).ravel()
+    assert x @ (mass * x) == pytest.approx(1.0, rel=1e-10)
+    rq = float(x @ (A @ x))
+    assert rq == pytest.approx(lam_ref[0], rel=1e-8, abs=1e-12 * scale)
+    assert fld.eigenvalue == pytest.approx(lam_ref[0], rel=1e-8, abs=1e-12 * scale)
+
+
+def test_phase_is_the_one_the_reference_fixes_whatever_the_vertex_order(rectangle, monkeypatch):
+    V, F = rectangle
+    sp_ = PHASE_CASES["fan"]
+    seen = _captured_system(monkeypatch)
+    fld = stripe_field(V, F, np.tile([1.0, 0.0], (len(F), 1)), sp_(V))
+    _, mass, V3 = seen[0]
+    r = stripes._gauge_references(V3, mass)[0]
+    # the reference (real, so sheet-free) keeps a good part of its M-norm in the eigenspace
+    # spanned by psi and i psi (the pair): the first reference is the one in use
+    z = fld.amplitude * fld.psi
+    m = mass[0::2]
+    rho = abs(np.sum(m * r[0::2] * z)) / np.sqrt(r @ (mass * r))
+    assert rho >= 1e-3
+    # the phase maximises <r, M Re(exp(i t) z)> over t: sum_a m_a r_a z_a is real and positive
+    c = np.sum(m * r[0::2] * z)
+    assert c.real > 0 and abs(c.imag) <= 1e-9 * abs(c)
+    assert not (fld.sheet < 0).any()
+    # relabelled vertices and faces (another start block, another fill-reducing ordering): the
+    # same field
+    rng = np.random.default_rng(11)
+    perm = rng.permutation(len(V))                      # new vertex i is old vertex perm[i]
+    inv = np.argsort(perm)
+    F2 = inv[F][rng.permutation(len(F))]
+    f2 = stripe_field(V[perm], F2, np.tile([1.0, 0.0], (len(F2), 1)), sp_(V[perm]))
+    np.testing.assert_allclose(f2.psi[inv], fld.psi, rtol=0, atol=1e-6)
+
+
+def test_gauge_fixing_projects_the_first_reference_that_reaches_the_eigenspace():
+    rng = np.random.default_rng(2)
+    mass = rng.uniform(0.5, 2.0, 40)
+    Q = np.linalg.qr(np.sqrt(mass)[:, None] * rng.standard_normal((40, 2)))[0] / np.sqrt(mass)[:, None]
+    r_far = rng.standard_normal(40)
+    r_far -= Q @ (Q.T @ (mass * r_far))                 # M-orthogonal to span(Q): no projection
+    r2 = rng.standard_normal(40)
+    x = stripes._gauge_fixed(Q, mass, [r_far, r2])
+    p = Q @ (Q.T @ (mass * r2))
+    np.testing.assert_allclose(x, p / np.sqrt(p @ (mass * p)), atol=1e-12)
+    # one vector: itself, with the sign that makes <r, M x> > 0
+    x1 = stripes._gauge_fixed(-Q[:, :1] * 3.0, mass, [r2])
+    s = np.sign(Q[:, 0] @ (mass * r2))
+    np.testing.assert_allclose(x1, s * Q[:, 0], atol=1e-12)
 
 
 def test_bad_input_is_an_error(square):
