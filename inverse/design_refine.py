@@ -6,8 +6,9 @@ parameter (the design keeps ribbons apart, so a region is a ribbon); target posi
 mesh vertices through the flattening's correspondence (inverse.registration.flat_to_target).
 The equilibrium is sought nearest the target: the first solve starts from the target itself
 (edge angles 0), falling back to the verification's released state if that does not converge.
-The refined thicknesses are rounded to layer multiples of the printer and the rounded design
-is what is written and reported; whether release from flat reaches the same state is checked
+The refined thicknesses are rounded to layer multiples of the printer, then moved by single
+layers where the objective linearised at the rounded design says so (inverse.refine.refine_layers),
+and the rounded design is what is written and reported; whether release from flat reaches the same state is checked
 by the verification of the rounded pattern.
 """
 from __future__ import annotations
@@ -51,7 +52,7 @@ def rounded(p, layer_mm: float, bounds) -> np.ndarray:
 
 
 def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.05, verbose: bool = False,
-                  progress=None) -> dict:
+                  progress=None, layer_rounds_max: int = 2) -> tuple:
     """Refine the thicknesses of the design ``d`` (whose pattern is ``pattern`` and whose
     verification simulation is ``sim``, forward.simulate.Simulation). Sets the ribbons'
     thickness_mm to the rounded refined values and returns (block, positions): the report block
@@ -62,8 +63,9 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     jig selects (inverse.jig) when release from flat misses it. Raises SelfshapeError if no
     equilibrium near the target can be found (the caller keeps the open-loop design).
     ``progress``: called with {"stage": "outer", "iteration", "rms_mm"} at each accepted outer
-    iterate (the CLI's status line)."""
-    from inverse.refine import RefineOptions, ThicknessProblem, linear_rounding, refine_thickness
+    iterate (the CLI's status line). ``layer_rounds_max``: rounds of one-layer moves after the
+    rounding (inverse.refine.refine_layers; 0: none), recorded as "layer_rounds"."""
+    from inverse.refine import RefineOptions, ThicknessProblem, linear_rounding, refine_layers, refine_thickness
     from inverse.registration import flat_to_target
     from shellfem.boundary import gauge_dofs
 
@@ -108,18 +110,26 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
         p_round = np.clip(linear_rounding(res.model, res.thickness, lo, h), lo, top)
     model_r = prob.model_at(p_round)
     rr = prob.solve(model_r, res.q, opts.newton_iterations)
+    layer_rounds = []
+    if rr.converged and layer_rounds_max > 0:
+        # one-layer moves linearised at the rounded design (the rounding's model was the continuous point's)
+        first = rounded([opts.bounds[0]], h, opts.bounds)[0]
+        top = rounded([opts.bounds[1]], h, opts.bounds)[0]
+        p_round, rr.q, _, layer_rounds = refine_layers(prob, p_round, rr.q, h, (first, top), rounds=layer_rounds_max,
+                                                       newton_iterations=opts.newton_iterations, verbose=verbose)
+        model_r = prob.model_at(p_round)
     block = {
         "start": start, "outer_iterations": len(res.history) - 1, "reason": res.reason,
         "smoothness": smoothness, "bounds_mm": list(opts.bounds), "layer_height_mm": printer.layer_height_mm,
         "n_parameters": len(groups), "iterations": res.history,
         "thickness_start_mm": p0.round(4).tolist(), "thickness_continuous_mm": res.thickness.round(4).tolist(),
-        "thickness_rounded_mm": p_round.round(4).tolist(),
+        "thickness_rounded_mm": p_round.round(4).tolist(), "layer_rounds": layer_rounds,
         "continuous": {"rms_mm": res.rms_mm, **res.history[-1]},
     }
     near = None
     if rr.converged:
         near = model_r.split(rr.q)[0]
-        block["rounded"] = {"rms_mm": float(np.sqrt(prob.objective(near, p_round)[1])), "stable": bool(rr.stable),
+        block["rounded"] = {"rms_mm": float(np.sqrt(prob.objective(near, p_round)[1])),
                             **deviations(d, near, sheet.triangles, T)}
     else:
         block["rounded"] = {"converged": False, "reason": rr.reason}
