@@ -480,6 +480,9 @@ def _fmt(x) -> str:
 #: (posts, release steps) of the jig releases tried in turn: more posts hold more of the shape,
 #: continuation steps move them from flat in smaller increments
 JIG_TRIALS = ((4, 1), (8, 1), (8, 4))
+#: Newton cap per mesh level of a jig release: the posts start the sheet near the refined state,
+#: a release that needs more is not reaching it (a 110 mm hat on 4 posts ran > 25 min uncapped)
+JIG_MAX_ITERATIONS = 600
 
 
 def _try_jig(block, rep, candidates, printed_points, near_x, refined_raw, name, write_and_verify, reaches_near):
@@ -492,8 +495,11 @@ def _try_jig(block, rep, candidates, printed_points, near_x, refined_raw, name, 
     tried = []
     for k, steps in JIG_TRIALS:
         raw_j = {**refined_raw, "support": jig_supports(printed_points, near_x, k)}
+        solver = dict(raw_j.get("solver", {}))
+        solver["max_iterations"] = min(int(solver.get("max_iterations", JIG_MAX_ITERATIONS)), JIG_MAX_ITERATIONS)
         if steps > 1:
-            raw_j["solver"] = {**raw_j.get("solver", {}), "release_steps": steps}
+            solver["release_steps"] = steps
+        raw_j["solver"] = solver
         sims_j: list = []
         write_and_verify(raw_j, name + " (refined, on a jig)", sims_j)
         reached = reaches_near(rep)
