@@ -29,12 +29,21 @@ def farthest_points(points, k: int) -> np.ndarray:
     return np.array(chosen, np.int64)
 
 
-def jig_supports(printed_points, positions, k: int) -> list[dict]:
+def jig_supports(printed_points, positions, k: int, *, align: bool = True) -> list[dict]:
     """Pattern ``[[support]]`` tables (a list of dicts) of k jig posts: vertices chosen by
     :func:`farthest_points` on the printed (flat) sheet ``printed_points`` (n, 2|3, mm), each held
-    (``fix = "xyz"``) at its position in the intended state ``positions`` (n, 3, mm)."""
+    (``fix = "xyz"``) at its position in the intended state ``positions`` (n, 3, mm). ``align``:
+    the state is first moved rigidly onto the printed sheet (least squares), so that the posts
+    travel from the flat start by the shape change only: a state given in another frame (a
+    target's) would drag the sheet through a large rigid motion, which the release's harmonic
+    carrying of the posts' motion turns into a self-intersecting start."""
+    from inverse.registration import kabsch
+
     flat = np.asarray(printed_points, float)[:, :2]
     X = np.asarray(positions, float)
+    if align:
+        R, c = kabsch(X, np.column_stack([flat, np.zeros(len(flat))]))
+        X = X @ R.T + c
     idx = farthest_points(flat, k)
     r4 = lambda a: np.round(a, 4).tolist()  # noqa: E731
     return [{"points": r4(flat[idx]), "fix": "xyz", "position": r4(X[idx])}]
