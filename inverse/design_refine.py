@@ -65,7 +65,8 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     ``progress``: called with {"stage": "outer", "iteration", "rms_mm"} at each accepted outer
     iterate (the CLI's status line). ``layer_rounds_max``: rounds of one-layer moves after the
     rounding (inverse.refine.refine_layers; 0: none), recorded as "layer_rounds"."""
-    from inverse.refine import RefineOptions, ThicknessProblem, linear_rounding, refine_layers, refine_thickness
+    from inverse.refine import (RefineOptions, ThicknessProblem, follow_thickness, linear_rounding, refine_layers,
+                                refine_thickness)
     from inverse.registration import flat_to_target
     from shellfem.boundary import gauge_dofs
 
@@ -110,6 +111,16 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
         p_round = np.clip(linear_rounding(res.model, res.thickness, lo, h), lo, top)
     model_r = prob.model_at(p_round)
     rr = prob.solve(model_r, res.q, opts.newton_iterations)
+    rounding_path = None
+    J_r = prob.objective(model_r.split(rr.q)[0], p_round)[0] if rr.converged else np.inf
+    if J_r > 2.0 * res.objective:
+        # the rounded design's solve left the refined branch: follow the thicknesses from the
+        # continuous to the rounded values in steps, each solve warm-started from the last
+        q_path, ok = follow_thickness(prob, res.thickness, res.q, p_round, 4, opts.newton_iterations)
+        J_path = prob.objective(model_r.split(q_path)[0], p_round)[0] if ok else np.inf
+        rounding_path = {"direct_objective": float(J_r), "continuation_objective": float(J_path)}
+        if J_path < J_r:
+            rr.q, rr.converged, J_r = q_path, True, J_path
     layer_rounds = []
     if rr.converged and layer_rounds_max > 0:
         # one-layer moves linearised at the rounded design (the rounding's model was the continuous point's)
@@ -124,6 +135,7 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
         "n_parameters": len(groups), "iterations": res.history,
         "thickness_start_mm": p0.round(4).tolist(), "thickness_continuous_mm": res.thickness.round(4).tolist(),
         "thickness_rounded_mm": p_round.round(4).tolist(), "layer_rounds": layer_rounds,
+        **({"rounding_continuation": rounding_path} if rounding_path else {}),
         "continuous": {"rms_mm": res.rms_mm, **res.history[-1]},
     }
     near = None

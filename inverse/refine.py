@@ -301,6 +301,21 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
     return p, q, J, history
 
 
+def follow_thickness(problem: ThicknessProblem, p_from, q_from, p_to, steps: int = 4, newton_iterations: int = 400):
+    """The equilibrium at thicknesses p_to (P,) mm followed from the equilibrium q_from at p_from
+    in ``steps`` equal thickness steps, each solve warm-started from the last: the same branch
+    where one solve from q_from would jump to another state. Returns (q, converged)."""
+    q = q_from
+    p_from, p_to = np.asarray(p_from, float), np.asarray(p_to, float)
+    for k in range(1, steps + 1):
+        p_k = p_from + (k / steps) * (p_to - p_from)
+        r = problem.solve(problem.model_at(p_k), q, newton_iterations)
+        if not r.converged:
+            return q, False
+        q = r.q
+    return q, True
+
+
 def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions = RefineOptions(),
                      callback=None) -> RefineResult:
     """Gauss-Newton refinement of the thicknesses from p0 (P,) with the equilibrium solve

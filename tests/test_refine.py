@@ -132,3 +132,20 @@ def test_layer_refinement_returns_layer_counts_that_are_one_layer_off(deployed):
     np.testing.assert_allclose(p, TRUE, atol=1e-9)
     assert J < 1e-8 * J0 and J0 > 5e-5                 # mm^2: one layer off is ~0.01 mm rms here
     assert all(h["accepted"] for h in hist if h["changed"])
+
+
+def test_following_the_thicknesses_in_steps_reaches_the_direct_equilibrium(deployed):
+    """Where no other state is near, the equilibrium followed in 4 thickness steps is the one a
+    single solve finds (mm)."""
+    from inverse.refine import follow_thickness
+    base, param, X = deployed
+    prob = ThicknessProblem(sheet_at(base, param, TRUE), FABRIC, PLASTIC, param, X, None, smoothness=0.0)
+    prob.free = np.ones(3 * base.n_vertices + prob.model_at(TRUE).n_edges, bool)
+    prob.free[gauge_dofs(X, np.zeros(0, int))] = False
+    q0 = prob.solve(prob.model_at(TRUE), np.concatenate([X.ravel(), np.zeros(len(prob.free) - X.size)]), 400).q
+    p1 = TRUE * 1.15
+    q, ok = follow_thickness(prob, TRUE, q0, p1, 4)
+    direct = prob.solve(prob.model_at(p1), q0, 400)
+    assert ok and direct.converged
+    x, y = prob.model_at(p1).split(q)[0], prob.model_at(p1).split(direct.q)[0]
+    assert np.abs(x - y).max() < 1e-5 and np.abs(x - X).max() > 0.01      # moved 0.02 mm, to the same state
