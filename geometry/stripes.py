@@ -230,13 +230,8 @@ def _gauge_references(V: np.ndarray, mass: np.ndarray) -> list[np.ndarray]:
     vertex got (that choice flips with round-off where the field is at +-90 degrees to the
     vertex frame). r1 = 1 + sum_j (V_j - c_j) / L (c the M-weighted centroid, L the bounding
     box diagonal): the constant alone projects to ~0 when a domain holds a whole number of
-    periods (it keeps 1.5e-4 of its M-norm on a 40 mm square with 4 mm stripes along x), the
-    centred ramps have the opposite parity and do not (r1 keeps 0.010 there). r2 =
-    |V - c|^2 / L^2 (even, quadratic): the fallback. Measured fractions kept, r1 / r2: the
-    pipeline's cylinder layout fields 0.029-0.053 / 0.051-0.091; that square with stripes at
-    30 or 45 degrees 3.9e-4 / 2.9e-4 (below `_gauge_fixed`'s 1e-3, so r1, which keeps more, is
-    used; the phase still agrees to 1e-9 between start seeds there, the basis having converged
-    to round-off).
+    periods, the centred ramps have the opposite parity and do not. r2 = |V - c|^2 / L^2 (even,
+    quadratic): the fallback.
     """
     m = mass[0::2]
     c = (m[:, None] * V).sum(axis=0) / m.sum()
@@ -305,13 +300,10 @@ def _smallest_stripe_mode(A, mass, V, seed, rtol, max_iter, block=6):
     vectors within ``100 (rtol lambda_1 + 1e-12 s)`` of lambda_1 (s = mean A_ii / mean M_i,
     1/mm^2; 1e-12 s is the iteration's absolute stopping tolerance) are taken as one
     eigenspace, and the returned x is the projection of a fixed reference onto it
-    (`_gauge_fixed`, `_gauge_references`), iterated until it changes by < _PHASE_TOL.
-    Measured at rtol = 1e-9: exact pairs split by <= 4.1e-10 lambda_1 or <= 7e-15 s (the
-    layout's fields of the pipeline's cylinder, planar rectangles, an annulus); the closest
-    genuinely distinct eigenvalue, a disk with a +1/2 singularity, 1.3e-4 lambda_1 = 1.0e-7 s
-    above lambda_1, whose Ritz vector is reproducible to 1e-6 rad over start seeds; the next
-    modes >= 1.7e-4 s above. The window lies between by >= 100x on each side. An isolated
-    lambda_1 gives the lowest Ritz vector (iterated as before), its sign fixed.
+    (`_gauge_fixed`, `_gauge_references`), iterated until it changes by < _PHASE_TOL. The
+    window lies at least 100x above the splitting of exact pairs at rtol = 1e-9 and 100x below
+    the closest genuinely distinct eigenvalue met (docs/notes.md, session 19). An isolated
+    lambda_1 gives the lowest Ritz vector, its sign fixed.
     """
     start = np.random.default_rng(seed).standard_normal((A.shape[0], min(block, A.shape[0])))
     scale = float(np.abs(A.diagonal()).mean()) / float(mass.mean())
