@@ -105,9 +105,9 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
         res = refine_thickness(prob, p0, q_rel, opts, callback=measure)
     h = printer.layer_height_mm
     p_round = rounded(res.thickness, h, opts.bounds)
+    first, top = rounded(list(opts.bounds), h, opts.bounds)       # the thinnest / thickest printable layer counts
     if res.model is not None:         # floor or ceil per ribbon, as the Gauss-Newton model prefers
         lo = np.minimum(rounded(res.thickness - 0.5 * h, h, opts.bounds), p_round)
-        top = rounded([opts.bounds[1]], h, opts.bounds)[0]           # the thickest printable layer count
         p_round = np.clip(linear_rounding(res.model, res.thickness, lo, h), lo, top)
     model_r = prob.model_at(p_round)
     rr = prob.solve(model_r, res.q, opts.newton_iterations)
@@ -124,8 +124,6 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     layer_rounds = []
     if rr.converged and layer_rounds_max > 0:
         # one-layer moves linearised at the rounded design (the rounding's model was the continuous point's)
-        first = rounded([opts.bounds[0]], h, opts.bounds)[0]
-        top = rounded([opts.bounds[1]], h, opts.bounds)[0]
         p_round, rr.q, _, layer_rounds = refine_layers(prob, p_round, rr.q, h, (first, top), rounds=layer_rounds_max,
                                                        newton_iterations=opts.newton_iterations, verbose=verbose)
         model_r = prob.model_at(p_round)

@@ -64,24 +64,42 @@ class RefineResult:
     model: tuple | None = None     # (p_lin, M, b): the last Gauss-Newton model |M (p - p_lin) - b|^2 of J
 
 
+def _coordinate_descent(M, res, offsets, choice, sweeps: int = 20) -> np.ndarray:
+    """Per parameter j one of the values offsets[j, k] (NaN: not allowed) lowering |res|^2,
+    where res is the model residual at the starting choice (P,) of indices and moving
+    parameter j by an offset difference d moves res by d M[:, j]: coordinate descent, each
+    parameter taking the best of its values given the others (strict decrease), a few sweeps.
+    Returns the chosen offsets (P,)."""
+    choice = np.asarray(choice, np.int64).copy()
+    for _ in range(sweeps):
+        changed = False
+        for j in range(len(choice)):
+            cur = offsets[j, choice[j]]
+            best, best_k = res @ res, choice[j]
+            for k, v in enumerate(offsets[j]):
+                if k == choice[j] or not np.isfinite(v):
+                    continue
+                new = res + (v - cur) * M[:, j]
+                if new @ new < best - 1e-15:
+                    best, best_k = new @ new, k
+            if best_k != choice[j]:
+                res = res + (offsets[j, best_k] - cur) * M[:, j]
+                choice[j], changed = best_k, True
+        if not changed:
+            break
+    return offsets[np.arange(len(choice)), choice]
+
+
 def linear_rounding(model, p, candidates_lo, step, sweeps: int = 20) -> np.ndarray:
     """Round thicknesses p (P,) to the grid candidates_lo + {0, step} choosing, per parameter,
     the side that the Gauss-Newton model (p_lin, M, b) of J predicts lower: coordinate descent
     from the nearest rounding (a few sweeps of P one-column updates; mm)."""
     p_lin, M, b = model
     lo = np.asarray(candidates_lo, float)
-    choice = np.where(np.asarray(p) - lo > 0.5 * step, step, 0.0)
-    res = M @ (lo + choice - p_lin) - b
-    for _ in range(sweeps):
-        changed = False
-        for j in range(len(lo)):
-            delta = (step - choice[j]) - choice[j]          # flip to the other side
-            new = res + delta * M[:, j]
-            if new @ new < res @ res - 1e-15:
-                res, choice[j], changed = new, choice[j] + delta, True
-        if not changed:
-            break
-    return lo + choice
+    choice = (np.asarray(p) - lo > 0.5 * step).astype(np.int64)
+    offsets = np.tile([0.0, step], (len(lo), 1))
+    res = M @ (lo + offsets[np.arange(len(lo)), choice] - p_lin) - b
+    return lo + _coordinate_descent(M, res, offsets, choice, sweeps)
 
 
 def vertex_areas(sheet) -> np.ndarray:
@@ -225,24 +243,9 @@ def layer_descent(M, b, p, step: float, lo: float, hi: float, sweeps: int = 20) 
     to lower the Gauss-Newton model |M (p_new - p) - b|^2 of J linearised at p: coordinate
     descent, each parameter taking the best of its three values given the others."""
     p = np.asarray(p, float)
-    choice = np.zeros(len(p))
-    res = -np.asarray(b, float).copy()
-    for _ in range(sweeps):
-        changed = False
-        for j in range(len(p)):
-            best, best_c = res @ res, choice[j]
-            for c in (-step, 0.0, step):
-                if c == choice[j] or not (lo - 1e-9 <= p[j] + c <= hi + 1e-9):
-                    continue
-                new = res + (c - choice[j]) * M[:, j]
-                if new @ new < best - 1e-15:
-                    best, best_c = new @ new, c
-            if best_c != choice[j]:
-                res = res + (best_c - choice[j]) * M[:, j]
-                choice[j], changed = best_c, True
-        if not changed:
-            break
-    return p + choice
+    offsets = np.tile([-step, 0.0, step], (len(p), 1))
+    offsets[~((lo - 1e-9 <= p[:, None] + offsets) & (p[:, None] + offsets <= hi + 1e-9))] = np.nan
+    return p + _coordinate_descent(M, -np.asarray(b, float), offsets, np.ones(len(p), np.int64), sweeps)
 
 
 def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: int = 2,
@@ -269,8 +272,9 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
             break
         move = layer_descent(M, b, p, step, lo, hi) - p
         idx = np.flatnonzero(np.abs(move) > 1e-9)
-        # each move's own gain in the model, from the current state
-        gain = np.array([float(b @ b) - float((move[j] * M[:, j] - b) @ (move[j] * M[:, j] - b)) for j in idx])
+        # each move's own gain in the model from the current state: |b|^2 - |m M_j - b|^2
+        m, Mj = move[idx], M[:, idx]
+        gain = 2.0 * m * (Mj.T @ b) - m ** 2 * np.einsum("ij,ij->j", Mj, Mj)
         idx = idx[np.argsort(-gain, kind="stable")]
         accepted = False
         for _ in range(max_trials):
