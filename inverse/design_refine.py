@@ -123,9 +123,11 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
             rr.q, rr.converged, J_r = q_path, True, J_path
     layer_rounds = []
     if rr.converged and layer_rounds_max > 0:
-        # one-layer moves linearised at the rounded design (the rounding's model was the continuous point's)
+        # one-layer moves linearised at the rounded design (the rounding's model was the continuous point's);
+        # a move of many ribbons by a layer is a larger step than an outer iteration's: twice its solve cap
         p_round, rr.q, _, layer_rounds = refine_layers(prob, p_round, rr.q, h, (first, top), rounds=layer_rounds_max,
-                                                       newton_iterations=opts.newton_iterations, verbose=verbose)
+                                                       newton_iterations=2 * opts.trial_iterations, verbose=verbose,
+                                                       leave_factor=opts.leave_factor)
         model_r = prob.model_at(p_round)
     block = {
         "start": start, "outer_iterations": len(res.history) - 1, "reason": res.reason,

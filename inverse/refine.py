@@ -27,6 +27,9 @@ from geometry.meshops import signed_areas
 from inverse.registration import kabsch
 from shellfem.errors import SelfshapeError
 
+#: the reason of a trial solve stopped because its objective rose past the limit
+LEFT_BRANCH = "left the branch"
+
 
 @dataclass(frozen=True)
 class RefineOptions:
@@ -37,14 +40,20 @@ class RefineOptions:
     the first one (from the caller's start, e.g. the target itself), which the caller may retry
     from another start. max_step: largest thickness change of one outer iteration (mm): the
     warm-started solves stay short and the Gauss-Newton model valid. damping: initial
-    Levenberg-Marquardt weight relative to the Gauss-Newton matrix's mean diagonal."""
+    Levenberg-Marquardt weight relative to the Gauss-Newton matrix's mean diagonal.
+    leave_factor: a trial solve is stopped once its iterate's objective exceeds this times the
+    current J: it is heading into another state (these sheets are multistable), and finishing
+    that solve (often 50-200 Newton iterations) only to reject the step costs most of an
+    outer iteration; the trial counts as rejected."""
     bounds: tuple = (0.1, 1.6)
     max_outer: int = 12
     ftol: float = 1e-3
     newton_iterations: int = 400
+    trial_iterations: int = 100
     start_iterations: int = 150
     max_step: float = 0.2
     damping: float = 1e-3
+    leave_factor: float = 1.25
     verbose: bool = False
 
 
@@ -170,15 +179,25 @@ class ThicknessProblem:
         from shellfem.model import ShellModel
         return ShellModel.from_materials(self.sheet_at(p), self.fabric, self.plastic)
 
-    def solve(self, model, q0, max_iterations):
+    def solve(self, model, q0, max_iterations, p=None, limit=None):
         """Equilibrium from q0; the gradient tolerance is relative to the force scale of the
         released flat sheet (not to the warm start's small residual, which would ask for
-        round-off-level gradients in the soft valleys of these sheets)."""
+        round-off-level gradients in the soft valleys of these sheets). With ``limit`` (mm^2)
+        and the thicknesses ``p`` of ``model``, the solve stops, not converged, with a reason
+        starting LEFT_BRANCH, once an iterate's objective exceeds ``limit``; ``trace`` then keeps
+        the objective at each accepted iterate."""
         from shellfem.newton import newton
         if self.gradient_reference is None:
             self.gradient_reference = float(np.linalg.norm(model.gradient(model.initial_state())[self.free]))
+        monitor = None
+        self.trace = []
+        if limit is not None:
+            def monitor(q):
+                J = self.objective(model.split(q)[0], p)[0]
+                self.trace.append(J)
+                return f"{LEFT_BRANCH} (objective {J:.4g} > {limit:.4g} mm^2)" if J > limit else None
         return newton(model, q0, self.free, max_iterations=max_iterations, gradient_reference=self.gradient_reference,
-                      rtol=self.rtol)
+                      rtol=self.rtol, monitor=monitor)
 
     def residual(self, x):
         """(rotation R, translation c, weighted residual rows (3n,), mean squared distance mm^2)."""
@@ -249,12 +268,14 @@ def layer_descent(M, b, p, step: float, lo: float, hi: float, sweeps: int = 20) 
 
 
 def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: int = 2,
-                  newton_iterations: int = 400, max_trials: int = 4, verbose: bool = False):
+                  newton_iterations: int = 400, max_trials: int = 4, verbose: bool = False,
+                  leave_factor: float = 1.25):
     """Layer-count refinement of rounded thicknesses p (P,) mm at their equilibrium q: up to
     ``rounds`` times, linearise J at the rounded state (gauss_newton_model), move ribbons by
     at most one layer (layer_descent), re-solve warm-started, and keep the move if J fell;
     a move that raises J is cut to the half of its ribbons whose single moves the model rates
-    best, up to ``max_trials`` solves per round (a trust region on the number of ribbons moved).
+    best, up to ``max_trials`` solves per round (a trust region on the number of ribbons moved);
+    a trial solve whose objective passes ``leave_factor`` times the current J is stopped.
     Rounding a continuous optimum to layers is linearised at the continuous point, far from
     the rounded one for thin ribbons (a 0.1 mm layer is 20 % of a 0.5 mm ribbon); this
     re-linearises where the design now is. Returns (p, q, J, history: per trial dict(round,
@@ -286,9 +307,9 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
             p_new = p + s
             pred = M @ s - b
             model_new = problem.model_at(p_new)
-            res = problem.solve(model_new, q + dq @ s, newton_iterations)
-            if not res.converged:
-                res = problem.solve(model_new, q, newton_iterations)
+            res = problem.solve(model_new, q + dq @ s, newton_iterations, p_new, leave_factor * J)
+            if not res.converged and res.iterations < 2:         # the prediction was no start: from q
+                res = problem.solve(model_new, q, newton_iterations, p_new, leave_factor * J)
             J_new = problem.objective(model_new.split(res.q)[0], p_new)[0] if res.converged else np.inf
             ok = bool(J_new < J)
             history.append(dict(round=k, changed=int(len(idx)), objective=float(J_new), predicted=float(pred @ pred),
@@ -385,9 +406,10 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
             q_guess = q + dq @ (p_try - p)
             t_s = time.perf_counter()
             trials += 1
-            res = problem.solve(model_try, q_guess, options.newton_iterations)
-            if not res.converged or not np.isfinite(res.energy):
-                res = problem.solve(model_try, q, options.newton_iterations)
+            limit = options.leave_factor * J
+            res = problem.solve(model_try, q_guess, options.trial_iterations, p_try, limit)
+            if not res.converged and res.iterations < 2:         # the prediction was no start: from q
+                res = problem.solve(model_try, q, options.trial_iterations, p_try, limit)
             t_solves += time.perf_counter() - t_s
             if res.converged:
                 J_try, msd_try = problem.objective(model_try.split(res.q)[0], p_try)
@@ -395,8 +417,10 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
             else:
                 J_try, rho = np.inf, -np.inf
             if options.verbose:
+                peak = max(problem.trace, default=np.nan) / J
                 print(f"  trial: J {J_try:.4e} (predicted {predicted:.4e}), rho {rho:.3f}, mu {mu:.2e}, "
-                      f"{res.iterations} Newton iterations{'' if res.converged else ' (' + res.reason + ')'}", flush=True)
+                      f"{res.iterations} Newton iterations, peak J / J {peak:.3f}"
+                      f"{'' if res.converged else ' (' + res.reason + ')'}", flush=True)
             if rho > 0.1:
                 accepted = True
                 mu = mu / 3 if rho > 0.75 else mu

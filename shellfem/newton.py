@@ -114,6 +114,9 @@ class NewtonOptions:
     callback: called after each accepted step with its history entry (a dict: iteration,
         energy N mm and gradient_norm N before the step, lam the trust-region shift), so a
         caller can show progress (the CLI's status line) without this layer printing.
+    monitor: called with the iterate q (n_dofs,) after each accepted step; a returned
+        non-empty string stops the solve, not converged, with that string as its reason (a
+        caller whose objective shows the solve leaving the state it wants stops paying for it).
     stability_shift: a LM shift up to this still counts as the exact Hessian factorising.
     step_tolerance: the Newton step's largest position change must be below this times the
         sheet's size; energy_tolerance: the energy the Newton step still promises (half the
@@ -145,6 +148,7 @@ class NewtonOptions:
     backend: str = "auto"
     verbose: bool = False
     callback: object = None
+    monitor: object = None
     gradient_reference: float | None = None
     stability_shift: float = 1e-6
     step_tolerance: float = 1e-7
@@ -417,6 +421,15 @@ class _Newton:
             print(f"  newton {it:3d}  E {self.E:.10e}  |g| {self.gnorm:.3e}  Newton step x {note}", flush=True)
         self.lam = 0.0
         self.fresh = True
+        return self._monitored()
+
+    def _monitored(self):
+        """_NEXT, or _STOP with the monitor's reason when it asks to stop at the new iterate."""
+        if self.opts.monitor is not None:
+            why = self.opts.monitor(self.q)
+            if why:
+                self.reason = str(why)
+                return _STOP
         return _NEXT
 
     def _newton_step(self, it):
@@ -580,7 +593,7 @@ class _Newton:
             self.lam = lam / 4 if lam > LAM_MIN else 0.0
         elif rho < 0.25:
             self.lam = max(4.0 * lam, 1e-8)
-        return _NEXT
+        return self._monitored()
 
 
 def _negative_curvature_step(model, q, free, H, D, g, factor, E, v_prev, length_scale, n_inverse=12):

@@ -149,3 +149,29 @@ def test_following_the_thicknesses_in_steps_reaches_the_direct_equilibrium(deplo
     assert ok and direct.converged
     x, y = prob.model_at(p1).split(q)[0], prob.model_at(p1).split(direct.q)[0]
     assert np.abs(x - y).max() < 1e-5 and np.abs(x - X).max() > 0.01      # moved 0.02 mm, to the same state
+
+
+def test_a_trial_solve_stops_once_its_objective_passes_the_limit(deployed):
+    """ThicknessProblem.solve with a limit: from the flat sheet (far from the deployed target)
+    it stops, not converged, with the LEFT_BRANCH reason at the first iterate whose objective
+    passes the limit; with a limit no iterate reaches it returns the plain solve's equilibrium."""
+    from inverse.refine import LEFT_BRANCH
+    base, param, X = deployed
+    prob = ThicknessProblem(sheet_at(base, param, TRUE), FABRIC, PLASTIC, param, X, None, smoothness=0.0)
+    model = prob.model_at(TRUE)
+    prob.free = np.ones(model.n_dofs, bool)
+    prob.free[gauge_dofs(X, np.zeros(0, int))] = False
+    q0 = np.concatenate([X.ravel(), np.zeros(model.n_edges)])
+    plain = prob.solve(model, q0, 300)
+    assert plain.converged
+    J_end = prob.objective(model.split(plain.q)[0], TRUE)[0]
+    assert J_end < 1e-12                                 # the target is this sheet's own equilibrium
+    flat = model.initial_state()
+    x, _ = model.split(flat)
+    x[:, 2] += smooth_perturbation(base.points, 0, 0.3)
+    stopped = prob.solve(model, flat, 300, TRUE, limit=1e-3)
+    assert not stopped.converged and stopped.reason.startswith(LEFT_BRANCH)
+    assert prob.objective(model.split(stopped.q)[0], TRUE)[0] > 1e-3
+    assert stopped.iterations <= 2
+    loose = prob.solve(model, q0, 300, TRUE, limit=1e6)
+    assert loose.converged and np.allclose(loose.q, plain.q, atol=1e-12)

@@ -97,6 +97,32 @@ def test_iteration_cap_is_reported_as_not_converged():
     assert "maximum" in r.reason
 
 
+def test_a_monitor_stops_the_solve_unconverged_with_its_reason():
+    """The monitor sees each accepted iterate; the first non-empty answer ends the solve there
+    (not converged, that reason, the iterate it saw returned). Without a stop the solve is the
+    plain one."""
+    sh, free_x, tip = _cantilever(10.0, 20)
+    M = ShellModel.homogeneous(sh, E, 0.0, H)
+    f = np.zeros((sh.n_vertices, 3))
+    f[tip, 2] = 4.0 / len(tip)
+    M.external_force = f
+    seen = []
+
+    def monitor(q):
+        seen.append(q.copy())
+        return "tip past 1 mm" if M.split(q)[0][tip, 2].max() > 1.0 else None
+
+    r = newton(M, M.initial_state(), free_x, max_iterations=200, monitor=monitor)
+    plain = newton(M, M.initial_state(), free_x, max_iterations=200)
+    assert plain.converged and M.split(plain.q)[0][tip, 2].max() > 1.0
+    assert not r.converged and r.reason == "tip past 1 mm"
+    assert np.array_equal(r.q, seen[-1]) and M.split(r.q)[0][tip, 2].max() > 1.0
+    assert all(M.split(q)[0][tip, 2].max() <= 1.0 for q in seen[:-1])
+    assert r.iterations < plain.iterations
+    quiet = newton(M, M.initial_state(), free_x, max_iterations=200, monitor=lambda q: None)
+    assert quiet.converged and quiet.iterations == plain.iterations and np.allclose(quiet.q, plain.q, atol=1e-12)
+
+
 def test_lm_metric_floors_each_dof_kind_at_its_own_median():
     diag = np.array([1.0, 2.0, 3.0, 1000.0, -0.5, 0.01, 0.02, 0.03])
     pos = np.array([True] * 5 + [False] * 3)
