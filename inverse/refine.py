@@ -43,8 +43,8 @@ class RefineOptions:
     Levenberg-Marquardt weight relative to the Gauss-Newton matrix's mean diagonal.
     leave_factor: a trial solve is stopped once its iterate's objective exceeds this times the
     current J: it is heading into another state (these sheets are multistable), and finishing
-    that solve (often 50-200 Newton iterations) only to reject the step costs most of an
-    outer iteration; the trial counts as rejected."""
+    that long solve only to reject the step costs more than the rest of the outer iteration;
+    the trial counts as rejected."""
     bounds: tuple = (0.1, 1.6)
     max_outer: int = 12
     ftol: float = 1e-3
@@ -166,6 +166,7 @@ class ThicknessProblem:
         self.smoothness = float(smoothness)
         self.gradient_reference = None
         self.rtol = 1e-10
+        self.trace = []                 # the objective at each iterate of the last limited solve (mm^2)
 
     def sheet_at(self, p):
         from shellfem.sheet import Sheet
