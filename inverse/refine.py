@@ -200,6 +200,15 @@ class ThicknessProblem:
         return newton(model, q0, self.free, max_iterations=max_iterations, gradient_reference=self.gradient_reference,
                       rtol=self.rtol, monitor=monitor)
 
+    def trial_solve(self, model, q_guess, q, max_iterations, p, limit):
+        """A trial step's equilibrium (thicknesses p of ``model``): from the linear prediction
+        q_guess, and from the current equilibrium q only when the prediction gave no start (the
+        solve stopped within its first iteration); stopped past ``limit`` as in :meth:`solve`."""
+        res = self.solve(model, q_guess, max_iterations, p, limit)
+        if not res.converged and res.iterations < 2:
+            res = self.solve(model, q, max_iterations, p, limit)
+        return res
+
     def residual(self, x):
         """(rotation R, translation c, weighted residual rows (3n,), mean squared distance mm^2)."""
         R, c = kabsch(x, self.targets, self.w)
@@ -270,7 +279,7 @@ def layer_descent(M, b, p, step: float, lo: float, hi: float, sweeps: int = 20) 
 
 def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: int = 2,
                   newton_iterations: int = 400, max_trials: int = 4, verbose: bool = False,
-                  leave_factor: float = 1.25):
+                  leave_factor: float = RefineOptions.leave_factor):
     """Layer-count refinement of rounded thicknesses p (P,) mm at their equilibrium q: up to
     ``rounds`` times, linearise J at the rounded state (gauss_newton_model), move ribbons by
     at most one layer (layer_descent), re-solve warm-started, and keep the move if J fell;
@@ -308,9 +317,7 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
             p_new = p + s
             pred = M @ s - b
             model_new = problem.model_at(p_new)
-            res = problem.solve(model_new, q + dq @ s, newton_iterations, p_new, leave_factor * J)
-            if not res.converged and res.iterations < 2:         # the prediction was no start: from q
-                res = problem.solve(model_new, q, newton_iterations, p_new, leave_factor * J)
+            res = problem.trial_solve(model_new, q + dq @ s, q, newton_iterations, p_new, leave_factor * J)
             J_new = problem.objective(model_new.split(res.q)[0], p_new)[0] if res.converged else np.inf
             ok = bool(J_new < J)
             history.append(dict(round=k, changed=int(len(idx)), objective=float(J_new), predicted=float(pred @ pred),
@@ -407,10 +414,7 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
             q_guess = q + dq @ (p_try - p)
             t_s = time.perf_counter()
             trials += 1
-            limit = options.leave_factor * J
-            res = problem.solve(model_try, q_guess, options.trial_iterations, p_try, limit)
-            if not res.converged and res.iterations < 2:         # the prediction was no start: from q
-                res = problem.solve(model_try, q, options.trial_iterations, p_try, limit)
+            res = problem.trial_solve(model_try, q_guess, q, options.trial_iterations, p_try, options.leave_factor * J)
             t_solves += time.perf_counter() - t_s
             if res.converged:
                 J_try, msd_try = problem.objective(model_try.split(res.q)[0], p_try)
