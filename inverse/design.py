@@ -168,7 +168,10 @@ def coarsen_for_layout(F0, levels: int, coarse_levels: int, uv, area, dir1, sigm
 class DesignOptions:
     """The choices of an inverse design (mm, 1/mm).
 
-    stretch: fabric pre-stretch s (> 1; "auto" in `design_file`: `choose_stretch`). diagonal_mm: scale the target to this bounding-box
+    stretch: fabric pre-stretch s (> 1), or "auto" (default): the shipped law's stretch that fits
+    the target best (`choose_stretch`; a stretch whose law cannot reach the target's low
+    curvature over-curls the ribbons, e.g. a shallow vault designed at 1.6 rolls into a tube).
+    diagonal_mm: scale the target to this bounding-box
     diagonal (None: V is already in mm). printer: inverse.printer.Printer (its layer height
     rounds the thickness; None: the default printer). lam: the seed's line-field lambda
     (<= 0, 1/mm^2). thickness_law: a ThicknessLaw, a CSV path or None (the shipped law made at
@@ -189,7 +192,7 @@ class DesignOptions:
     flattening's bounds too), a table path or a model; it also gives the default ``bounds``.
     Whatever the model, the report's ``contraction.check`` compares the layout's spacings with
     the shipped table at the stretch, where there is one."""
-    stretch: float = 1.6
+    stretch: float | str = "auto"
     diagonal_mm: float | None = 110.0
     printer: object = None
     lam: float = 0.0
@@ -257,7 +260,8 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     ``options`` (default DesignOptions()) with any of its fields overridden by keyword, e.g.
     ``design(V, F, stretch=1.4, edge_mm=None)``; ``where`` names the target in messages.
     ``progress``: called with {"stage": "design", "step": name, "index": i, "steps": n} as each
-    of DESIGN_STAGES starts (the CLI's status line)."""
+    of DESIGN_STAGES starts (the CLI's status line). ``stretch = "auto"`` designs at each shipped
+    law's stretch and returns the best (`choose_stretch`)."""
     from geometry.curvature import principal_curvature
     from geometry.fields import curvature_line_field
     from geometry.flattening import project_stretches
@@ -269,6 +273,8 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
                                        load_thickness_law, reach_warning)
 
     o = replace(options or DesignOptions(), **overrides)
+    if o.stretch == "auto":
+        return choose_stretch(V, F, o, where=where, progress=progress)[0]
     stretch, printer, thickness_law, bounds = o.stretch, o.printer, o.thickness_law, o.bounds
     ribbon_length, ribbon_width, stop, gap_mm = o.ribbon_length, o.ribbon_width, o.stop, o.gap_mm
     times, cpu = {}, {}
@@ -425,15 +431,24 @@ def choose_stretch(V, F, options: DesignOptions | None = None, *, where: str = "
                                  f"(a '# fabric_stretch = s' line); give --stretch instead")
         candidates = [law.stretch]
         o = replace(o, thickness_law=law)         # read once, not again per design
-    best, rows = None, []
+    best, rows, failed = None, [], None
     for i, s in enumerate(candidates):
         tag = f"stretch {s:g} ({i + 1}/{len(candidates)})"
         each = None if progress is None else (lambda e, tag=tag: progress({**e, "candidate": tag}))
-        d = design(V, F, o, where=where, stretch=s, progress=each)
+        try:
+            d = design(V, F, o, where=where, stretch=s, progress=each)
+        except SelfshapeError as e:
+            # this stretch cannot make the design (e.g. its pattern does not fit the bed): the
+            # others may; the error is kept in the choice and raised if no stretch can
+            failed = e
+            rows.append({"stretch": s, "error": str(e)})
+            continue
         row = reach_score(d)
         rows.append(row)
         if best is None or row["score"] < best[1]["score"] - 1e-9:
             best = (d, row)
+    if best is None:
+        raise failed
     return best[0], {"candidates": rows, "chosen": best[1]["stretch"]}
 
 

@@ -191,11 +191,15 @@ class ThicknessProblem:
         if self.gradient_reference is None:
             self.gradient_reference = float(np.linalg.norm(model.gradient(model.initial_state())[self.free]))
         monitor = None
-        self.trace = []
+        self.trace, self.drift = [], []
         if limit is not None:
+            x0 = model.split(q0)[0]
+
             def monitor(q):
-                J = self.objective(model.split(q)[0], p)[0]
+                x = model.split(q)[0]
+                J = self.objective(x, p)[0]
                 self.trace.append(J)
+                self.drift.append(float(np.sqrt(self.w @ np.sum((x - x0) ** 2, 1))))
                 return f"{LEFT_BRANCH} (objective {J:.4g} > {limit:.4g} mm^2)" if J > limit else None
         return newton(model, q0, self.free, max_iterations=max_iterations, gradient_reference=self.gradient_reference,
                       rtol=self.rtol, monitor=monitor)
@@ -426,6 +430,13 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
                 print(f"  trial: J {J_try:.4e} (predicted {predicted:.4e}), rho {rho:.3f}, mu {mu:.2e}, "
                       f"{res.iterations} Newton iterations, peak J / J {peak:.3f}"
                       f"{'' if res.converged else ' (' + res.reason + ')'}", flush=True)
+                pred_move = float(np.sqrt(problem.w @ np.sum((model.split(q_guess)[0] - model.split(q)[0]) ** 2, 1)))
+                steps = "".join("N" if h.get("lam", 0.0) == 0.0 else str(min(9, max(0, int(np.log10(h["lam"]) + 10))))
+                                for h in res.history)
+                dr = problem.drift
+                print(f"    predicted move {pred_move:.4f} mm; drift from the guess at 3/5/10/20/end "
+                      + " ".join(f"{dr[k]:.4f}" if k < len(dr) else "-" for k in (2, 4, 9, 19))
+                      + f" {dr[-1] if dr else float('nan'):.4f} mm; steps {steps}", flush=True)
             if rho > 0.1:
                 accepted = True
                 mu = mu / 3 if rho > 0.75 else mu

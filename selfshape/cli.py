@@ -152,9 +152,11 @@ def _cmd_design(a):
     print(f"design written to {a.output} in {r['time_s']:.1f} s")
     if r.get("stretch_choice"):
         c = r["stretch_choice"]
-        print("stretch auto: " + ", ".join(f"s {row['stretch']:g}: curvature off by x{math.exp(row['log_excess']):.2f}, "
-                                         f"{100 * row['out_of_bounds']:.1f} % out of bounds" for row in c["candidates"])
-              + f" -> {c['chosen']:g}")
+        print("stretch auto: " + ", ".join(
+            f"s {row['stretch']:g}: " + (f"curvature off by x{math.exp(row['log_excess']):.2f}, "
+                                         f"{100 * row['out_of_bounds']:.1f} % out of bounds" if "error" not in row
+                                         else "cannot be designed")
+            for row in c["candidates"]) + f" -> {c['chosen']:g}")
     warning = (r.get("curvature_reach") or {}).get("warning")
     if warning:
         print(f"warning: {warning}")
@@ -374,8 +376,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("-v", "--verbose", action="store_true")
     d.add_argument("-q", "--quiet", action="store_true", help="no progress line on a terminal")
     d.add_argument("--diagonal", type=_POSITIVE, default=110.0, help="scale the target to this bounding-box diagonal, mm")
-    d.add_argument("--stretch", type=_stretch, default=1.6,
-                   help="fabric pre-stretch s, or 'auto': the shipped law's stretch that fits the target best")
+    d.add_argument("--stretch", type=_stretch, default="auto",
+                   help="fabric pre-stretch s, or 'auto' (default): the shipped law's stretch that fits the target best")
     d.add_argument("--law", default=None, help="curvature-law CSV (default: the shipped inverse/data table)")
     d.add_argument("--contraction", default="auto",
                    help="how stretch maps to ribbon spacing: 'auto' (default: the shipped table of simulated patches "

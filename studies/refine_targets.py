@@ -1,4 +1,5 @@
-"""Open-loop and refined designs of the targets in meshes/targets at 110 mm (issue 18's benchmark).
+"""Open-loop and refined designs of the targets in meshes/targets at 110 mm (issue 18's benchmark),
+or of any target mesh named by its path.
 
 For each TARGET.obj: `inverse.design.design_file(..., refine=True)` -> OUT/TARGET/ (pattern.toml,
 G-code, pictures, deployed.vtu, report.json). Prints ONE JSON line per target: open-loop and
@@ -55,7 +56,8 @@ def run_target(path, out_dir, args) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("names", nargs="*", help="target names (default: all)")
+    ap.add_argument("names", nargs="*", help="target names in meshes/targets, or paths of other target meshes "
+                                             "(default: all shipped targets)")
     ap.add_argument("--out", default="out/refine")
     ap.add_argument("--mesh-size", type=float, default=3.0, help="[mesh] size_mm of the simulation (mm)")
     ap.add_argument("--across", type=float, default=1.0, help="[mesh] across: triangle rows across a ribbon")
@@ -67,7 +69,9 @@ def main(argv=None) -> int:
     ap.add_argument("--max-thickness", type=float, default=1.6, help="thickest printable ribbon (mm)")
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args(argv)
-    paths = target_paths(args.names)
+    files = [n for n in args.names if os.path.splitext(n)[1]]
+    names = [n for n in args.names if not os.path.splitext(n)[1]]
+    paths = (target_paths(names) if names or not files else []) + files
     rows = []
     for p in paths:
         name = os.path.splitext(os.path.basename(p))[0]

@@ -28,7 +28,7 @@ def write_obj(path, V, F):
 @pytest.fixture(scope="module")
 def cylinder_design():
     V, F = cylinder_patch()                       # R = 30 mm, normals away from the axis
-    return design(V, F, diagonal_mm=None, edge_mm=None)
+    return design(V, F, diagonal_mm=None, edge_mm=None, stretch=1.6)
 
 
 def test_cylinder_isometric_along_k1_within_bounds(cylinder_design):
@@ -61,7 +61,7 @@ def written(tmp_path_factory):
     V, F = cylinder_patch(n_arc=16, n_len=12)
     target = write_obj(tmp / "cyl.obj", V, F)
     out = tmp / "out"
-    rep = design_file(target, out, edge_mm=2.0)
+    rep = design_file(target, out, edge_mm=2.0, stretch=1.6)
     return out, rep
 
 
@@ -480,6 +480,41 @@ def test_stretch_auto_picks_the_law_that_reaches_the_target(tmp_path, monkeypatc
     bare.write_text(format_thickness_law(rows, ["no stretch here"]))
     with pytest.raises(SelfshapeError, match="needs a law that states its fabric stretch"):
         choose_stretch(V, F, diagonal_mm=60.0, edge_mm=3.0, thickness_law=str(bare))
+
+
+def test_the_default_stretch_is_chosen_and_a_stretch_that_cannot_design_is_passed_over(tmp_path, monkeypatch):
+    """Without a stretch, design() and design_file() choose among the shipped laws' stretches
+    (a shallow target at the default 1.6 over-curls into a tube); a candidate stretch whose
+    design fails is recorded with its error and the others decide; if every one fails, its
+    error is the design's."""
+    import inverse.design as design_module
+    from inverse.design import DesignOptions
+    from inverse.thickness_law import shipped_laws
+    assert DesignOptions().stretch == "auto"
+    V, F = sphere_cap(radius=60.0, half_angle_deg=30.0, n_radial=8)
+    rep = design_file(write_obj(tmp_path / "cap.obj", V, F), tmp_path / "out", diagonal_mm=60.0, edge_mm=3.0)
+    choice = rep["stretch_choice"]
+    assert sorted(c["stretch"] for c in choice["candidates"]) == sorted(shipped_laws())
+    best = min(choice["candidates"], key=lambda c: c["score"])
+    assert choice["chosen"] == best["stretch"] == rep["stretch"]
+    assert load_pattern(tmp_path / "out" / "pattern.toml").fabric.stretch == (best["stretch"],) * 2
+
+    real = design_module.design
+
+    def failing_at(bad):
+        def fake(V, F, options=None, **kw):
+            if kw.get("stretch") in bad:
+                raise SelfshapeError(f"cap.obj: nothing at stretch {kw['stretch']}")
+            return real(V, F, options, **kw)
+        return fake
+    monkeypatch.setattr(design_module, "design", failing_at({best["stretch"]}))
+    d, choice2 = design_module.choose_stretch(V, F, diagonal_mm=60.0, edge_mm=3.0)
+    failed = [c for c in choice2["candidates"] if "error" in c]
+    assert [c["stretch"] for c in failed] == [best["stretch"]] and "nothing at stretch" in failed[0]["error"]
+    assert d.stretch == choice2["chosen"] != best["stretch"]
+    monkeypatch.setattr(design_module, "design", failing_at(set(shipped_laws())))
+    with pytest.raises(SelfshapeError, match="nothing at stretch"):
+        design_module.choose_stretch(V, F, diagonal_mm=60.0, edge_mm=3.0)
 
 
 def test_layout_moves_to_a_finer_level_where_the_coarsest_cannot_resolve_the_stripes(monkeypatch):

@@ -108,7 +108,7 @@ def test_design_shows_its_stages_on_a_terminal(tmp_path):
         f.writelines(f"v {x:.9g} {y:.9g} {z:.9g}\n" for x, y, z in V)
         f.writelines(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in F)
     code = (f"import sys; from selfshape.cli import main; "
-            f"sys.exit(main(['design', {str(target)!r}, '-o', {str(tmp_path / 'd')!r}, '--diagonal', '60']))")
+            f"sys.exit(main(['design', {str(target)!r}, '-o', {str(tmp_path / 'd')!r}, '--diagonal', '60', '--stretch', '1.6']))")
     rc, out, term = _run_on_pty(code, _env())
     assert rc == 0, term
     shown = term.decode()
