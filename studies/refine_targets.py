@@ -1,5 +1,6 @@
 """Open-loop and refined designs of the targets in meshes/targets at 110 mm (issue 18's benchmark),
-or of any target mesh named by its path.
+of the analytic targets of study_cli.ANALYTIC_TARGETS (a barrel vault, an S-wave), or of any
+target mesh named by its path.
 
 For each TARGET.obj: `inverse.design.design_file(..., refine=True)` -> OUT/TARGET/ (pattern.toml,
 G-code, pictures, deployed.vtu, report.json). Prints ONE JSON line per target: open-loop and
@@ -10,7 +11,7 @@ target on 2 cores; not part of the test run.
 
     python studies/refine_targets.py [--mesh-size 3] [--across 1] [--max-outer 12] [--stretch 1.2]
                                      [--printer inverse/data/printers/layer_0.1mm.toml]
-                                     [--verify-iterations 3000] [--out out/refine] [names...]
+                                     [--verify-iterations 3000] [--out out/refine] [names or paths...]
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import json
 import os
 import time
 
-from study_cli import target_paths
+from study_cli import ANALYTIC_TARGETS, analytic_target, target_paths
 
 
 
@@ -56,8 +57,8 @@ def run_target(path, out_dir, args) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("names", nargs="*", help="target names in meshes/targets, or paths of other target meshes "
-                                             "(default: all shipped targets)")
+    ap.add_argument("names", nargs="*", help="target names in meshes/targets, analytic targets ("
+                    + ", ".join(ANALYTIC_TARGETS) + "), or paths of other target meshes (default: all shipped targets)")
     ap.add_argument("--out", default="out/refine")
     ap.add_argument("--mesh-size", type=float, default=3.0, help="[mesh] size_mm of the simulation (mm)")
     ap.add_argument("--across", type=float, default=1.0, help="[mesh] across: triangle rows across a ribbon")
@@ -70,7 +71,8 @@ def main(argv=None) -> int:
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args(argv)
     files = [n for n in args.names if os.path.splitext(n)[1]]
-    names = [n for n in args.names if not os.path.splitext(n)[1]]
+    files += [analytic_target(n, args.out) for n in args.names if n in ANALYTIC_TARGETS]
+    names = [n for n in args.names if not os.path.splitext(n)[1] and n not in ANALYTIC_TARGETS]
     paths = (target_paths(names) if names or not files else []) + files
     rows = []
     for p in paths:

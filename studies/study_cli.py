@@ -36,3 +36,35 @@ def target_paths(names=()) -> list:
     import glob
     paths = sorted(glob.glob(TARGETS))
     return [p for p in paths if not names or os.path.splitext(os.path.basename(p))[0] in names]
+
+
+def _wave(length_mm: float = 110.0, width_mm: float = 70.0, amplitude_mm: float = 8.0, nx: int = 55, ny: int = 35):
+    """A developable S-wave z = A sin(2 pi x / L) (mm): one full period, so its curvature along x
+    changes sign (ribbons on both sides), and it is flat across."""
+    import numpy as np
+
+    from geometry.target import plane_patch
+    V, F = plane_patch(length_mm, width_mm, nx, ny)
+    V[:, 2] = amplitude_mm * np.sin(2 * np.pi * V[:, 0] / length_mm)
+    return V, F
+
+
+def _vault():
+    """A barrel vault: a cylinder patch of radius 70 mm, 80 mm of arc by 100 mm along the axis."""
+    from geometry.target import cylinder_patch
+    return cylinder_patch(radius=70.0, arc_mm=80.0, length_mm=100.0, n_arc=32, n_len=40)
+
+
+#: analytic targets outside meshes/ (the classes the shipped scans do not cover), by name
+ANALYTIC_TARGETS = {"vault": _vault, "wave": _wave}
+
+
+def analytic_target(name: str, out_dir: str) -> str:
+    """Write the analytic target ``name`` (a key of ANALYTIC_TARGETS) as OUT_DIR/<name>.obj and
+    return its path."""
+    import meshio
+    V, F = ANALYTIC_TARGETS[name]()
+    os.makedirs(out_dir, exist_ok=True)
+    path = os.path.join(out_dir, f"{name}.obj")
+    meshio.write(path, meshio.Mesh(V, [("triangle", F)]))
+    return path
