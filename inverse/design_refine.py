@@ -65,8 +65,8 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     ``progress``: called with {"stage": "outer", "iteration", "rms_mm"} at each accepted outer
     iterate (the CLI's status line). ``layer_rounds_max``: rounds of one-layer moves after the
     rounding (inverse.refine.refine_layers; 0: none), recorded as "layer_rounds"."""
-    from inverse.refine import (RefineOptions, ThicknessProblem, follow_thickness, linear_rounding, refine_layers,
-                                refine_thickness)
+    from inverse.refine import (RefineOptions, ThicknessProblem, finite_or_none, follow_thickness, linear_rounding,
+                                refine_layers, refine_thickness)
     from inverse.registration import flat_to_target
     from shellfem.boundary import gauge_dofs
 
@@ -118,7 +118,7 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
         # continuous to the rounded values in steps, each solve warm-started from the last
         q_path, ok = follow_thickness(prob, res.thickness, res.q, p_round, 4, opts.newton_iterations)
         J_path = prob.objective(model_r.split(q_path)[0], p_round)[0] if ok else np.inf
-        rounding_path = {"direct_objective": float(J_r), "continuation_objective": float(J_path)}
+        rounding_path = {"direct_objective": finite_or_none(J_r), "continuation_objective": finite_or_none(J_path)}
         if J_path < J_r:
             rr.q, rr.converged, J_r = q_path, True, J_path
     layer_rounds = []

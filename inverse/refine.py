@@ -273,6 +273,13 @@ def gauss_newton_model(problem: ThicknessProblem, model, q, p):
     return M, b, dq, A
 
 
+def finite_or_none(x):
+    """x as a float, or None where it is not finite (a trial solve that did not converge has no
+    objective: reports say null and give the solve's reason, never Infinity)."""
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
 def layer_descent(M, b, p, step: float, lo: float, hi: float, sweeps: int = 20) -> np.ndarray:
     """Thicknesses p (P,) on a layer grid moved by -step, 0 or +step each (inside [lo, hi], mm)
     to lower the Gauss-Newton model |M (p_new - p) - b|^2 of J linearised at p: coordinate
@@ -295,7 +302,8 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
     Rounding a continuous optimum to layers is linearised at the continuous point, far from
     the rounded one for thin ribbons (a 0.1 mm layer is 20 % of a 0.5 mm ribbon); this
     re-linearises where the design now is. Returns (p, q, J, history: per trial dict(round,
-    changed, objective, predicted, accepted, seconds))."""
+    changed, objective (None, with the solve's ``reason``, when the trial did not converge),
+    predicted, accepted, seconds))."""
     from shellfem.linalg import NotPositiveDefinite
 
     lo, hi = bounds
@@ -326,8 +334,9 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
             res = problem.trial_solve(model_new, q + dq @ s, q, newton_iterations, p_new, leave_factor * J)
             J_new = problem.objective(model_new.split(res.q)[0], p_new)[0] if res.converged else np.inf
             ok = bool(J_new < J)
-            history.append(dict(round=k, changed=int(len(idx)), objective=float(J_new), predicted=float(pred @ pred),
-                                accepted=ok, seconds=round(time.perf_counter() - t0, 2)))
+            history.append(dict(round=k, changed=int(len(idx)), objective=finite_or_none(J_new),
+                                predicted=float(pred @ pred), accepted=ok, seconds=round(time.perf_counter() - t0, 2),
+                                **({} if res.converged else {"reason": res.reason})))
             if verbose:
                 print(f"layers {k}: {len(idx)} ribbons moved one layer, J {J:.4e} -> {J_new:.4e} "
                       f"(predicted {pred @ pred:.4e}){'' if ok else ', rejected'}", flush=True)

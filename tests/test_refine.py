@@ -175,3 +175,28 @@ def test_a_trial_solve_stops_once_its_objective_passes_the_limit(deployed):
     assert stopped.iterations <= 2
     loose = prob.solve(model, q0, 300, TRUE, limit=1e6)
     assert loose.converged and np.allclose(loose.q, plain.q, atol=1e-12)
+
+
+def test_a_layer_trial_that_does_not_converge_is_recorded_without_an_objective(deployed, monkeypatch):
+    """A one-layer move whose trial solve stops (left the branch, or the cap) is rejected and
+    recorded with objective None and the solve's reason, so the report stays finite JSON."""
+    import json
+
+    from inverse.refine import refine_layers
+    from shellfem.newton import SolveResult
+    base, param, X = deployed
+    p0 = np.round(TRUE + 0.1 * np.array([1, -1, 1, -1, -1, 1, 1, -1, 1]), 6)
+    prob = ThicknessProblem(sheet_at(base, param, p0), FABRIC, PLASTIC, param, X, None, smoothness=0.0)
+    prob.free = np.ones(3 * base.n_vertices + prob.model_at(p0).n_edges, bool)
+    prob.free[gauge_dofs(X, np.zeros(0, int))] = False
+    r0 = prob.solve(prob.model_at(p0), np.concatenate([X.ravel(), np.zeros(len(prob.free) - X.size)]), 400)
+
+    def stopped(self, model, q_guess, q, max_iterations, p, limit):
+        return SolveResult(q=q_guess, converged=False, iterations=7, energy=np.nan, gradient_norm=np.nan,
+                           reason="left the branch (objective 2 > 1 mm^2)", stable=False)
+    monkeypatch.setattr(ThicknessProblem, "trial_solve", stopped)
+    p, q, J, hist = refine_layers(prob, p0, r0.q, 0.1, (0.1, 1.6), rounds=2)
+    np.testing.assert_array_equal(p, p0)
+    assert hist and all(h["objective"] is None and not h["accepted"] and h["reason"].startswith("left the branch")
+                        for h in hist)
+    json.dumps(hist, allow_nan=False)
