@@ -2,43 +2,264 @@
 
 Each case of validation.cases.GALLERY_CASES is simulated with [solver] model = "shell" (the
 default: printed areas as bilayer shell regions) and model = "rods" (rods on the centre lines
-of the stars' arms and the ribbons, bare fabric; shellfem.rods), and measured with
-validation.measures.gallery_measure. Prints ONE JSON line: per case and model the measures,
-Newton iterations, vertices, convergence and wall time (s).
-Run: python studies/rods_vs_shell.py [--only NAME ...] [--models shell rods]
+of the stars' arms and the ribbons, bare fabric; shellfem.rods), and measured twice:
+- validation.measures.gallery_measure: the gallery's per-triangle / centre-fit measures, each
+  on the model's own mesh;
+- validation.measures.centreline_measures: the same measure for both models, on the printed
+  geometry: the deployed surface sampled along the pattern's centre lines and across them at
+  the same stations (normal curvatures of those 3D curves, 1/mm), and for the star cases a
+  coarse curvature tensor at the star spacing (the lattice period averages each star's bump).
+Prints ONE JSON line: per case and model both sets of measures, Newton iterations, vertices,
+convergence and wall time (s, single process; timings only compare within one run).
+
+--save DIR writes each solve's flat mesh and deployed positions (DIR/<case>_<model>.npz) and
+its row (DIR/<case>_<model>.json), so --remeasure DIR re-measures them without solving;
+--png DIR writes DIR/rods_vs_shell_<case>.png (shell left, rods right; the gallery's
+renderer, forward.render.render_deployed; the rods model's rod-bearing triangles coloured as
+printed); --table DIR prints the README table of the saved rows. --benchmark solves the
+10,000-vertex star benchmark (validation.cases.star_benchmark as studies/bench_solver.py
+builds it: nested iteration, no contact) with the shell model and then with the rods model in
+the same process and reports vertices, Newton iterations, wall time and convergence.
+--cross-start DIR solves the rods model from the shell's saved shapes (see cross_start).
+
+Run: python studies/rods_vs_shell.py [--only NAME ...] [--models shell rods] [--save DIR] [--png DIR]
+     python studies/rods_vs_shell.py --remeasure DIR | --table DIR | --benchmark | --cross-start DIR
 """
 from __future__ import annotations
 
 import argparse
 import copy
+import glob
 import json
+import os
 import time
+from types import SimpleNamespace
+
+import numpy as np
 
 from validation.cases import GALLERY_CASES
-from validation.measures import gallery_measure
+from validation.measures import centreline_measures, gallery_measure
+
+STUDY_CASES = ("tube", "dome", "flat_centre", "ribbons", "half_annulus")
 
 
-def run(names=None, models=("shell", "rods"), max_iterations=400):
-    from forward.simulate import simulate
+def _pattern(name, model):
     from geometry.patterns import parse_pattern
+    raw = copy.deepcopy(GALLERY_CASES[name]())
+    raw.setdefault("solver", {})["model"] = model
+    return parse_pattern(raw, f"{name} ({model})")
+
+
+def _shown_sheet(sim):
+    """The sheet to render: the shell's as it is; the rods model's with the triangles that
+    carry a rod edge marked as printed on the rod's side (its own sheet is bare)."""
+    from shellfem.sheet import Sheet
+    sheet = sim.sheet
+    rods = getattr(sim.model, "rods", None)
+    if rods is None:
+        return sheet
+    t = np.sort(sheet.triangles, axis=1)
+    e = np.sort(rods.edges, axis=1)
+    pairs = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [0, 2]]])           # (3m, 2)
+    key = pairs[:, 0] * sheet.n_vertices + pairs[:, 1]
+    on = np.isin(key, e[:, 0] * sheet.n_vertices + e[:, 1]).reshape(3, -1).any(0)
+    return Sheet(sheet.points, sheet.triangles, thickness_front=np.where(on, 0.3, 0.0))
+
+
+def _measure(name, pattern, points, triangles, x) -> dict:
+    return centreline_measures(name, pattern, points, triangles, x)
+
+
+def run(names=None, models=("shell", "rods"), max_iterations=400, save=None, png=None) -> dict:
+    from forward.simulate import simulate
     out = {}
-    for name in names or list(GALLERY_CASES):
+    for name in names or STUDY_CASES:
         out[name] = {}
+        pics = {}
         for model in models:
-            raw = copy.deepcopy(GALLERY_CASES[name]())
-            raw.setdefault("solver", {})["model"] = model
+            pattern = _pattern(name, model)
             t0 = time.perf_counter()
-            sim = simulate(parse_pattern(raw, f"{name} ({model})"), max_iterations=max_iterations)
+            sim = simulate(pattern, max_iterations=max_iterations)
             row = {"converged": bool(sim.result.converged), "newton_iterations": int(sim.result.iterations),
                    "n_vertices": int(sim.sheet.n_vertices), "wall_s": round(time.perf_counter() - t0, 1)}
             row.update(gallery_measure(name, sim))
+            P, T, x = sim.sheet.points, sim.sheet.triangles, sim.positions
+            try:
+                row["centreline"] = _measure(name, pattern, P, T, x)
+            except Exception as e:          # the solve is saved: --remeasure recomputes it
+                row["centreline"] = {"error": repr(e)}
             out[name][model] = row
+            if save:
+                os.makedirs(save, exist_ok=True)
+                extra = {"rod_edges": sim.model.rods.edges} if model == "rods" else {}
+                np.savez_compressed(os.path.join(save, f"{name}_{model}.npz"), points=P, triangles=T, x=x,
+                                    side=_shown_sheet(sim).side, **extra)
+                with open(os.path.join(save, f"{name}_{model}.json"), "w") as f:
+                    json.dump(row, f, indent=1)
+            if png:
+                from forward.render import render_deployed
+                os.makedirs(png, exist_ok=True)
+                p = os.path.join(png, f".rods_vs_shell_{name}_{model}.png")
+                shown = SimpleNamespace(sheet=_shown_sheet(sim), positions=x)
+                render_deployed(shown, p, title=f"{name}: {model}", size=(600, 480))
+                pics[model] = p
+        if png and len(pics) == 2:
+            side_by_side([pics["shell"], pics["rods"]], os.path.join(png, f"rods_vs_shell_{name}.png"))
+            for p in pics.values():
+                os.remove(p)
     return out
 
 
-if __name__ == "__main__":
+def side_by_side(paths, out, height=360):
+    """One PNG of the pictures ``paths`` left to right, each scaled to ``height`` px, a
+    256-colour palette (the gallery pictures are flat-shaded: no visible loss, a small file)."""
+    from PIL import Image
+    ims = [Image.open(p).convert("RGB") for p in paths]
+    ims = [im.resize((round(im.width * height / im.height), height), Image.LANCZOS) for im in ims]
+    canvas = Image.new("RGB", (sum(im.width for im in ims), height), "white")
+    xo = 0
+    for im in ims:
+        canvas.paste(im, (xo, 0))
+        xo += im.width
+    canvas.quantize(256).save(out, optimize=True)
+
+
+def remeasure(save) -> dict:
+    """Recompute the centre-line measures of every saved solve in ``save`` (rows rewritten)."""
+    out = {}
+    for js in sorted(glob.glob(os.path.join(save, "*.json"))):
+        name, model = os.path.basename(js)[:-5].rsplit("_", 1)
+        d = np.load(js[:-5] + ".npz")
+        row = json.load(open(js))
+        row["centreline"] = _measure(name, _pattern(name, model), d["points"], d["triangles"], d["x"])
+        with open(js, "w") as f:
+            json.dump(row, f, indent=1)
+        out.setdefault(name, {})[model] = row
+    return out
+
+
+def _cell(name, r) -> str:
+    c = r["centreline"]
+    if name == "tube":
+        return f"k along x / y {c['k_x']:.3f} / {c['k_y']:.3f}; ratio {c['ratio']:.2f} (triangles {r['median_kmax_over_kmin']:.2f})"
+    if name in ("dome", "flat_centre"):
+        return (f"centre K {c['gauss_centre']:.2e}, H {c['mean_centre']:.3f} (fit K {r['gauss_centre_fit']:.2e}, "
+                f"H {r['mean_curv_centre_fit']:.3f})")
+    if name == "ribbons":
+        return (f"along {c['along']:.3f}, across {c['across']:.3f} (triangles {r['curvature_along_ribbons']:.3f} / "
+                f"{r['curvature_across_ribbons']:.3f})")
+    if name == "half_annulus":
+        return (f"inner / outer length {r['inner_length_ratio']:.3f} / {r['outer_length_ratio']:.3f}; "
+                f"along {c['along']:.3f}, across {c['across']:.3f}")
+    return ""
+
+
+def markdown_table(save, png_dir="docs/gallery") -> str:
+    """README table (case | shell measure | rods measure | iterations | time) of the saved rows."""
+    rows = ["| case | shell | rods | Newton it. shell / rods | wall s shell / rods |", "|---|---|---|---|---|"]
+    imgs = []
+    for name in STUDY_CASES:
+        try:
+            s, r = (json.load(open(os.path.join(save, f"{name}_{m}.json"))) for m in ("shell", "rods"))
+        except FileNotFoundError:
+            continue
+        rows.append(f"| {name} | {_cell(name, s)} | {_cell(name, r)} | {s['newton_iterations']} / "
+                    f"{r['newton_iterations']} | {s['wall_s']:.0f} / {r['wall_s']:.0f} |")
+        imgs.append(f'<img src="{png_dir}/rods_vs_shell_{name}.png" width="420" alt="{name}: shell, rods">')
+    return "\n".join(rows) + "\n\n" + "\n".join(imgs)
+
+
+def cross_start(save, names=None, max_iterations=400) -> dict:
+    """Which equilibrium the rods model prefers: each case solved with the rods model from its
+    own (perturbed flat) start and from the shell model's saved deployed shape (DIR/<case>_shell.npz,
+    interpolated at the rods mesh's vertices, validation.measures.deployed_at); per start the
+    energy (N mm), Newton iterations, convergence and the centre-line measures. The lower
+    energy is the rods model's preferred state of the two; if the shell's shape stays an
+    equilibrium, the two models differ by the branch they find, not by what they allow."""
+    from forward.simulate import simulate_sheet
+    from geometry.centrelines import mesh_pattern_rods
+    from shellfem.rods.coupled import rod_shell_model
+    from validation.measures import deployed_at
+    out = {}
+    for name in names or STUDY_CASES:
+        f = os.path.join(save, f"{name}_shell.npz")
+        if not os.path.exists(f):
+            continue
+        d = np.load(f)
+        pattern = _pattern(name, "rods")
+        rm = mesh_pattern_rods(pattern)
+        P, T = rm.sheet.points, rm.sheet.triangles
+        start, _ = deployed_at(d["points"], d["triangles"], d["x"], P)
+        if not np.isfinite(start).all():        # a rods vertex outside the shell's mesh: nearest shell vertex
+            bad = ~np.isfinite(start).all(1)
+            near = np.argmin(((P[bad, None, :] - d["points"][None]) ** 2).sum(-1), axis=1)
+            start[bad] = d["x"][near]
+
+        def factory(sheet, fabric, plastic):
+            return rod_shell_model(sheet, fabric, plastic, rm.edges, rm.thickness, rm.width, side=rm.side)
+        out[name] = {}
+        for label, st in (("own start", None), ("from the shell's shape", start)):
+            t0 = time.perf_counter()
+            sim = simulate_sheet(rm.sheet, pattern.fabric, pattern.plastic, pattern.supports, seed=pattern.seed,
+                                 max_iterations=max_iterations, metric_floor=pattern.metric_floor,
+                                 model_factory=factory, start=st)
+            out[name][label] = {"energy_nmm": float(sim.model.energy(sim.result.q)),
+                                "newton_iterations": int(sim.result.iterations),
+                                "converged": bool(sim.result.converged), "wall_s": round(time.perf_counter() - t0, 1),
+                                "centreline": _measure(name, pattern, P, T, sim.positions)}
+    return out
+
+
+def benchmark(max_iterations=300) -> dict:
+    """The 10,000-vertex star benchmark in both models, one after the other in this process."""
+    import bench_solver
+    from forward.simulate import simulate
+    from geometry.patterns import parse_pattern
+    from validation.cases import star_benchmark
+    out = {}
+    t0 = time.perf_counter()
+    b = bench_solver.run(max_iterations=max_iterations)
+    out["shell"] = {"n_vertices": b["n_vertices"], "newton_iterations": b["newton_iterations"],
+                    "converged": b["converged"], "wall_s": round(time.perf_counter() - t0, 1),
+                    "levels": b["levels"]}
+    raw = star_benchmark()
+    raw["solver"]["model"] = "rods"
+    t0 = time.perf_counter()
+    sim = simulate(parse_pattern(raw, "star benchmark (rods)"), max_iterations=max_iterations)
+    s = sim.summary()
+    out["rods"] = {"n_vertices": int(sim.sheet.n_vertices), "n_rod_edges": int(len(sim.model.rods.edges)),
+                   "newton_iterations": int(sim.result.iterations), "converged": bool(sim.result.converged),
+                   "reason": sim.result.reason, "wall_s": round(time.perf_counter() - t0, 1),
+                   "bbox_mm": s.get("bbox_mm")}
+    return out
+
+
+def main(argv=None):
+    from shellfem.memory import keep_freed_memory
+    keep_freed_memory()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", nargs="*", default=None, choices=list(GALLERY_CASES))
     ap.add_argument("--models", nargs="*", default=["shell", "rods"], choices=["shell", "rods"])
-    a = ap.parse_args()
-    print(json.dumps(run(a.only, a.models)))
+    ap.add_argument("--max-iterations", type=int, default=400)
+    ap.add_argument("--save", default=None, help="folder for each solve's mesh, deployed state and row")
+    ap.add_argument("--png", default=None, help="folder for the side-by-side pictures")
+    ap.add_argument("--remeasure", default=None, help="re-measure the solves saved in this folder and stop")
+    ap.add_argument("--table", default=None, help="print the README table of the rows saved in this folder")
+    ap.add_argument("--benchmark", action="store_true", help="the 10k-vertex star benchmark in both models")
+    ap.add_argument("--cross-start", default=None,
+                    help="solve the rods model from the shell shapes saved in this folder (and from its own start)")
+    a = ap.parse_args(argv)
+    if a.table:
+        print(markdown_table(a.table))
+    elif a.remeasure:
+        print(json.dumps(remeasure(a.remeasure)))
+    elif a.cross_start:
+        print(json.dumps(cross_start(a.cross_start, a.only)))
+    elif a.benchmark:
+        print(json.dumps(benchmark()))
+    else:
+        print(json.dumps(run(a.only, a.models, a.max_iterations, a.save, a.png)))
+
+
+if __name__ == "__main__":
+    main()
