@@ -67,7 +67,10 @@ def _shown_sheet(sim):
 
 
 def _measure(name, pattern, points, triangles, x) -> dict:
-    return centreline_measures(name, pattern, points, triangles, x)
+    try:
+        return centreline_measures(name, pattern, points, triangles, x)
+    except Exception as e:          # a solve's numbers are kept: --remeasure recomputes from --save
+        return {"error": repr(e)}
 
 
 def run(names=None, models=("shell", "rods"), max_iterations=400, save=None, png=None) -> dict:
@@ -84,10 +87,7 @@ def run(names=None, models=("shell", "rods"), max_iterations=400, save=None, png
                    "n_vertices": int(sim.sheet.n_vertices), "wall_s": round(time.perf_counter() - t0, 1)}
             row.update(gallery_measure(name, sim))
             P, T, x = sim.sheet.points, sim.sheet.triangles, sim.positions
-            try:
-                row["centreline"] = _measure(name, pattern, P, T, x)
-            except Exception as e:          # the solve is saved: --remeasure recomputes it
-                row["centreline"] = {"error": repr(e)}
+            row["centreline"] = _measure(name, pattern, P, T, x)
             out[name][model] = row
             if save:
                 os.makedirs(save, exist_ok=True)
@@ -210,27 +210,36 @@ def cross_start(save, names=None, max_iterations=400) -> dict:
     return out
 
 
-def benchmark(max_iterations=300) -> dict:
-    """The 10,000-vertex star benchmark in both models, one after the other in this process."""
+def benchmark(max_iterations=300, width=85.0, height=60.0) -> dict:
+    """The 10,000-vertex star benchmark in both models, one after the other in this process:
+    the shell as studies/bench_solver.py solves it (nested iteration, no contact; wall time
+    includes meshing), then the rods model as `selfshape simulate` solves a model = "rods"
+    pattern (one mesh; wall time includes meshing); per model vertices, Newton iterations,
+    wall time (s), convergence, bounding box (mm) and the tube's centre-line measures."""
     import bench_solver
     from forward.simulate import simulate
     from geometry.patterns import parse_pattern
     from validation.cases import star_benchmark
     out = {}
     t0 = time.perf_counter()
-    b = bench_solver.run(max_iterations=max_iterations)
+    kept = {}
+    b = bench_solver.run(width, height, max_iterations=max_iterations, keep=kept)
+    sim = kept["simulation"]
     out["shell"] = {"n_vertices": b["n_vertices"], "newton_iterations": b["newton_iterations"],
-                    "converged": b["converged"], "wall_s": round(time.perf_counter() - t0, 1),
-                    "levels": b["levels"]}
-    raw = star_benchmark()
+                    "converged": b["converged"], "reason": b["reason"], "wall_s": round(time.perf_counter() - t0, 1),
+                    "levels": b["levels"], "bbox_mm": sim.summary().get("bbox_mm"),
+                    "centreline": _measure("tube", kept["pattern"], sim.sheet.points, sim.sheet.triangles,
+                                           sim.positions)}
+    raw = star_benchmark(width, height)
     raw["solver"]["model"] = "rods"
+    pattern = parse_pattern(raw, "star benchmark (rods)")
     t0 = time.perf_counter()
-    sim = simulate(parse_pattern(raw, "star benchmark (rods)"), max_iterations=max_iterations)
-    s = sim.summary()
+    sim = simulate(pattern, max_iterations=max_iterations)
     out["rods"] = {"n_vertices": int(sim.sheet.n_vertices), "n_rod_edges": int(len(sim.model.rods.edges)),
                    "newton_iterations": int(sim.result.iterations), "converged": bool(sim.result.converged),
                    "reason": sim.result.reason, "wall_s": round(time.perf_counter() - t0, 1),
-                   "bbox_mm": s.get("bbox_mm")}
+                   "bbox_mm": sim.summary().get("bbox_mm"),
+                   "centreline": _measure("tube", pattern, sim.sheet.points, sim.sheet.triangles, sim.positions)}
     return out
 
 

@@ -238,6 +238,8 @@ def _grid_inside(outline, spacing, margin):
     """Flat points of a square grid (spacing mm) inside ``outline`` shrunk by margin mm."""
     import shapely
     inner = outline.buffer(-margin)
+    if inner.is_empty:
+        return np.zeros((0, 2))
     x0, y0, x1, y1 = inner.bounds
     g = np.stack(np.meshgrid(np.arange(x0, x1 + 1e-9, spacing), np.arange(y0, y1 + 1e-9, spacing)), -1).reshape(-1, 2)
     return g[shapely.contains_xy(inner, g[:, 0], g[:, 1])]
@@ -268,6 +270,8 @@ def centreline_measures(name, pattern, points, triangles, x) -> dict:
             g = g[np.linalg.norm(g - P.mean(0), axis=1) < 0.3 * r]
         S = coarse_curvature_tensor(P, triangles, x, g, step)
         S = S[np.isfinite(S).all((1, 2))]
+        if not len(S):                           # the sheet is smaller than two steps
+            return dict(step_mm=step, n_stations=0)
         if name == "tube":
             ev = np.sort(np.abs(np.linalg.eigvalsh(S)), axis=1)
             kx, ky = float(np.median(S[:, 0, 0])), float(np.median(S[:, 1, 1]))
