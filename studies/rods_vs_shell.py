@@ -21,9 +21,10 @@ printed); --table DIR prints the README table of the saved rows. --benchmark sol
 builds it: nested iteration, no contact) with the shell model and then with the rods model in
 the same process and reports vertices, Newton iterations, wall time and convergence.
 --cross-start DIR solves the rods model from the shell's saved shapes (see cross_start).
+--strips CSV compares both models' strip curvature with measured strips (see strip_check).
 
 Run: python studies/rods_vs_shell.py [--only NAME ...] [--models shell rods] [--save DIR] [--png DIR]
-     python studies/rods_vs_shell.py --remeasure DIR | --table DIR | --benchmark | --cross-start DIR
+     python studies/rods_vs_shell.py --remeasure DIR | --table DIR | --benchmark | --cross-start DIR | --strips CSV
 """
 from __future__ import annotations
 
@@ -210,6 +211,43 @@ def cross_start(save, names=None, max_iterations=400) -> dict:
     return out
 
 
+def strip_check(csv_path, ratios=None) -> dict:
+    """The two models' strip curvatures against a strips CSV (validation.strips schema): the
+    shell's (validation.strips.strip_model, the layered plate of the calibration) and the rods'
+    (shellfem.rods.monolayer.monolayer_curvature, the beam of seed Eq. 3.13). Per model: the
+    least-squares modulus ratio E_plastic / E_fabric (plastic flat at rest, as `selfshape
+    calibrate strips` fits it) and the RMS relative residual; and at the gallery's ratios
+    (``ratios``: {label: ratio}, default the stars' and the ribbons' plastic over the default
+    fabric modulus) each model's curvature beside the measured mean per plastic thickness (1/mm)."""
+    from scipy.optimize import minimize_scalar
+    from shellfem.materials import Fabric
+    from shellfem.rods.monolayer import monolayer_curvature
+    from validation.cases import PLASTIC, PLASTIC_CH3
+    from validation.strips import MEASURED, fit_modulus_ratio, read_strips, strip_model
+    rows = read_strips(csv_path)
+    h1, h2, st, y = rows["plastic_thickness_mm"], rows["fabric_thickness_mm"], rows["stretch"], rows[MEASURED]
+    rods = lambda n: monolayer_curvature(h1, h2, n, 1.0, st)          # noqa: E731
+    shell_fit = fit_modulus_ratio(rows)
+    r = minimize_scalar(lambda t: float(((rods(np.exp(t)) - y) ** 2).sum()), bounds=(0.0, 12.0), method="bounded")
+    fits = {"shell": (shell_fit["value"], strip_model(h1, h2, st, shell_fit["value"])),
+            "rods": (float(np.exp(r.x)), rods(float(np.exp(r.x))))}
+    out = {"file": os.path.basename(csv_path), "rows": int(y.size), "fit": {}}
+    for m, (n, k) in fits.items():
+        out["fit"][m] = {"modulus_ratio": round(n, 1), "rms_relative_residual": float(np.sqrt(np.mean(((k - y) / y) ** 2)))}
+    E2 = Fabric().young_modulus
+    ratios = ratios or {"stars": PLASTIC_CH3["young_modulus_mpa"] / E2, "ribbons": PLASTIC["young_modulus_mpa"] / E2}
+    out["at_gallery_ratios"] = {}
+    for label, n in ratios.items():
+        per = {}
+        for h in np.unique(h1):
+            sel = h1 == h
+            per[f"{h:g}"] = {"measured": float(np.mean(y[sel])),
+                             "shell": float(np.mean(strip_model(h1[sel], h2[sel], st[sel], n))),
+                             "rods": float(np.mean(monolayer_curvature(h1[sel], h2[sel], n, 1.0, st[sel])))}
+        out["at_gallery_ratios"][label] = {"modulus_ratio": round(float(n), 1), "per_thickness": per}
+    return out
+
+
 def benchmark(max_iterations=300, width=85.0, height=60.0) -> dict:
     """The 10,000-vertex star benchmark in both models, one after the other in this process:
     the shell as studies/bench_solver.py solves it (nested iteration, no contact; wall time
@@ -255,6 +293,7 @@ def main(argv=None):
     ap.add_argument("--remeasure", default=None, help="re-measure the solves saved in this folder and stop")
     ap.add_argument("--table", default=None, help="print the README table of the rows saved in this folder")
     ap.add_argument("--benchmark", action="store_true", help="the 10k-vertex star benchmark in both models")
+    ap.add_argument("--strips", default=None, help="compare both models' strip curvature with this strips CSV")
     ap.add_argument("--cross-start", default=None,
                     help="solve the rods model from the shell shapes saved in this folder (and from its own start)")
     a = ap.parse_args(argv)
@@ -262,6 +301,8 @@ def main(argv=None):
         print(markdown_table(a.table))
     elif a.remeasure:
         print(json.dumps(remeasure(a.remeasure)))
+    elif a.strips:
+        print(json.dumps(strip_check(a.strips)))
     elif a.cross_start:
         print(json.dumps(cross_start(a.cross_start, a.only)))
     elif a.benchmark:
