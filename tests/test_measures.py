@@ -4,12 +4,12 @@ import pytest
 
 from shellfem.sheet import Sheet
 from validation.measures import (coarse_curvature_tensor, curve_curvatures, deployed_at, line_contractions,
-                                 normal_curvature, ribbon_curvatures)
+                                 normal_curvature, ribbon_curvatures, sampled_centre_quadric)
 
 R = 8.0
 
 
-def _cylinder(width=30.0, height=20.0, nx=30, ny=40, angle_deg=0.0):
+def _cylinder(width=30.0, height=20.0, nx=30, ny=40, angle_deg=0.0, R=R):
     """A flat rectangle rolled isometrically about an axis at angle_deg from x, radius R, bending
     away from its +z (front) side: the centre of curvature on the -normal side."""
     sh = Sheet.rectangle(width, height, nx, ny)
@@ -119,3 +119,16 @@ def test_line_contractions_of_a_planar_stretch_and_of_concentric_arcs():
     rr = np.array([8.0, 11.0, 14.0])
     assert np.allclose(c["along"], (10.0 + 0.5 * (rr - 10.0)) / rr, rtol=2e-3)
     assert np.allclose(c["across"], 0.5, rtol=2e-3)
+
+
+def test_sampled_centre_quadric_of_a_sphere_and_a_cylinder():
+    Rs = 30.0
+    sh, X = _cap(Rs)
+    q = sampled_centre_quadric(sh.points, sh.triangles, X)
+    assert q["gauss_centre_fit"] == pytest.approx(1 / Rs ** 2, rel=1e-2)
+    assert q["mean_curv_centre_fit"] == pytest.approx(1 / Rs, rel=5e-3)
+    Rc = 40.0                        # a quadric over +-0.2 rad of the circle (disc radius 0.3 x 28.3 mm)
+    sh, X = _cylinder(width=40.0, height=40.0, nx=80, ny=80, R=Rc)
+    q = sampled_centre_quadric(sh.points, sh.triangles, X)
+    assert q["gauss_centre_fit"] == pytest.approx(0.0, abs=1e-3 / Rc ** 2)
+    assert q["mean_curv_centre_fit"] == pytest.approx(1 / (2 * Rc), rel=1e-2)

@@ -1,6 +1,7 @@
 """Measures of deployed sheets and of mesh convergence, shared by the studies and the tests (mm).
 
-- centre_quadric: curvatures of a quadric fitted to the deployed centre of a sheet.
+- centre_quadric, quadric_curvatures, sampled_centre_quadric: curvatures of a quadric fitted to
+  the deployed centre of a sheet (its vertices, or the surface sampled on a uniform flat grid).
 - gallery_measure: the number that asserts each gallery case's shape (studies/gallery.py),
   also the along/across ribbon curvature of the orthotropic sweep (studies/ortho_sweep.py).
 - deployed_at, normal_curvature, curve_curvatures, coarse_curvature_tensor, ribbon_curvatures,
@@ -26,9 +27,17 @@ def centre_quadric(sheet, x, frac=0.3) -> dict:
     frac x the largest, in the principal frame of those vertices; curvatures (1/mm) at the centre."""
     P = sheet.points
     r = np.linalg.norm(P - P.mean(0), axis=1)
-    sel = r < frac * r.max()
-    X = x[sel] - x[sel].mean(0)
-    F = X @ np.linalg.svd(X, full_matrices=False)[2].T
+    return quadric_curvatures(x[r < frac * r.max()])
+
+
+def quadric_curvatures(X) -> dict:
+    """Curvatures of the quadric z = f(u, v) least-squares fitted to the 3D points X (n, 3) mm in
+    their principal frame (w along the smallest singular direction), at the frame's origin:
+    gauss_centre_fit K (1/mm^2), mean_curv_centre_fit |H| (1/mm), principal_centre_fit (the
+    Hessian's eigenvalues, 1/mm), fit_rms_mm and height_span_mm (of X's z)."""
+    X = np.asarray(X, float)
+    Xc = X - X.mean(0)
+    F = Xc @ np.linalg.svd(Xc, full_matrices=False)[2].T
     u, v, w = F.T
     A = np.column_stack([u * u, u * v, v * v, u, v, np.ones_like(u)])
     co = np.linalg.lstsq(A, w, rcond=None)[0]
@@ -39,7 +48,22 @@ def centre_quadric(sheet, x, frac=0.3) -> dict:
     return dict(gauss_centre_fit=float(K), mean_curv_centre_fit=float(abs(H)),
                 principal_centre_fit=[float(k) for k in np.linalg.eigvalsh([[fxx, fxy], [fxy, fyy]])],
                 fit_rms_mm=float(np.sqrt(np.mean((A @ co - w) ** 2))),
-                height_span_mm=float(np.ptp(x[:, 2])))
+                height_span_mm=float(np.ptp(X[:, 2])))
+
+
+def sampled_centre_quadric(points, triangles, x, frac=0.3, spacing=0.5) -> dict:
+    """centre_quadric on the deployed surface sampled at a square grid of flat points
+    (``spacing`` mm) within frac x the largest vertex distance from the vertices' centroid:
+    every flat area counts the same whatever the mesh (a mesh dense on the printed arms
+    would weigh their bumps more). Curvatures 1/mm (K 1/mm^2)."""
+    P = np.asarray(points, float)
+    c = P.mean(0)
+    R = frac * np.linalg.norm(P - c, axis=1).max()
+    g = np.arange(-R, R + 1e-9, spacing)
+    q = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    q = q[np.linalg.norm(q, axis=1) < R] + c
+    X, _ = deployed_at(P, triangles, x, q)
+    return quadric_curvatures(X[np.isfinite(X).all(1)])
 
 
 def _centre_rim(sheet, values, frac=0.25):
@@ -251,10 +275,12 @@ def centreline_measures(name, pattern, points, triangles, x) -> dict:
     curvatures 1/mm, on the pattern's printed geometry whatever the mesh.
     tube: the coarse curvature tensor (step = the star spacing) on a grid over the sheet:
       median S11 (k_x, along x) and S22 (k_y), their ratio |large| / |small|, and the median
-      principal |k| (k_max, k_min) and their ratio;
-    dome, flat_centre: the tensor (step = half the star spacing) at the grid points within 0.3
-      of the largest printed distance from the centroid: median Gauss K = det S (1/mm^2) and
-      mean H = |tr S| / 2;
+      principal |k| (k_max, k_min) and their ratio; the star spacing: the lattice period, so a
+      triple's points sit alike on the stars' bumps (half of it would alias them);
+    dome, flat_centre: gauss_centre K (1/mm^2) and mean_centre |H| of sampled_centre_quadric
+      (a quadric fitted to the deployed centre sampled on a uniform flat grid), and the medians
+      of det S and |tr S| / 2 of the tensor (step = the star spacing) at the grid points within
+      0.3 of the largest printed distance from the centroid;
     ribbons, half_annulus: ribbon_curvatures on the ribbons' centre lines (step = the median
       distance between neighbouring lines) and line_contractions: the median along / across
       contraction (deployed / printed) of the first and the last third of the lines / gaps in
@@ -263,7 +289,7 @@ def centreline_measures(name, pattern, points, triangles, x) -> dict:
     P = np.asarray(points, float)
     if name in ("tube", "dome", "flat_centre"):
         spacing = float(pattern.raw["stars"]["spacing_mm"])
-        step = spacing if name == "tube" else 0.5 * spacing
+        step = spacing
         g = _grid_inside(pattern.outline, 0.5 * step, step)
         if name != "tube":
             r = np.linalg.norm(P - P.mean(0), axis=1).max()
@@ -281,8 +307,11 @@ def centreline_measures(name, pattern, points, triangles, x) -> dict:
                         n_stations=int(len(S)))
         K = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] ** 2
         H = 0.5 * (S[:, 0, 0] + S[:, 1, 1])
-        return dict(gauss_centre=float(np.median(K)), mean_centre=float(abs(np.median(H))), step_mm=step,
-                    n_stations=int(len(S)))
+        fit = sampled_centre_quadric(P, triangles, x)
+        return dict(gauss_centre=fit["gauss_centre_fit"], mean_centre=fit["mean_curv_centre_fit"],
+                    height_span_mm=float(np.ptp(x[:, 2])),
+                    gauss_tensor_median=float(np.median(K)), mean_tensor_median=float(abs(np.median(H))),
+                    step_mm=step, n_stations=int(len(S)))
     if name in ("ribbons", "half_annulus"):
         lines = [p for p, _, _, _ in pattern_centrelines(pattern)]
         mids = np.array([_along(p, [0.5])[0] for p in lines])
