@@ -140,24 +140,29 @@ def remeasure(save) -> dict:
 
 
 def _cell(name, r) -> str:
+    """One model's measures of case ``name`` for the README table (curvatures 1/mm)."""
     c = r["centreline"]
     if name == "tube":
-        return f"k along x / y {c['k_x']:.3f} / {c['k_y']:.3f}; ratio {c['ratio']:.2f} (triangles {r['median_kmax_over_kmin']:.2f})"
+        pt = f" (per triangle {r['median_kmax_over_kmin']:.2f})" if "median_kmax_over_kmin" in r else ""
+        return f"k_x / k_y {c['k_x']:.3f} / {c['k_y']:.3f}, ratio {c['ratio']:.2f}{pt}"
     if name in ("dome", "flat_centre"):
-        return (f"centre K {c['gauss_centre']:.2e}, H {c['mean_centre']:.3f} (fit K {r['gauss_centre_fit']:.2e}, "
-                f"H {r['mean_curv_centre_fit']:.3f})")
+        return f"centre K {c['gauss_centre']:.2e} /mm^2, \\|H\\| {c['mean_centre']:.4f}"
     if name == "ribbons":
-        return (f"along {c['along']:.3f}, across {c['across']:.3f} (triangles {r['curvature_along_ribbons']:.3f} / "
-                f"{r['curvature_across_ribbons']:.3f})")
+        return (f"along {c['along']:.3f}, across {c['across']:.3f}; contraction along / across "
+                f"{c['along_contraction_first_last'][0]:.3f} / {c['across_contraction_first_last'][0]:.3f} "
+                f"(per triangle {r['curvature_along_ribbons']:.3f} / {r['curvature_across_ribbons']:.3f})")
     if name == "half_annulus":
-        return (f"inner / outer length {r['inner_length_ratio']:.3f} / {r['outer_length_ratio']:.3f}; "
-                f"along {c['along']:.3f}, across {c['across']:.3f}")
+        ca, cl = c["across_contraction_first_last"], c["along_contraction_first_last"]
+        return (f"contraction across inner / outer gaps {ca[0]:.3f} / {ca[1]:.3f}, along inner / outer lines "
+                f"{cl[0]:.3f} / {cl[1]:.3f} (edges {r['inner_length_ratio']:.3f} / {r['outer_length_ratio']:.3f})")
     return ""
 
 
-def markdown_table(save, png_dir="docs/gallery") -> str:
-    """README table (case | shell measure | rods measure | iterations | time) of the saved rows."""
-    rows = ["| case | shell | rods | Newton it. shell / rods | wall s shell / rods |", "|---|---|---|---|---|"]
+def markdown_table(save, png_dir="docs/gallery", bench=None) -> str:
+    """README table (case | shell | rods | iterations | time) of the rows saved in ``save``, and
+    the benchmark's row from ``bench`` (the JSON line of --benchmark) when given."""
+    rows = ["| case | shell | rods | Newton it. shell / rods | vertices shell / rods | wall s shell / rods |",
+            "|---|---|---|---|---|---|"]
     imgs = []
     for name in STUDY_CASES:
         try:
@@ -165,8 +170,15 @@ def markdown_table(save, png_dir="docs/gallery") -> str:
         except FileNotFoundError:
             continue
         rows.append(f"| {name} | {_cell(name, s)} | {_cell(name, r)} | {s['newton_iterations']} / "
-                    f"{r['newton_iterations']} | {s['wall_s']:.0f} / {r['wall_s']:.0f} |")
-        imgs.append(f'<img src="{png_dir}/rods_vs_shell_{name}.png" width="420" alt="{name}: shell, rods">')
+                    f"{r['newton_iterations']} | {s['n_vertices']} / {r['n_vertices']} | "
+                    f"{s['wall_s']:.0f} / {r['wall_s']:.0f} |")
+        imgs.append(f'<img src="{png_dir}/rods_vs_shell_{name}.png" width="400" alt="{name}: shell left, rods right">')
+    if bench and os.path.exists(bench):
+        b = json.load(open(bench))
+        s, r = b["shell"], b["rods"]
+        rows.append(f"| star benchmark 85 x 60 mm | {_cell('tube', s)} | {_cell('tube', r)} | "
+                    f"{s['newton_iterations']} / {r['newton_iterations']} | {s['n_vertices']} / {r['n_vertices']} | "
+                    f"{s['wall_s']:.0f} / {r['wall_s']:.0f} |")
     return "\n".join(rows) + "\n\n" + "\n".join(imgs)
 
 
@@ -292,13 +304,14 @@ def main(argv=None):
     ap.add_argument("--png", default=None, help="folder for the side-by-side pictures")
     ap.add_argument("--remeasure", default=None, help="re-measure the solves saved in this folder and stop")
     ap.add_argument("--table", default=None, help="print the README table of the rows saved in this folder")
+    ap.add_argument("--bench-json", default=None, help="with --table: the --benchmark output to add as a row")
     ap.add_argument("--benchmark", action="store_true", help="the 10k-vertex star benchmark in both models")
     ap.add_argument("--strips", default=None, help="compare both models' strip curvature with this strips CSV")
     ap.add_argument("--cross-start", default=None,
                     help="solve the rods model from the shell shapes saved in this folder (and from its own start)")
     a = ap.parse_args(argv)
     if a.table:
-        print(markdown_table(a.table))
+        print(markdown_table(a.table, bench=a.bench_json))
     elif a.remeasure:
         print(json.dumps(remeasure(a.remeasure)))
     elif a.strips:
