@@ -15,8 +15,8 @@ convergence and wall time (s, single process; timings only compare within one ru
 --save DIR writes each solve's flat mesh and deployed positions (DIR/<case>_<model>.npz) and
 its row (DIR/<case>_<model>.json), so --remeasure DIR re-measures them without solving;
 --png DIR writes DIR/rods_vs_shell_<case>.png (shell left, rods right; the gallery's
-renderer, forward.render.render_deployed; the rods model's rod-bearing triangles coloured as
-printed); --table DIR prints the README table of the saved rows. --benchmark solves the
+renderer, forward.render.render_deployed; the rods model's rods drawn as lines on its bare
+fabric); --render DIR [--png PNGDIR] redraws them from the saved solves; --table DIR prints the README table of the saved rows. --benchmark solves the
 10,000-vertex star benchmark (validation.cases.star_benchmark as studies/bench_solver.py
 builds it: nested iteration, no contact) with the shell model and then with the rods model in
 the same process and reports vertices, Newton iterations, wall time and convergence.
@@ -51,20 +51,40 @@ def _pattern(name, model):
     return parse_pattern(raw, f"{name} ({model})")
 
 
-def _shown_sheet(sim):
-    """The sheet to render: the shell's as it is; the rods model's with the triangles that
-    carry a rod edge marked as printed on the rod's side (its own sheet is bare)."""
+def _render(png, name, model, points, triangles, x, side, rod_edges=None):
+    """One model's picture of a case (forward.render.render_deployed): the shell's printed
+    regions coloured by side; the rods model's bare fabric with its rods drawn as lines."""
+    from forward.render import render_deployed
     from shellfem.sheet import Sheet
-    sheet = sim.sheet
-    rods = getattr(sim.model, "rods", None)
-    if rods is None:
-        return sheet
-    t = np.sort(sheet.triangles, axis=1)
-    e = np.sort(rods.edges, axis=1)
-    pairs = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [0, 2]]])           # (3m, 2)
-    key = pairs[:, 0] * sheet.n_vertices + pairs[:, 1]
-    on = np.isin(key, e[:, 0] * sheet.n_vertices + e[:, 1]).reshape(3, -1).any(0)
-    return Sheet(sheet.points, sheet.triangles, thickness_front=np.where(on, 0.3, 0.0))
+    side = np.asarray(side)
+    front, back = np.isin(side, (1, 2)), np.isin(side, (-1, 2))
+    sheet = Sheet(points, triangles, thickness_front=0.3 * front, thickness_back=0.3 * back)
+    path = os.path.join(png, f".rods_vs_shell_{name}_{model}.png")
+    render_deployed(SimpleNamespace(sheet=sheet, positions=x), path, title=f"{name}: {model}", size=(600, 480),
+                    lines=rod_edges)
+    return path
+
+
+def render_saved(save, png, names=None):
+    """The side-by-side pictures (png/rods_vs_shell_<case>.png) of the solves saved in ``save``."""
+    os.makedirs(png, exist_ok=True)
+    done = []
+    for name in names or STUDY_CASES:
+        files = [os.path.join(save, f"{name}_{m}.npz") for m in ("shell", "rods")]
+        if not all(os.path.exists(f) for f in files):
+            continue
+        pics = []
+        for m, f in zip(("shell", "rods"), files):
+            d = np.load(f)
+            rods = d["rod_edges"] if "rod_edges" in d else None
+            side = d["side"] if rods is None else np.zeros(len(d["triangles"]))     # the rods model's fabric is bare
+            pics.append(_render(png, name, m, d["points"], d["triangles"], d["x"], side, rods))
+        out = os.path.join(png, f"rods_vs_shell_{name}.png")
+        side_by_side(pics, out)
+        for p in pics:
+            os.remove(p)
+        done.append(out)
+    return done
 
 
 def _measure(name, pattern, points, triangles, x) -> dict:
@@ -94,16 +114,13 @@ def run(names=None, models=("shell", "rods"), max_iterations=400, save=None, png
                 os.makedirs(save, exist_ok=True)
                 extra = {"rod_edges": sim.model.rods.edges} if model == "rods" else {}
                 np.savez_compressed(os.path.join(save, f"{name}_{model}.npz"), points=P, triangles=T, x=x,
-                                    side=_shown_sheet(sim).side, **extra)
+                                    side=sim.sheet.side, **extra)
                 with open(os.path.join(save, f"{name}_{model}.json"), "w") as f:
                     json.dump(row, f, indent=1)
             if png:
-                from forward.render import render_deployed
                 os.makedirs(png, exist_ok=True)
-                p = os.path.join(png, f".rods_vs_shell_{name}_{model}.png")
-                shown = SimpleNamespace(sheet=_shown_sheet(sim), positions=x)
-                render_deployed(shown, p, title=f"{name}: {model}", size=(600, 480))
-                pics[model] = p
+                pics[model] = _render(png, name, model, P, T, x, sim.sheet.side,
+                                      sim.model.rods.edges if model == "rods" else None)
         if png and len(pics) == 2:
             side_by_side([pics["shell"], pics["rods"]], os.path.join(png, f"rods_vs_shell_{name}.png"))
             for p in pics.values():
@@ -303,6 +320,7 @@ def main(argv=None):
     ap.add_argument("--save", default=None, help="folder for each solve's mesh, deployed state and row")
     ap.add_argument("--png", default=None, help="folder for the side-by-side pictures")
     ap.add_argument("--remeasure", default=None, help="re-measure the solves saved in this folder and stop")
+    ap.add_argument("--render", default=None, help="draw the --png pictures of the solves saved in this folder and stop")
     ap.add_argument("--table", default=None, help="print the README table of the rows saved in this folder")
     ap.add_argument("--bench-json", default=None, help="with --table: the --benchmark output to add as a row")
     ap.add_argument("--benchmark", action="store_true", help="the 10k-vertex star benchmark in both models")
@@ -312,6 +330,8 @@ def main(argv=None):
     a = ap.parse_args(argv)
     if a.table:
         print(markdown_table(a.table, bench=a.bench_json))
+    elif a.render:
+        print(json.dumps(render_saved(a.render, a.png or "docs/gallery", a.only)))
     elif a.remeasure:
         print(json.dumps(remeasure(a.remeasure)))
     elif a.strips:
