@@ -161,7 +161,7 @@ def _cell(name, r) -> str:
     c = r["centreline"]
     if name == "tube":
         pt = f" (per triangle {r['median_kmax_over_kmin']:.2f})" if "median_kmax_over_kmin" in r else ""
-        return f"k_x / k_y {c['k_x']:.3f} / {c['k_y']:.3f}, ratio {c['ratio']:.2f}{pt}"
+        return f"k_x / k_y {c['k_x']:.3f} / {c['k_y']:.3f}, ratio {c['ratio']:.3g}{pt}"
     if name in ("dome", "flat_centre"):
         return f"centre K {c['gauss_centre']:.2e} /mm^2, \\|H\\| {c['mean_centre']:.4f}"
     if name == "ribbons":
