@@ -16,7 +16,8 @@ convergence and wall time (s, single process; timings only compare within one ru
 its row (DIR/<case>_<model>.json), so --remeasure DIR re-measures them without solving;
 --png DIR writes DIR/rods_vs_shell_<case>.png (shell left, rods right; the gallery's
 renderer, forward.render.render_deployed; the rods model's rods drawn as lines on its bare
-fabric); --render DIR [--png PNGDIR] redraws them from the saved solves; --table DIR prints the README table of the saved rows. --benchmark solves the
+fabric); --render DIR [--png PNGDIR] redraws them from the saved solves; --table DIR
+[--bench-json FILE] prints the README table of the saved rows. --benchmark solves the
 10,000-vertex star benchmark (validation.cases.star_benchmark as studies/bench_solver.py
 builds it: nested iteration, no contact) with the shell model and then with the rods model in
 the same process and reports vertices, Newton iterations, wall time and convergence.
@@ -24,7 +25,8 @@ the same process and reports vertices, Newton iterations, wall time and converge
 --strips CSV compares both models' strip curvature with measured strips (see strip_check).
 
 Run: python studies/rods_vs_shell.py [--only NAME ...] [--models shell rods] [--save DIR] [--png DIR]
-     python studies/rods_vs_shell.py --remeasure DIR | --table DIR | --benchmark | --cross-start DIR | --strips CSV
+     python studies/rods_vs_shell.py --remeasure DIR | --render DIR | --table DIR [--bench-json FILE]
+     python studies/rods_vs_shell.py --benchmark | --cross-start DIR [--only NAME ...] | --strips CSV
 """
 from __future__ import annotations
 

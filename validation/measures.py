@@ -193,9 +193,11 @@ def coarse_curvature_tensor(points, triangles, x, centres, step):
     (n, 2) at the scale ``step`` (mm): the normal curvatures k(t) of the deployed images of the
     flat triples (c - step d, c, c + step d) along the directions d = (cos t, sin t), t in
     DIRECTIONS_DEG, fitted by least squares to k(t) = S11 cos^2 t + 2 S12 cos t sin t + S22
-    sin^2 t. Exact on an isometric or conformal deployment of a cylinder or sphere (directions
-    kept); at a step of the pattern's period it averages the pattern's own bumps. NaN rows
-    where a sample is outside the mesh."""
+    sin^2 t. The directions are the flat ones: exact (to the interpolation's chords) where the
+    deployment keeps angles, e.g. a cylinder rolled isometrically, and on a sphere, where every
+    direction has the same normal curvature; a strongly anisotropic contraction skews them. At
+    a step of the pattern's period it averages the pattern's own bumps. NaN rows where a sample
+    is outside the mesh."""
     c = np.atleast_2d(np.asarray(centres, float))
     th = np.radians(DIRECTIONS_DEG)
     d = np.column_stack([np.cos(th), np.sin(th)])                          # (4, 2)
