@@ -237,7 +237,8 @@ def cross_start(save, names=None, max_iterations=400) -> dict:
                                  model_factory=factory, start=st)
             out[name][label] = {"energy_nmm": float(sim.model.energy(sim.result.q)),
                                 "newton_iterations": int(sim.result.iterations),
-                                "converged": bool(sim.result.converged), "wall_s": round(time.perf_counter() - t0, 1),
+                                "converged": bool(sim.result.converged), "reason": sim.result.reason,
+                                "wall_s": round(time.perf_counter() - t0, 1),
                                 "centreline": _measure(name, pattern, P, T, sim.positions)}
     return out
 
