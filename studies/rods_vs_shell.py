@@ -14,7 +14,8 @@ convergence and wall time (s, single process; timings only compare within one ru
 
 --save DIR writes each solve's flat mesh and deployed positions (DIR/<case>_<model>.npz) and
 its row (DIR/<case>_<model>.json), so --remeasure DIR re-measures them without solving;
---png DIR writes DIR/rods_vs_shell_<case>.png (shell left, rods right; the gallery's
+--png DIR writes DIR/rods_vs_shell_<case>.png (shell left, rods right; each model's own
+picture <case>_<model>.png beside its --save files; the gallery's
 renderer, forward.render.render_deployed; the rods model's rods drawn as lines on its bare
 fabric); --render DIR [--png PNGDIR] redraws them from the saved solves; --table DIR
 [--bench-json FILE] prints the README table of the saved rows. --benchmark solves the
@@ -53,22 +54,24 @@ def _pattern(name, model):
     return parse_pattern(raw, f"{name} ({model})")
 
 
-def _render(png, name, model, points, triangles, x, side, rod_edges=None):
-    """One model's picture of a case (forward.render.render_deployed): the shell's printed
-    regions coloured by side; the rods model's bare fabric with its rods drawn as lines."""
+def _render(folder, name, model, points, triangles, x, side, rod_edges=None):
+    """One model's picture of a case, folder/<case>_<model>.png (forward.render.render_deployed):
+    the shell's printed regions coloured by side; the rods model's bare fabric with its rods
+    drawn as lines."""
     from forward.render import render_deployed
     from shellfem.sheet import Sheet
     side = np.asarray(side)
     front, back = np.isin(side, (1, 2)), np.isin(side, (-1, 2))
     sheet = Sheet(points, triangles, thickness_front=0.3 * front, thickness_back=0.3 * back)
-    path = os.path.join(png, f".rods_vs_shell_{name}_{model}.png")
+    path = os.path.join(folder, f"{name}_{model}.png")
     render_deployed(SimpleNamespace(sheet=sheet, positions=x), path, title=f"{name}: {model}", size=(600, 480),
                     lines=rod_edges)
     return path
 
 
 def render_saved(save, png, names=None):
-    """The side-by-side pictures (png/rods_vs_shell_<case>.png) of the solves saved in ``save``."""
+    """The side-by-side pictures (png/rods_vs_shell_<case>.png) of the solves saved in ``save``,
+    and each model's own picture (save/<case>_<model>.png)."""
     os.makedirs(png, exist_ok=True)
     done = []
     for name in names or STUDY_CASES:
@@ -80,11 +83,9 @@ def render_saved(save, png, names=None):
             d = np.load(f)
             rods = d["rod_edges"] if "rod_edges" in d else None
             side = d["side"] if rods is None else np.zeros(len(d["triangles"]))     # the rods model's fabric is bare
-            pics.append(_render(png, name, m, d["points"], d["triangles"], d["x"], side, rods))
+            pics.append(_render(save, name, m, d["points"], d["triangles"], d["x"], side, rods))
         out = os.path.join(png, f"rods_vs_shell_{name}.png")
         side_by_side(pics, out)
-        for p in pics:
-            os.remove(p)
         done.append(out)
     return done
 
@@ -121,12 +122,13 @@ def run(names=None, models=("shell", "rods"), max_iterations=400, save=None, png
                     json.dump(row, f, indent=1)
             if png:
                 os.makedirs(png, exist_ok=True)
-                pics[model] = _render(png, name, model, P, T, x, sim.sheet.side,
+                pics[model] = _render(save or png, name, model, P, T, x, sim.sheet.side,
                                       sim.model.rods.edges if model == "rods" else None)
         if png and len(pics) == 2:
             side_by_side([pics["shell"], pics["rods"]], os.path.join(png, f"rods_vs_shell_{name}.png"))
-            for p in pics.values():
-                os.remove(p)
+            if not save:                # each model's picture stays beside its saved solve only
+                for p in pics.values():
+                    os.remove(p)
     return out
 
 
