@@ -18,15 +18,16 @@ def _cell_colours(sheet):
     return np.where(side == 1, 1.0, np.where(side == -1, -1.0, np.where(side == 2, 0.5, 0.0)))
 
 
-def render_deployed(sim, path: str, title: str = "", size=(900, 700)):
-    """Write a PNG of the deployed surface, printed regions coloured by side."""
+def render_deployed(sim, path: str, title: str = "", size=(900, 700), lines=None):
+    """Write a PNG of the deployed surface, printed regions coloured by side; ``lines``: (k, 2)
+    vertex pairs drawn as red lines on it (the rods model's rods, on its bare fabric)."""
     try:
-        _render_pyvista(sim, path, title, size)
+        _render_pyvista(sim, path, title, size, lines)
     except Exception:
-        _render_matplotlib(sim, path, title, size)
+        _render_matplotlib(sim, path, title, size, lines)
 
 
-def _render_pyvista(sim, path, title, size):
+def _render_pyvista(sim, path, title, size, lines=None):
     import pyvista as pv
     pv.OFF_SCREEN = True
     x = sim.positions
@@ -37,13 +38,17 @@ def _render_pyvista(sim, path, title, size):
     p = pv.Plotter(off_screen=True, window_size=size)
     p.add_mesh(mesh, scalars="plastic", cmap="coolwarm", clim=[-1, 1], show_edges=False, smooth_shading=False,
                show_scalar_bar=False)
+    if lines is not None and len(lines):
+        e = np.asarray(lines, dtype=np.int64)
+        p.add_mesh(pv.PolyData(x, lines=np.hstack([np.full((len(e), 1), 2), e]).ravel()), color="#b40426",
+                   line_width=4, render_lines_as_tubes=True)
     p.add_text(title, font_size=10)
     p.view_isometric()
     p.screenshot(path)
     p.close()
 
 
-def _render_matplotlib(sim, path, title, size):
+def _render_matplotlib(sim, path, title, size, lines=None):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -55,6 +60,9 @@ def _render_matplotlib(sim, path, title, size):
                            linewidth=0, antialiased=False)
     surf.set_array(c)
     surf.set_clim(-1, 1)
+    if lines is not None and len(lines):
+        from mpl_toolkits.mplot3d.art3d import Line3DCollection
+        ax.add_collection3d(Line3DCollection(x[np.asarray(lines, dtype=np.int64)], colors="#b40426", linewidths=2))
     span = (x.max(0) - x.min(0)).max() / 2
     mid = (x.max(0) + x.min(0)) / 2
     ax.set_xlim(mid[0] - span, mid[0] + span)

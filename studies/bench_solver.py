@@ -28,7 +28,10 @@ from validation.cases import star_benchmark
 
 def run(width: float = 85.0, height: float = 60.0, across: float = 1.0, max_iterations: int = 300,
         fabric_bending_stiffness: float | None = None, seed: int = 0,
-        metric_floor: float = DEFAULT_METRIC_FLOOR, coarse_levels="auto", contact: bool = False) -> dict:
+        metric_floor: float = DEFAULT_METRIC_FLOOR, coarse_levels="auto", contact: bool = False,
+        keep: dict | None = None) -> dict:
+    """The benchmark's numbers; ``keep``: a dict that receives the "simulation" and the "pattern"
+    (for measures of the deployed shape, studies/rods_vs_shell.py)."""
     import os
     import tempfile
 
@@ -48,6 +51,8 @@ def run(width: float = 85.0, height: float = 60.0, across: float = 1.0, max_iter
     t_coarse = time.perf_counter() - t0
     sim = simulate_sheet(sheet, pat.fabric, pat.plastic, pat.supports, seed=pat.seed, max_iterations=max_iterations,
                          metric_floor=pat.metric_floor, coarse=coarse, contact=contact)
+    if keep is not None:
+        keep.update(simulation=sim, pattern=pat)
     r = sim.result
     tm = r.timings
     its = max(r.iterations, 1)

@@ -2,43 +2,352 @@
 
 Each case of validation.cases.GALLERY_CASES is simulated with [solver] model = "shell" (the
 default: printed areas as bilayer shell regions) and model = "rods" (rods on the centre lines
-of the stars' arms and the ribbons, bare fabric; shellfem.rods), and measured with
-validation.measures.gallery_measure. Prints ONE JSON line: per case and model the measures,
-Newton iterations, vertices, convergence and wall time (s).
-Run: python studies/rods_vs_shell.py [--only NAME ...] [--models shell rods]
+of the stars' arms and the ribbons, bare fabric; shellfem.rods), and measured twice:
+- validation.measures.gallery_measure: the gallery's per-triangle / centre-fit measures, each
+  on the model's own mesh;
+- validation.measures.centreline_measures: the same measure for both models, on the printed
+  geometry: the deployed surface sampled along the pattern's centre lines and across them at
+  the same stations (normal curvatures of those 3D curves, 1/mm), and for the star cases a
+  coarse curvature tensor at the star spacing (the lattice period averages each star's bump).
+Prints ONE JSON line: per case and model both sets of measures, Newton iterations, vertices,
+convergence and wall time (s, single process; timings only compare within one run).
+
+--save DIR writes each solve's flat mesh and deployed positions (DIR/<case>_<model>.npz) and
+its row (DIR/<case>_<model>.json), so --remeasure DIR re-measures them without solving;
+--png DIR writes DIR/rods_vs_shell_<case>.png (shell left, rods right; each model's own
+picture <case>_<model>.png beside its --save files; the gallery's
+renderer, forward.render.render_deployed; the rods model's rods drawn as lines on its bare
+fabric); --render DIR [--png PNGDIR] redraws them from the saved solves; --table DIR
+[--bench-json FILE] prints the README table of the saved rows. --benchmark solves the
+10,000-vertex star benchmark (validation.cases.star_benchmark as studies/bench_solver.py
+builds it: nested iteration, no contact) with the shell model and then with the rods model in
+the same process and reports vertices, Newton iterations, wall time and convergence.
+--cross-start DIR solves the rods model from the shell's saved shapes (see cross_start).
+--strips CSV compares both models' strip curvature with measured strips (see strip_check).
+
+Run: python studies/rods_vs_shell.py [--only NAME ...] [--models shell rods] [--save DIR] [--png DIR]
+     python studies/rods_vs_shell.py --remeasure DIR | --render DIR | --table DIR [--bench-json FILE]
+     python studies/rods_vs_shell.py --benchmark | --cross-start DIR [--only NAME ...] | --strips CSV
 """
 from __future__ import annotations
 
 import argparse
 import copy
+import glob
 import json
+import os
 import time
+from types import SimpleNamespace
+
+import numpy as np
 
 from validation.cases import GALLERY_CASES
-from validation.measures import gallery_measure
+from validation.measures import centreline_measures, gallery_measure
+
+STUDY_CASES = ("tube", "dome", "flat_centre", "ribbons", "half_annulus")
 
 
-def run(names=None, models=("shell", "rods"), max_iterations=400):
-    from forward.simulate import simulate
+def _pattern(name, model):
     from geometry.patterns import parse_pattern
+    raw = copy.deepcopy(GALLERY_CASES[name]())
+    raw.setdefault("solver", {})["model"] = model
+    return parse_pattern(raw, f"{name} ({model})")
+
+
+def _render(folder, name, model, points, triangles, x, side, rod_edges=None):
+    """One model's picture of a case, folder/<case>_<model>.png (forward.render.render_deployed):
+    the shell's printed regions coloured by side; the rods model's bare fabric with its rods
+    drawn as lines."""
+    from forward.render import render_deployed
+    from shellfem.sheet import Sheet
+    side = np.asarray(side)
+    front, back = np.isin(side, (1, 2)), np.isin(side, (-1, 2))
+    sheet = Sheet(points, triangles, thickness_front=0.3 * front, thickness_back=0.3 * back)
+    path = os.path.join(folder, f"{name}_{model}.png")
+    render_deployed(SimpleNamespace(sheet=sheet, positions=x), path, title=f"{name}: {model}", size=(600, 480),
+                    lines=rod_edges)
+    return path
+
+
+def render_saved(save, png, names=None):
+    """The side-by-side pictures (png/rods_vs_shell_<case>.png) of the solves saved in ``save``,
+    and each model's own picture (save/<case>_<model>.png)."""
+    os.makedirs(png, exist_ok=True)
+    done = []
+    for name in names or STUDY_CASES:
+        files = [os.path.join(save, f"{name}_{m}.npz") for m in ("shell", "rods")]
+        if not all(os.path.exists(f) for f in files):
+            continue
+        pics = []
+        for m, f in zip(("shell", "rods"), files):
+            d = np.load(f)
+            rods = d["rod_edges"] if "rod_edges" in d else None
+            side = d["side"] if rods is None else np.zeros(len(d["triangles"]))     # the rods model's fabric is bare
+            pics.append(_render(save, name, m, d["points"], d["triangles"], d["x"], side, rods))
+        out = os.path.join(png, f"rods_vs_shell_{name}.png")
+        side_by_side(pics, out)
+        done.append(out)
+    return done
+
+
+def _measure(name, pattern, points, triangles, x) -> dict:
+    try:
+        return centreline_measures(name, pattern, points, triangles, x)
+    except Exception as e:          # a solve's numbers are kept: --remeasure recomputes from --save
+        return {"error": repr(e)}
+
+
+def run(names=None, models=("shell", "rods"), max_iterations=400, save=None, png=None) -> dict:
+    from forward.simulate import simulate
     out = {}
-    for name in names or list(GALLERY_CASES):
+    for name in names or STUDY_CASES:
         out[name] = {}
+        pics = {}
         for model in models:
-            raw = copy.deepcopy(GALLERY_CASES[name]())
-            raw.setdefault("solver", {})["model"] = model
+            pattern = _pattern(name, model)
             t0 = time.perf_counter()
-            sim = simulate(parse_pattern(raw, f"{name} ({model})"), max_iterations=max_iterations)
+            sim = simulate(pattern, max_iterations=max_iterations)
             row = {"converged": bool(sim.result.converged), "newton_iterations": int(sim.result.iterations),
                    "n_vertices": int(sim.sheet.n_vertices), "wall_s": round(time.perf_counter() - t0, 1)}
             row.update(gallery_measure(name, sim))
+            P, T, x = sim.sheet.points, sim.sheet.triangles, sim.positions
+            row["centreline"] = _measure(name, pattern, P, T, x)
             out[name][model] = row
+            if save:
+                os.makedirs(save, exist_ok=True)
+                extra = {"rod_edges": sim.model.rods.edges} if model == "rods" else {}
+                np.savez_compressed(os.path.join(save, f"{name}_{model}.npz"), points=P, triangles=T, x=x,
+                                    side=sim.sheet.side, **extra)
+                with open(os.path.join(save, f"{name}_{model}.json"), "w") as f:
+                    json.dump(row, f, indent=1)
+            if png:
+                os.makedirs(png, exist_ok=True)
+                pics[model] = _render(save or png, name, model, P, T, x, sim.sheet.side,
+                                      sim.model.rods.edges if model == "rods" else None)
+        if png and len(pics) == 2:
+            side_by_side([pics["shell"], pics["rods"]], os.path.join(png, f"rods_vs_shell_{name}.png"))
+            if not save:                # each model's picture stays beside its saved solve only
+                for p in pics.values():
+                    os.remove(p)
     return out
 
 
-if __name__ == "__main__":
+def side_by_side(paths, out, height=360):
+    """One PNG of the pictures ``paths`` left to right, each scaled to ``height`` px, a
+    256-colour palette (the gallery pictures are flat-shaded: no visible loss, a small file)."""
+    from PIL import Image
+    ims = [Image.open(p).convert("RGB") for p in paths]
+    ims = [im.resize((round(im.width * height / im.height), height), Image.LANCZOS) for im in ims]
+    canvas = Image.new("RGB", (sum(im.width for im in ims), height), "white")
+    xo = 0
+    for im in ims:
+        canvas.paste(im, (xo, 0))
+        xo += im.width
+    canvas.quantize(256).save(out, optimize=True)
+
+
+def remeasure(save) -> dict:
+    """Recompute the centre-line measures of every saved solve in ``save`` (rows rewritten)."""
+    out = {}
+    for js in sorted(glob.glob(os.path.join(save, "*.json"))):
+        name, model = os.path.basename(js)[:-5].rsplit("_", 1)
+        d = np.load(js[:-5] + ".npz")
+        row = json.load(open(js))
+        row["centreline"] = _measure(name, _pattern(name, model), d["points"], d["triangles"], d["x"])
+        with open(js, "w") as f:
+            json.dump(row, f, indent=1)
+        out.setdefault(name, {})[model] = row
+    return out
+
+
+def _cell(name, r) -> str:
+    """One model's measures of case ``name`` for the README table (curvatures 1/mm)."""
+    c = r["centreline"]
+    if name == "tube":
+        pt = f" (per triangle {r['median_kmax_over_kmin']:.2f})" if "median_kmax_over_kmin" in r else ""
+        return f"k_x / k_y {c['k_x']:.3f} / {c['k_y']:.3f}, ratio {c['ratio']:.3g}{pt}"
+    if name in ("dome", "flat_centre"):
+        return f"centre K {c['gauss_centre']:.2e} /mm^2, \\|H\\| {c['mean_centre']:.4f}"
+    if name == "ribbons":
+        return (f"along {c['along']:.3f}, across {c['across']:.3f}; contraction along / across "
+                f"{c['along_contraction_first_last'][0]:.3f} / {c['across_contraction_first_last'][0]:.3f} "
+                f"(per triangle {r['curvature_along_ribbons']:.3f} / {r['curvature_across_ribbons']:.3f})")
+    if name == "half_annulus":
+        ca, cl = c["across_contraction_first_last"], c["along_contraction_first_last"]
+        return (f"contraction across inner / outer gaps {ca[0]:.3f} / {ca[1]:.3f}, along inner / outer lines "
+                f"{cl[0]:.3f} / {cl[1]:.3f} (edges {r['inner_length_ratio']:.3f} / {r['outer_length_ratio']:.3f})")
+    return ""
+
+
+def markdown_table(save, png_dir="docs/gallery", bench=None) -> str:
+    """README table (case | shell | rods | iterations | time) of the rows saved in ``save``, and
+    the benchmark's row from ``bench`` (the JSON line of --benchmark) when given."""
+    rows = ["| case | shell | rods | Newton it. shell / rods | vertices shell / rods | wall s shell / rods |",
+            "|---|---|---|---|---|---|"]
+    imgs = []
+    for name in STUDY_CASES:
+        try:
+            s, r = (json.load(open(os.path.join(save, f"{name}_{m}.json"))) for m in ("shell", "rods"))
+        except FileNotFoundError:
+            continue
+        rows.append(f"| {name} | {_cell(name, s)} | {_cell(name, r)} | {s['newton_iterations']} / "
+                    f"{r['newton_iterations']} | {s['n_vertices']} / {r['n_vertices']} | "
+                    f"{s['wall_s']:.0f} / {r['wall_s']:.0f} |")
+        imgs.append(f'<img src="{png_dir}/rods_vs_shell_{name}.png" width="400" alt="{name}: shell left, rods right">')
+    if bench and os.path.exists(bench):
+        b = json.load(open(bench))
+        s, r = b["shell"], b["rods"]
+        rows.append(f"| star benchmark 85 x 60 mm | {_cell('tube', s)} | {_cell('tube', r)} | "
+                    f"{s['newton_iterations']} / {r['newton_iterations']} | {s['n_vertices']} / {r['n_vertices']} | "
+                    f"{s['wall_s']:.0f} / {r['wall_s']:.0f} |")
+    return "\n".join(rows) + "\n\n" + "\n".join(imgs)
+
+
+def cross_start(save, names=None, max_iterations=400) -> dict:
+    """Which equilibrium the rods model prefers: each case solved with the rods model from its
+    own (perturbed flat) start and from the shell model's saved deployed shape (DIR/<case>_shell.npz,
+    interpolated at the rods mesh's vertices, validation.measures.deployed_at); per start the
+    energy (N mm), Newton iterations, convergence and the centre-line measures. The lower
+    energy is the rods model's preferred state of the two; if the shell's shape stays an
+    equilibrium, the two models differ by the branch they find, not by what they allow."""
+    from forward.simulate import simulate_sheet
+    from geometry.centrelines import mesh_pattern_rods
+    from shellfem.rods.coupled import rod_shell_model
+    from validation.measures import deployed_at
+    out = {}
+    for name in names or STUDY_CASES:
+        f = os.path.join(save, f"{name}_shell.npz")
+        if not os.path.exists(f):
+            continue
+        d = np.load(f)
+        pattern = _pattern(name, "rods")
+        rm = mesh_pattern_rods(pattern)
+        P, T = rm.sheet.points, rm.sheet.triangles
+        start, _ = deployed_at(d["points"], d["triangles"], d["x"], P)
+        if not np.isfinite(start).all():        # a rods vertex outside the shell's mesh: nearest shell vertex
+            bad = ~np.isfinite(start).all(1)
+            near = np.argmin(((P[bad, None, :] - d["points"][None]) ** 2).sum(-1), axis=1)
+            start[bad] = d["x"][near]
+
+        def factory(sheet, fabric, plastic):
+            return rod_shell_model(sheet, fabric, plastic, rm.edges, rm.thickness, rm.width, side=rm.side)
+        out[name] = {}
+        for label, st in (("own start", None), ("from the shell's shape", start)):
+            t0 = time.perf_counter()
+            sim = simulate_sheet(rm.sheet, pattern.fabric, pattern.plastic, pattern.supports, seed=pattern.seed,
+                                 max_iterations=max_iterations, metric_floor=pattern.metric_floor,
+                                 model_factory=factory, start=st)
+            out[name][label] = {"energy_nmm": float(sim.model.energy(sim.result.q)),
+                                "newton_iterations": int(sim.result.iterations),
+                                "converged": bool(sim.result.converged), "reason": sim.result.reason,
+                                "wall_s": round(time.perf_counter() - t0, 1),
+                                "centreline": _measure(name, pattern, P, T, sim.positions)}
+    return out
+
+
+def strip_check(csv_path, ratios=None) -> dict:
+    """The two models' strip curvatures against a strips CSV (validation.strips schema): the
+    shell's (validation.strips.strip_model, the layered plate of the calibration) and the rods'
+    (shellfem.rods.monolayer.monolayer_curvature, the beam of seed Eq. 3.13). Per model: the
+    least-squares modulus ratio E_plastic / E_fabric (plastic flat at rest, as `selfshape
+    calibrate strips` fits it) and the RMS relative residual; and at the gallery's ratios
+    (``ratios``: {label: ratio}, default the stars' and the ribbons' plastic over the default
+    fabric modulus) each model's curvature beside the measured mean per plastic thickness (1/mm)."""
+    from scipy.optimize import minimize_scalar
+    from shellfem.materials import Fabric
+    from shellfem.rods.monolayer import monolayer_curvature
+    from validation.cases import PLASTIC, PLASTIC_CH3
+    from validation.strips import MEASURED, fit_modulus_ratio, read_strips, strip_model
+    rows = read_strips(csv_path)
+    h1, h2, st, y = rows["plastic_thickness_mm"], rows["fabric_thickness_mm"], rows["stretch"], rows[MEASURED]
+    rods = lambda n: monolayer_curvature(h1, h2, n, 1.0, st)          # noqa: E731
+    shell_fit = fit_modulus_ratio(rows)
+    r = minimize_scalar(lambda t: float(((rods(np.exp(t)) - y) ** 2).sum()), bounds=(0.0, 12.0), method="bounded")
+    fits = {"shell": (shell_fit["value"], strip_model(h1, h2, st, shell_fit["value"])),
+            "rods": (float(np.exp(r.x)), rods(float(np.exp(r.x))))}
+    out = {"file": os.path.basename(csv_path), "rows": int(y.size), "fit": {}}
+    for m, (n, k) in fits.items():
+        out["fit"][m] = {"modulus_ratio": round(n, 1), "rms_relative_residual": float(np.sqrt(np.mean(((k - y) / y) ** 2)))}
+    E2 = Fabric().young_modulus
+    ratios = ratios or {"stars": PLASTIC_CH3["young_modulus_mpa"] / E2, "ribbons": PLASTIC["young_modulus_mpa"] / E2}
+    out["at_gallery_ratios"] = {}
+    for label, n in ratios.items():
+        per = {}
+        for h in np.unique(h1):
+            sel = h1 == h
+            per[f"{h:g}"] = {"measured": float(np.mean(y[sel])),
+                             "shell": float(np.mean(strip_model(h1[sel], h2[sel], st[sel], n))),
+                             "rods": float(np.mean(monolayer_curvature(h1[sel], h2[sel], n, 1.0, st[sel])))}
+        out["at_gallery_ratios"][label] = {"modulus_ratio": round(float(n), 1), "per_thickness": per}
+    return out
+
+
+def benchmark(max_iterations=300, width=85.0, height=60.0) -> dict:
+    """The 10,000-vertex star benchmark in both models, one after the other in this process:
+    the shell as studies/bench_solver.py solves it (nested iteration, no contact; wall time
+    includes meshing), then the rods model as `selfshape simulate` solves a model = "rods"
+    pattern (one mesh; wall time includes meshing); per model vertices, Newton iterations,
+    wall time (s), convergence, bounding box (mm) and the tube's centre-line measures."""
+    import bench_solver
+    from forward.simulate import simulate
+    from geometry.patterns import parse_pattern
+    from validation.cases import star_benchmark
+    out = {}
+    t0 = time.perf_counter()
+    kept = {}
+    b = bench_solver.run(width, height, max_iterations=max_iterations, keep=kept)
+    sim = kept["simulation"]
+    out["shell"] = {"n_vertices": b["n_vertices"], "newton_iterations": b["newton_iterations"],
+                    "converged": b["converged"], "reason": b["reason"], "wall_s": round(time.perf_counter() - t0, 1),
+                    "levels": b["levels"], "bbox_mm": sim.summary().get("bbox_mm"),
+                    "centreline": _measure("tube", kept["pattern"], sim.sheet.points, sim.sheet.triangles,
+                                           sim.positions)}
+    raw = star_benchmark(width, height)
+    raw["solver"]["model"] = "rods"
+    pattern = parse_pattern(raw, "star benchmark (rods)")
+    t0 = time.perf_counter()
+    sim = simulate(pattern, max_iterations=max_iterations)
+    out["rods"] = {"n_vertices": int(sim.sheet.n_vertices), "n_rod_edges": int(len(sim.model.rods.edges)),
+                   "newton_iterations": int(sim.result.iterations), "converged": bool(sim.result.converged),
+                   "reason": sim.result.reason, "wall_s": round(time.perf_counter() - t0, 1),
+                   "bbox_mm": sim.summary().get("bbox_mm"),
+                   "centreline": _measure("tube", pattern, sim.sheet.points, sim.sheet.triangles, sim.positions)}
+    return out
+
+
+def main(argv=None):
+    from shellfem.memory import keep_freed_memory
+    keep_freed_memory()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", nargs="*", default=None, choices=list(GALLERY_CASES))
     ap.add_argument("--models", nargs="*", default=["shell", "rods"], choices=["shell", "rods"])
-    a = ap.parse_args()
-    print(json.dumps(run(a.only, a.models)))
+    ap.add_argument("--max-iterations", type=int, default=400)
+    ap.add_argument("--save", default=None, help="folder for each solve's mesh, deployed state and row")
+    ap.add_argument("--png", default=None, help="folder for the side-by-side pictures")
+    ap.add_argument("--remeasure", default=None, help="re-measure the solves saved in this folder and stop")
+    ap.add_argument("--render", default=None, help="draw the --png pictures of the solves saved in this folder and stop")
+    ap.add_argument("--table", default=None, help="print the README table of the rows saved in this folder")
+    ap.add_argument("--bench-json", default=None, help="with --table: the --benchmark output to add as a row")
+    ap.add_argument("--benchmark", action="store_true", help="the 10k-vertex star benchmark in both models")
+    ap.add_argument("--strips", default=None, help="compare both models' strip curvature with this strips CSV")
+    ap.add_argument("--cross-start", default=None,
+                    help="solve the rods model from the shell shapes saved in this folder (and from its own start)")
+    a = ap.parse_args(argv)
+    if a.table:
+        print(markdown_table(a.table, bench=a.bench_json))
+    elif a.render:
+        print(json.dumps(render_saved(a.render, a.png or "docs/gallery", a.only)))
+    elif a.remeasure:
+        print(json.dumps(remeasure(a.remeasure)))
+    elif a.strips:
+        print(json.dumps(strip_check(a.strips)))
+    elif a.cross_start:
+        print(json.dumps(cross_start(a.cross_start, a.only)))
+    elif a.benchmark:
+        print(json.dumps(benchmark()))
+    else:
+        print(json.dumps(run(a.only, a.models, a.max_iterations, a.save, a.png)))
+
+
+if __name__ == "__main__":
+    main()

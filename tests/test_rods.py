@@ -468,3 +468,19 @@ def test_three_armed_junction_is_the_seeds_pairwise_split():
     kb0 = 2 * np.tan(np.radians(30.0))
     expect = sum(0.5 * 3.0 * (2 * np.tan((np.radians(60.0) + sg * d) / 2) - kb0) ** 2 / (2 * l) for sg in (1, -1))
     assert net.energy(x) == pytest.approx(expect, rel=1e-9)
+
+
+def test_selfshape_simulate_refuses_rods_on_a_region_in_one_line(tmp_path, capsys):
+    # `selfshape simulate` on a model = "rods" pattern with a [[region]] (no centre line): status 2,
+    # one line on stderr naming the file and the element, nothing written
+    from geometry.patterns import write_pattern
+    from selfshape.cli import main
+    raw = _star_pattern(model="rods")
+    raw["region"] = [{"polygon": [[2.0, 2.0], [8.0, 2.0], [8.0, 8.0], [2.0, 8.0]], "thickness_mm": 0.4}]
+    path = tmp_path / "p.toml"
+    write_pattern(str(path), raw)
+    assert main(["simulate", str(path), "-o", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.startswith("selfshape simulate: error: ")
+    assert '[solver] model = "rods" supports [stars] and [[ribbon]]' in err and "p.toml" in err
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
