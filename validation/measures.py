@@ -128,16 +128,13 @@ def deployed_at(points, triangles, x, query):
     vertex normals; normals point to the deployed side of the flat +z (the front). NaN rows
     for points outside the mesh."""
     from matplotlib.tri import Triangulation
+
+    from geometry.meshops import signed_areas, vertex_normals
     P, T, x = np.asarray(points, float), np.asarray(triangles), np.asarray(x, float)
     q = np.atleast_2d(np.asarray(query, float))
     t = Triangulation(P[:, 0], P[:, 1], T).get_trifinder()(q[:, 0], q[:, 1])
-    a, b, c = P[T[:, 0]], P[T[:, 1]], P[T[:, 2]]
-    orient = np.sign((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
-    nt = np.cross(x[T[:, 1]] - x[T[:, 0]], x[T[:, 2]] - x[T[:, 0]]) * orient[:, None]
-    nv = np.zeros_like(x)
-    for k in range(3):
-        np.add.at(nv, T[:, k], nt)
-    nv /= np.maximum(np.linalg.norm(nv, axis=1), 1e-300)[:, None]
+    ccw = np.where((signed_areas(P, T) < 0)[:, None], T[:, [0, 2, 1]], T)      # wound to the flat +z side
+    nv = vertex_normals(x, ccw, weighting="area")
     X = np.full((len(q), 3), np.nan)
     N = np.full((len(q), 3), np.nan)
     ok = t >= 0
@@ -185,6 +182,15 @@ def _along(path, fractions):
     return np.column_stack([np.interp(f, s, path[:, 0]), np.interp(f, s, path[:, 1])])
 
 
+def _stations(points, triangles, x, lines, trim, count=13):
+    """The stations across a family of flat polylines ``lines``: each line's points at ``count``
+    arc-length fractions from trim to 1 - trim, flat S (n lines, count, 2) mm, and their deployed
+    positions X and unit normals N (n lines, count, 3) (deployed_at)."""
+    S = np.stack([_along(p, np.linspace(trim, 1 - trim, count)) for p in lines])
+    X, N = deployed_at(points, triangles, x, S.reshape(-1, 2))
+    return S, X.reshape(len(lines), count, 3), N.reshape(len(lines), count, 3)
+
+
 DIRECTIONS_DEG = (0.0, 45.0, 90.0, 135.0)
 
 
@@ -226,10 +232,7 @@ def ribbon_curvatures(points, triangles, x, lines, step, trim=0.2) -> dict:
         m = max(3, int(round((1 - 2 * trim) * L / step)) + 1)
         along.append(curve_curvatures(points, triangles, x, _along(lines[i], np.linspace(trim, 1 - trim, m))))
     along = np.concatenate(along) if along else np.zeros(0)
-    fr = np.linspace(trim, 1 - trim, 13)
-    S = np.stack([_along(p, fr) for p in lines])                            # (n lines, stations, 2)
-    X, N = deployed_at(points, triangles, x, S.reshape(-1, 2))
-    X, N = X.reshape(n, len(fr), 3), N.reshape(n, len(fr), 3)
+    _, X, N = _stations(points, triangles, x, lines, trim)
     mid = inner[(inner > 0) & (inner < n - 1)]
     across = normal_curvature(X[mid - 1], X[mid], X[mid + 1], N[mid]).ravel()
     a, c = float(np.nanmedian(along)), float(np.nanmedian(across))
@@ -252,10 +255,7 @@ def line_contractions(points, triangles, x, lines, trim=0.2, spacing=0.5) -> dic
         q = _along(p, np.linspace(trim, 1 - trim, max(3, int(np.ceil((1 - 2 * trim) * L / spacing)) + 1)))
         X, _ = deployed_at(points, triangles, x, q)
         along.append(np.sum(np.linalg.norm(np.diff(X, axis=0), axis=1)) / np.sum(np.linalg.norm(np.diff(q, axis=0), axis=1)))
-    fr = np.linspace(trim, 1 - trim, 13)
-    S = np.stack([_along(p, fr) for p in lines])                            # (n, stations, 2)
-    X, _ = deployed_at(points, triangles, x, S.reshape(-1, 2))
-    X = X.reshape(len(lines), len(fr), 3)
+    S, X, _ = _stations(points, triangles, x, lines, trim)
     across = np.nanmedian(np.linalg.norm(np.diff(X, axis=0), axis=2) / np.linalg.norm(np.diff(S, axis=0), axis=2), 1)
     return dict(along=np.array(along), across=across)
 
