@@ -169,6 +169,7 @@ class ThicknessProblem:
         self.gradient_reference = None
         self.rtol = 1e-10
         self.trace = []                 # the objective at each iterate of the last limited solve (mm^2)
+        self.drift = []                 # and each iterate's RMS distance from that solve's start (mm)
 
     def sheet_at(self, p):
         from shellfem.sheet import Sheet

@@ -487,7 +487,6 @@ def test_the_default_stretch_is_chosen_and_a_stretch_that_cannot_design_is_passe
     (a shallow target at the default 1.6 over-curls into a tube); a candidate stretch whose
     design fails is recorded with its error and the others decide; if every one fails, its
     error is the design's."""
-    import inverse.design as design_module
     from inverse.design import DesignOptions
     from inverse.thickness_law import shipped_laws
     assert DesignOptions().stretch == "auto"
