@@ -127,7 +127,8 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
         # a move of many ribbons by a layer is a larger step than an outer iteration's: twice its solve cap
         p_round, rr.q, _, layer_rounds = refine_layers(prob, p_round, rr.q, h, (first, top), rounds=layer_rounds_max,
                                                        newton_iterations=2 * opts.trial_iterations, verbose=verbose,
-                                                       leave_factor=opts.leave_factor)
+                                                       leave_factor=opts.leave_factor, shifted_run=opts.shifted_run,
+                                                       shifted_grace=opts.shifted_grace)
         model_r = prob.model_at(p_round)
     block = {
         "start": start, "outer_iterations": len(res.history) - 1, "reason": res.reason,

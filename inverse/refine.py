@@ -41,12 +41,21 @@ class RefineOptions:
     trial solve). newton_iterations: cap of each equilibrium solve; start_iterations: cap of
     the first one (from the caller's start, e.g. the target itself), which the caller may retry
     from another start. max_step: largest thickness change of one outer iteration (mm): the
-    warm-started solves stay short and the Gauss-Newton model valid. damping: initial
+    warm-started solves stay short and the Gauss-Newton model valid; it is also the largest
+    trust radius: a rejected trial halves the radius to half its step's largest change (the
+    damping alone does not shorten a step whose changes sit at the radius: the bounded
+    least-squares step keeps them there until the damping outweighs the model), an accepted
+    trial that the model predicted well (rho > 0.75) doubles it. damping: initial
     Levenberg-Marquardt weight relative to the Gauss-Newton matrix's mean diagonal.
     leave_factor: a trial solve is stopped once its iterate's objective exceeds this times the
     current J: it is heading into another state (these sheets are multistable), and finishing
     that long solve only to reject the step costs more than the rest of the outer iteration;
-    the trial counts as rejected."""
+    the trial counts as rejected. shifted_run: a trial solve is also stopped once this many
+    consecutive iterations (after its first ``shifted_grace``) were Levenberg-Marquardt steps
+    (a shifted Hessian: indefinite, or a full Newton step that did not lower the energy) while
+    its iterate's objective is above the current J: the prediction put it beyond a fold of the
+    branch and it is crossing to another state (0: never). A trial that stays on the branch
+    converges from the prediction in Newton steps after at most a few shifted ones."""
     bounds: tuple = (0.1, 1.6)
     max_outer: int = 12
     ftol: float = 1e-2
@@ -56,6 +65,8 @@ class RefineOptions:
     max_step: float = 0.2
     damping: float = 1e-3
     leave_factor: float = 1.25
+    shifted_run: int = 6
+    shifted_grace: int = 3
     verbose: bool = False
 
 
@@ -183,37 +194,50 @@ class ThicknessProblem:
         from shellfem.model import ShellModel
         return ShellModel.from_materials(self.sheet_at(p), self.fabric, self.plastic)
 
-    def solve(self, model, q0, max_iterations, p=None, limit=None):
+    def solve(self, model, q0, max_iterations, p=None, limit=None, shifted=None):
         """Equilibrium from q0; the gradient tolerance is relative to the force scale of the
         released flat sheet (not to the warm start's small residual, which would ask for
         round-off-level gradients in the soft valleys of these sheets). With ``limit`` (mm^2)
         and the thicknesses ``p`` of ``model``, the solve stops, not converged, with a reason
         starting LEFT_BRANCH, once an iterate's objective exceeds ``limit``; ``trace`` then keeps
-        the objective at each accepted iterate."""
+        the objective at each accepted iterate. ``shifted`` = (run, grace, bound): also stop
+        once ``run`` consecutive accepted iterations after the first ``grace`` were shifted
+        (Levenberg-Marquardt) steps while the iterate's objective exceeds ``bound`` (mm^2)."""
         from shellfem.newton import newton
         if self.gradient_reference is None:
             self.gradient_reference = float(np.linalg.norm(model.gradient(model.initial_state())[self.free]))
-        monitor = None
+        monitor = callback = None
         self.trace, self.drift = [], []
         if limit is not None:
             x0 = model.split(q0)[0]
+            run, grace, bound = shifted if shifted is not None else (0, 0, np.inf)
+            steps = []                  # each accepted iteration: shifted (True) or a Newton step
+
+            def callback(entry):
+                steps.append(entry.get("lam", 0.0) > 0.0)
 
             def monitor(q):
                 x = model.split(q)[0]
                 J = self.objective(x, p)[0]
                 self.trace.append(J)
                 self.drift.append(float(np.sqrt(self.w @ np.sum((x - x0) ** 2, 1))))
-                return f"{LEFT_BRANCH} (objective {J:.4g} > {limit:.4g} mm^2)" if J > limit else None
+                if J > limit:
+                    return f"{LEFT_BRANCH} (objective {J:.4g} > {limit:.4g} mm^2)"
+                if run > 0 and J > bound and len(steps) >= grace + run and all(steps[-run:]):
+                    return (f"{LEFT_BRANCH} ({run} shifted iterations in a row, objective {J:.4g} > "
+                            f"{bound:.4g} mm^2)")
+                return None
         return newton(model, q0, self.free, max_iterations=max_iterations, gradient_reference=self.gradient_reference,
-                      rtol=self.rtol, monitor=monitor)
+                      rtol=self.rtol, monitor=monitor, callback=callback)
 
-    def trial_solve(self, model, q_guess, q, max_iterations, p, limit):
+    def trial_solve(self, model, q_guess, q, max_iterations, p, limit, shifted=None):
         """A trial step's equilibrium (thicknesses p of ``model``): from the linear prediction
         q_guess, and from the current equilibrium q only when the prediction gave no start (the
-        solve stopped within its first iteration); stopped past ``limit`` as in :meth:`solve`."""
-        res = self.solve(model, q_guess, max_iterations, p, limit)
+        solve stopped within its first iteration); stopped past ``limit`` or on a run of
+        shifted iterations (``shifted``) as in :meth:`solve`."""
+        res = self.solve(model, q_guess, max_iterations, p, limit, shifted)
         if not res.converged and res.iterations < 2:
-            res = self.solve(model, q, max_iterations, p, limit)
+            res = self.solve(model, q, max_iterations, p, limit, shifted)
         return res
 
     def residual(self, x):
@@ -293,13 +317,15 @@ def layer_descent(M, b, p, step: float, lo: float, hi: float, sweeps: int = 20) 
 
 def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: int = 2,
                   newton_iterations: int = 400, max_trials: int = 4, verbose: bool = False,
-                  leave_factor: float = RefineOptions.leave_factor):
+                  leave_factor: float = RefineOptions.leave_factor, shifted_run: int = RefineOptions.shifted_run,
+                  shifted_grace: int = RefineOptions.shifted_grace):
     """Layer-count refinement of rounded thicknesses p (P,) mm at their equilibrium q: up to
     ``rounds`` times, linearise J at the rounded state (gauss_newton_model), move ribbons by
     at most one layer (layer_descent), re-solve warm-started, and keep the move if J fell;
     a move that raises J is cut to the half of its ribbons whose single moves the model rates
     best, up to ``max_trials`` solves per round (a trust region on the number of ribbons moved);
-    a trial solve whose objective passes ``leave_factor`` times the current J is stopped.
+    a trial solve whose objective passes ``leave_factor`` times the current J, or that runs
+    ``shifted_run`` shifted iterations in a row above J (RefineOptions), is stopped.
     Rounding a continuous optimum to layers is linearised at the continuous point, far from
     the rounded one for thin ribbons (a 0.1 mm layer is 20 % of a 0.5 mm ribbon); this
     re-linearises where the design now is. Returns (p, q, J, history: per trial dict(round,
@@ -312,6 +338,7 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
     J = problem.objective(model.split(q)[0], p)[0]
     history = []
     for k in range(1, rounds + 1):
+        shifted = (shifted_run, shifted_grace, J)
         try:
             M, b, dq, _ = gauss_newton_model(problem, model, q, p)
         except NotPositiveDefinite:
@@ -332,7 +359,7 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
             p_new = p + s
             pred = M @ s - b
             model_new = problem.model_at(p_new)
-            res = problem.trial_solve(model_new, q + dq @ s, q, newton_iterations, p_new, leave_factor * J)
+            res = problem.trial_solve(model_new, q + dq @ s, q, newton_iterations, p_new, leave_factor * J, shifted)
             J_new = problem.objective(model_new.split(res.q)[0], p_new)[0] if res.converged else np.inf
             ok = bool(J_new < J)
             history.append(dict(round=k, changed=int(len(idx)), objective=finite_or_none(J_new),
@@ -392,6 +419,7 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
     if options.verbose:
         print(f"refine 0: J {J:.4e} mm^2, rms {np.sqrt(msd):.4f} mm, {res.iterations} Newton iterations", flush=True)
     mu = None
+    radius = options.max_step
     reason = f"reached max_outer = {options.max_outer}"
     last_model = None
     it = 0
@@ -417,7 +445,7 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
         rest = max(float(b @ b) - float(Qb @ Qb), 0.0)
         while True:
             sol = lsq_linear(np.concatenate([Rm, np.sqrt(mu) * np.eye(P)], 0), np.concatenate([Qb, np.zeros(P)]),
-                             bounds=(np.maximum(lo - p, -options.max_step), np.minimum(hi - p, options.max_step)),
+                             bounds=(np.maximum(lo - p, -radius), np.minimum(hi - p, radius)),
                              method="bvls")
             step = sol.x
             pred_lin = Rm @ step - Qb
@@ -430,7 +458,8 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
             q_guess = q + dq @ (p_try - p)
             t_s = time.perf_counter()
             trials += 1
-            res = problem.trial_solve(model_try, q_guess, q, options.trial_iterations, p_try, options.leave_factor * J)
+            res = problem.trial_solve(model_try, q_guess, q, options.trial_iterations, p_try, options.leave_factor * J,
+                                      (options.shifted_run, options.shifted_grace, J))
             t_solves += time.perf_counter() - t_s
             if res.converged:
                 J_try, msd_try = problem.objective(model_try.split(res.q)[0], p_try)
@@ -439,7 +468,7 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
                 J_try, rho = np.inf, -np.inf
             if options.verbose:
                 peak = max(problem.trace, default=np.nan) / J
-                print(f"  trial: J {J_try:.4e} (predicted {predicted:.4e}), rho {rho:.3f}, mu {mu:.2e}, "
+                print(f"  trial: J {J_try:.4e} (predicted {predicted:.4e}), rho {rho:.3f}, mu {mu:.2e}, radius {radius:.3g} mm, "
                       f"{res.iterations} Newton iterations, peak J / J {peak:.3f}"
                       f"{'' if res.converged else ' (' + res.reason + ')'}", flush=True)
                 pred_move = float(np.sqrt(problem.w @ np.sum((model.split(q_guess)[0] - model.split(q)[0]) ** 2, 1)))
@@ -449,22 +478,25 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
                 print(f"    predicted move {pred_move:.4f} mm; drift from the guess at 3/5/10/20/end "
                       + " ".join(f"{dr[k]:.4f}" if k < len(dr) else "-" for k in (2, 4, 9, 19))
                       + f" {dr[-1] if dr else float('nan'):.4f} mm; steps {steps}", flush=True)
+                print("    objective / J per iterate " + " ".join(f"{t / J:.2f}" for t in problem.trace), flush=True)
             if rho > 0.1:
                 accepted = True
                 mu = mu / 3 if rho > 0.75 else mu
+                radius = min(options.max_step, 2.0 * radius) if rho > 0.75 else radius
                 break
             mu *= 8
-            if mu > 1e8 * g_scale:
+            radius = 0.5 * float(np.max(np.abs(step)))
+            if mu > 1e8 * g_scale or radius < 1e-4:
                 reason = "the trust region collapsed: no trial step lowered the objective"
                 break
         if not accepted:
             history.append(dict(iteration=it, objective=J, rms_mm=float(np.sqrt(msd)), accepted=False,
-                                damping=float(mu), newton_iterations=0, seconds=round(time.perf_counter() - t_it, 2)))
+                                damping=float(mu), radius_mm=radius, newton_iterations=0, seconds=round(time.perf_counter() - t_it, 2)))
             break
         decrease = (J - J_try) / max(J, 1e-300)
         p, q, model, J, msd = p_try, res.q, model_try, J_try, msd_try
         history.append(dict(iteration=it, objective=J, rms_mm=float(np.sqrt(msd)), accepted=True, damping=float(mu),
-                            newton_iterations=int(res.iterations), trials=trials, sensitivity_s=round(t_sens, 2),
+                            radius_mm=radius, newton_iterations=int(res.iterations), trials=trials, sensitivity_s=round(t_sens, 2),
                             solves_s=round(t_solves, 2), seconds=round(time.perf_counter() - t_it, 2)))
         if callback is not None:
             history[-1].update(callback(it, p, q, model) or {})

@@ -177,6 +177,33 @@ def test_a_trial_solve_stops_once_its_objective_passes_the_limit(deployed):
     assert loose.converged and np.allclose(loose.q, plain.q, atol=1e-12)
 
 
+def test_a_trial_solve_stops_on_a_run_of_shifted_iterations_above_the_bound(deployed):
+    """ThicknessProblem.solve with shifted = (run, grace, bound): released from flat (a saddle
+    of the energy: Levenberg-Marquardt steps) it stops, not converged, once ``run`` accepted
+    iterations in a row after the first ``grace`` were shifted while the objective is above
+    ``bound``; with a bound no iterate exceeds it, the solve is the plain one."""
+    from inverse.refine import LEFT_BRANCH
+    base, param, X = deployed
+    prob = ThicknessProblem(sheet_at(base, param, TRUE), FABRIC, PLASTIC, param, X, None, smoothness=0.0)
+    model = prob.model_at(TRUE)
+    prob.free = np.ones(model.n_dofs, bool)
+    prob.free[gauge_dofs(X, np.zeros(0, int))] = False
+    flat = model.initial_state()
+    x, _ = model.split(flat)
+    x[:, 2] += smooth_perturbation(base.points, 0, 0.3)
+    plain = prob.solve(model, flat, 300, TRUE, limit=1e6)
+    assert plain.converged
+    shifted = [h["lam"] > 0 for h in plain.history]
+    run = 3
+    first = next(i for i in range(1, len(shifted) + 1) if i >= 1 + run and all(shifted[i - run:i]))
+    stopped = prob.solve(model, flat, 300, TRUE, limit=1e6, shifted=(run, 1, 0.0))
+    assert not stopped.converged and stopped.reason.startswith(LEFT_BRANCH)
+    assert "shifted iterations in a row" in stopped.reason
+    assert len(stopped.history) == first
+    high = prob.solve(model, flat, 300, TRUE, limit=1e6, shifted=(run, 1, 1e6))
+    assert high.converged and np.allclose(high.q, plain.q, atol=1e-12)
+
+
 def test_a_layer_trial_that_does_not_converge_is_recorded_without_an_objective(deployed, monkeypatch):
     """A one-layer move whose trial solve stops (left the branch, or the cap) is rejected and
     recorded with objective None and the solve's reason, so the report stays finite JSON."""
@@ -191,7 +218,7 @@ def test_a_layer_trial_that_does_not_converge_is_recorded_without_an_objective(d
     prob.free[gauge_dofs(X, np.zeros(0, int))] = False
     r0 = prob.solve(prob.model_at(p0), np.concatenate([X.ravel(), np.zeros(len(prob.free) - X.size)]), 400)
 
-    def stopped(self, model, q_guess, q, max_iterations, p, limit):
+    def stopped(self, model, q_guess, q, max_iterations, p, limit, shifted=None):
         return SolveResult(q=q_guess, converged=False, iterations=7, energy=np.nan, gradient_norm=np.nan,
                            reason="left the branch (objective 2 > 1 mm^2)", stable=False)
     monkeypatch.setattr(ThicknessProblem, "trial_solve", stopped)
