@@ -95,7 +95,11 @@ def test_replicates_are_averaged_and_named(tmp_path, capsys):
     ({"LP-002": {"stretch": "1.3"}}, ["patch LP-002, column stretch: 1.3, but patch LP-001 has 1.6"]),
     ({"LP-002": {"kappa_per_mm": "", "note": "torn"}, "LP-007": {"thickness_mm": "thick"}},
      ["2 unusable entries", "patch LP-002, column kappa_per_mm: empty (torn)",
-      "patch LP-007, column thickness_mm: must be a number, got 'thick'"]),
+      "patch LP-007, column thickness_mm: must be a number, got 'thick'", "(units and ranges: docs/"]),
+    # the across curvature is a magnitude too (as --simulate writes it): a signed value is refused
+    ({"LP-002": {"kappa_across_per_mm": "-0.02"}}, ["patch LP-002, column kappa_across_per_mm: must be >= 0"]),
+    # a patch id on two rows is not a replicate: LP-004 (front 0.3 / 6.5) relabelled LP-003
+    ({"LP-004": {"patch": "LP-003"}}, ["patch LP-003 (row 4), column patch: the id of row 3 too"]),
 ])
 def test_bad_measurements_name_file_patch_and_column(tmp_path, capsys, edit, needles):
     src = template(tmp_path / "m.csv", **edit)
@@ -106,6 +110,10 @@ def test_bad_measurements_name_file_patch_and_column(tmp_path, capsys, edit, nee
 
 def test_grids_that_cannot_be_inverted_are_reported_per_cell(tmp_path, capsys):
     out = tmp_path / "law.csv"
+    # one thickness per spacing: nothing to invert
+    rc, _, err = build(capsys, template(tmp_path / "m.csv", cells=lambda r: r["thickness_mm"] == 0.3), out)
+    one_line_error(rc, err, "side front: 1 thickness(es) x 2 spacing(s), too sparse to invert (column thickness_mm "
+                            "has 0.3", "over patches LP-003, LP-004", "side back: 1 thickness(es) x 2 spacing(s)")
     # one spacing only: too sparse
     rc, _, err = build(capsys, template(tmp_path / "m.csv", cells=lambda r: r["spacing_mm"] == 3.9), out)
     one_line_error(rc, err, "m.csv: cannot build a law", "side front: 3 thickness(es) x 1 spacing(s), too sparse",
@@ -152,6 +160,8 @@ def test_output_is_checked_before_the_work(tmp_path, capsys):
     one_line_error(*build(capsys, tmp_path / "absent.csv", tmp_path / "law.csv")[::2], "absent.csv")
     (tmp_path / "bin.csv").write_bytes(b"\x00\x01\xff")
     one_line_error(*build(capsys, tmp_path / "bin.csv", tmp_path / "law.csv")[::2], "bin.csv")
+    (tmp_path / "empty.csv").write_text("")
+    one_line_error(*build(capsys, tmp_path / "empty.csv", tmp_path / "law.csv")[::2], "empty.csv: no header line")
     (tmp_path / "h.csv").write_text("# only comments\npatch,side\n")
     one_line_error(*build(capsys, tmp_path / "h.csv", tmp_path / "law.csv")[::2], "h.csv: missing column(s) stretch")
     assert not (tmp_path / "law.csv").exists()

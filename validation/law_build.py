@@ -34,9 +34,11 @@ REQUIRED = ("patch", "side", "stretch", "thickness_mm", "spacing_mm", "kappa_per
 OPTIONAL_NUMERIC = ("kappa_across_per_mm", "contraction_along", "contraction_across", "ribbon_length_mm",
                     "ribbon_width_mm", "ribbon_gap_mm")
 #: physical range of each numeric column: a printable thickness, a spacing on a bed, a curvature
-#: of radius >= 0.1 mm, a contraction factor (printed / deployed) of a fabric that stretches <= 5x
+#: of radius >= 0.1 mm (both curvatures are magnitudes, docs/calibration-prints.md, as the
+#: simulated fills write them), a contraction factor (printed / deployed) of a fabric that
+#: stretches <= 5x
 RANGES = {"stretch": (1.0, 5.0), "thickness_mm": (1e-3, 10.0), "spacing_mm": (0.1, 1e3),
-          "kappa_per_mm": (0.0, 10.0), "kappa_across_per_mm": (-10.0, 10.0), "contraction_along": (0.1, 10.0),
+          "kappa_per_mm": (0.0, 10.0), "kappa_across_per_mm": (0.0, 10.0), "contraction_along": (0.1, 10.0),
           "contraction_across": (0.1, 10.0), "ribbon_length_mm": (0.1, 1e3), "ribbon_width_mm": (0.1, 1e3),
           "ribbon_gap_mm": (0.0, 1e3)}
 SIDES = ("front", "back")
@@ -55,8 +57,11 @@ def read_measurements(path) -> dict:
     spacing_mm, kappa_per_mm, optional columns, note), "comments", "file", "sha256"}.
 
     Every problem of every row (an empty or non-numeric measurement, a value outside RANGES, a
-    bad side, a missing patch id) is collected and raised as ONE SelfshapeError line naming the
-    file and, per problem, the patch id and the column."""
+    bad side, a missing patch id, a patch id given to two rows) is collected and raised as ONE
+    SelfshapeError line naming the file and, per problem, the patch id and the column. A
+    repeated id is refused rather than read as a replicate: it is a row pasted twice or a
+    mislabelled patch, and averaging or placing it would be a silent guess (a replicate
+    has its own id: ``calibration-print law --repetitions``)."""
     name = os.path.basename(str(path))
     text = read_text(path, "law_measurements CSV")
     table = read_csv_rows(path, "law_measurements CSV")
@@ -74,7 +79,7 @@ def read_measurements(path) -> dict:
     if not body:
         raise SelfshapeError(f"{name}: no data rows (one row per printed patch)")
     col = {h: i for i, h in enumerate(header)}
-    problems, cells = [], []
+    problems, cells, first_row = [], [], {}
     for i, r in enumerate(body):
         if len(r) != len(header):
             pid = r[col["patch"]].strip() if len(r) > col["patch"] else ""
@@ -86,6 +91,11 @@ def read_measurements(path) -> dict:
         who = f"patch {pid}" if pid else f"row {i + 1}"
         if not pid:
             problems.append(f"row {i + 1}, column patch: empty")
+        elif pid in first_row:
+            problems.append(f"patch {pid} (row {i + 1}), column patch: the id of row {first_row[pid]} too (a row "
+                            f"pasted twice or a mislabelled patch; every printed patch has its own id)")
+        else:
+            first_row[pid] = i + 1
         cell = {"patch": pid or f"row {i + 1}", "row": i + 1, "note": get("note")}
         side = get("side").lower()
         if side not in SIDES:
@@ -107,8 +117,10 @@ def read_measurements(path) -> dict:
         cells.append(cell)
     if problems:
         what = f"{len(problems)} unusable entr{'y' if len(problems) == 1 else 'ies'}"
-        raise SelfshapeError(_problems_line(name, what, problems, "fill in every patch's kappa_per_mm as a number "
-                                                                  "in 1/mm"))
+        hint = ("fill in every patch's kappa_per_mm as a number in 1/mm" if all(", column kappa_per_mm:" in p
+                                                                             for p in problems)
+                else "units and ranges: docs/calibration-prints.md, law_measurements.csv")
+        raise SelfshapeError(_problems_line(name, what, problems, hint))
     s = np.array([c["stretch"] for c in cells])
     if np.ptp(s) > 1e-6:
         j = int(np.argmax(np.abs(s - s[0]) > 1e-6))
