@@ -182,6 +182,18 @@ def test_strips_bad_options_are_one_line_errors(tmp_path, capsys, argv, needle):
     assert not (tmp_path / "o").exists()                    # checked before anything is written
 
 
+@pytest.mark.parametrize("argv, needle", [
+    # 1.5 mm ribbons in rows 1 mm apart overlap: a plate, not the law's parallel ribbons
+    (["--spacing", "1", "3.9"], "--spacing 1 mm: rows of 1.5 mm wide ribbons must be more than their width apart"),
+    (["--rows", "40"], "does not fit the 223 x 223 mm bed"),
+    (["--thickness", "0.25", "--layer-height", "0.2"], "thickness 0.25 mm is not a whole number of 0.2 mm layers"),
+])
+def test_law_bad_options_are_one_line_errors(tmp_path, capsys, argv, needle):
+    rc, _, err = run(["calibration-print", "law", "-o", str(tmp_path / "o")] + argv, capsys)
+    assert rc == 2 and err.count("\n") == 1 and needle in err, err
+    assert not (tmp_path / "o").exists()                    # checked before anything is written
+
+
 # ----------------------------------------------------------------------------- law
 def test_law_gcode_reads_back_to_the_patches(tmp_path, capsys):
     """A 2 x 2 grid per side: every dash of every patch is one printed element of the patch's
@@ -478,3 +490,26 @@ def test_contraction_columns_are_printed_over_deployed_length():
     R = 20.0
     s = state(np.column_stack([R * np.sin(P[:, 0] / R), P[:, 1], R * (1 - np.cos(P[:, 0] / R))]))
     assert s["sigma_along"] == pytest.approx(1.0, rel=2e-3) and s["sigma_across"] == pytest.approx(1.0, rel=1e-9)
+
+
+@pytest.mark.parametrize("edit, needle", [
+    ({"sigma_along": "x"}, "rows[0], sigma_along: must be a number (or null), got 'x'"),
+    ({"rows": "abc"}, "rows[0], rows: must be an integer >= 1 (or null), got 'abc'"),
+    ({"k1_angle_deg": "abc"}, "rows[0], k1_angle_deg: must be a number (or null)"),
+    ({"kappa_per_mm": -0.1}, "rows[0], kappa_per_mm: must be >= 0, got -0.1"),
+    ({"kappa_across_per_mm": float("inf")}, "rows[0], kappa_across_per_mm: must be finite"),
+    ({"side": "top"}, "rows[0], side: must be \"front\" or \"back\", got 'top'"),
+    ({"converged": "yes"}, "rows[0], converged: must be true or false, got 'yes'"),
+    ({"thickness_mm": 0}, "rows[0], thickness_mm: must be > 0"),
+])
+def test_a_bad_rows_json_is_one_line_naming_the_row_and_key(tmp_path, capsys, edit, needle):
+    """--from-rows copies a rows JSON's values into the template: every field it reads is
+    checked first (a string where a number belongs was an internal error, exit 3; a negative or
+    infinite curvature went into the template, the infinite one as an empty cell)."""
+    row = {"thickness_mm": 0.2, "spacing_mm": 3.9, "side": "front", "kappa_per_mm": 0.3, "converged": True,
+           "sigma_along": 1.2, "rows": 3, "motifs": 2} | edit
+    (tmp_path / "rows.json").write_text(json.dumps({"rows": [row]}))
+    rc, _, err = run(["calibration-print", "law", "-o", str(tmp_path / "o"), "--thickness", "0.2", "--spacing", "3.9",
+                      "--sides", "front", "--from-rows", str(tmp_path / "rows.json")], capsys)
+    assert rc == 2 and err.count("\n") == 1 and f"rows.json: {needle}" in err, err
+    assert not (tmp_path / "o").exists()
