@@ -88,12 +88,31 @@ def test_layer_height_is_a_common_divisor_of_the_thicknesses():
         layer_height_for([0.2, 0.2013], Printer())
 
 
+def bed_outline(r, origin, axis, side):
+    """The cut rectangle of a strips.csv row in raw bed mm, by the flipped-frame convention
+    written out here rather than taken from geometry.gcode: front at origin + (x, y); back,
+    printed after flipping the frame about the bed line x = axis, at (2 axis - origin_x - x,
+    origin_y + y)."""
+    a = math.radians(float(r["orientation_deg"]))
+    L, W = float(r["length_mm"]), float(r["width_mm"])
+    local = np.array([[-L, -W], [L, -W], [L, W], [-L, W]]) / 2 @ np.array([[math.cos(a), math.sin(a)],
+                                                                          [-math.sin(a), math.cos(a)]])
+    xy = local + [float(r["x_mm"]), float(r["y_mm"])] + origin
+    if side == "back":
+        xy[:, 0] = 2 * axis - xy[:, 0]
+    return shapely.Polygon(xy)
+
+
 def test_strips_gcode_reads_back_to_the_specimens(tmp_path, capsys):
-    """Two stretches (one frame set each), two orientations, both sides, a printer file: each
-    specimen of strips.csv is one printed element of its frame's front or back file, at its
-    position, with its thickness, width, length and orientation."""
+    """Two stretches (one frame set each), two orientations, both sides, a printer file whose
+    flip line (x = 97 mm) is not the origin's x (95 mm), so that a back file printed unflipped
+    or flipped about another line cannot land on the template's places: each specimen of
+    strips.csv is one printed element of its frame's front or back file, at its position, with
+    its thickness, width, length and orientation; the raw bed moves of each file lie in the
+    template's rectangles placed by the flipped-frame convention, every one filled."""
     printer = tmp_path / "p.toml"
-    printer.write_text("[printer]\nbed_size = [200, 180]\nnozzle_mm = 0.6\nfilament_diameter_mm = 1.75\n")
+    printer.write_text("[printer]\nbed_size = [200, 180]\nnozzle_mm = 0.6\nfilament_diameter_mm = 1.75\n"
+                       "origin = [95, 88]\nmirror_axis_x = 97\n")
     out = tmp_path / "strips"
     rc, so, err = run(["calibration-print", "strips", "-o", str(out), "--printer", str(printer), "--repetitions", "2",
                        "--thickness", "0.3", "0.45", "--orientation", "0", "30", "--stretch", "1.2", "1.35",
@@ -123,6 +142,13 @@ def test_strips_gcode_reads_back_to_the_specimens(tmp_path, capsys):
             assert h.filament_diameter_mm == 1.75 and h.nozzle_diameter_mm == 0.6
             els = read_gcode(out / name)
             want = [r for r in mine if r["side"] == side]
+            assert h.origin_mm == (95, 88) and h.mirror_axis_x_mm == 97
+            boxes = [bed_outline(r, (95.0, 88.0), 97.0, side) for r in want]
+            seg = parse_gcode(out / name)
+            lines = shapely.linestrings(np.stack([np.c_[seg["x0"], seg["y0"]], np.c_[seg["x1"], seg["y1"]]], axis=1))
+            home = np.array([[b.buffer(0.01).contains(ln) for b in boxes] for ln in lines])
+            assert np.all(home.sum(axis=1) == 1)                    # every bead in exactly one template rectangle
+            assert np.all(home.any(axis=0))                         # and every rectangle printed
             assert len(els) == len(want) and not els.meta["warnings"]
             for e in els:
                 c, L, W, ang = rect(e)
