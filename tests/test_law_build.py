@@ -70,6 +70,32 @@ def test_a_full_grid_builds_a_loadable_law(tmp_path, capsys):
     assert rc == 0 and load_thickness_law(tmp_path / "law2.csv").plastic_young_modulus_mpa == 1200.0
 
 
+def test_the_plastic_comes_from_the_labs_strip_calibration(tmp_path, capsys):
+    """`law build --calibration parameters.json` states the plastic its strips measured (modulus
+    ratio x fabric E): with the shipped strips_S1 calibration it is the shipped law's plastic,
+    which `design --law` then writes into pattern.toml. Without any source the one output line
+    says the law states none; --calibration and --plastic-modulus together, or a file that is no
+    calibration, are one-line errors with nothing written."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    cal = os.path.join(root, "inverse", "data", "strips_S1_calibration.json")
+    src = template(tmp_path / "m.csv")
+    rc, so, err = build(capsys, src, tmp_path / "law.csv", "--calibration", cal)
+    assert rc == 0, err
+    law = load_thickness_law(tmp_path / "law.csv")
+    assert law.plastic_young_modulus_mpa == load_thickness_law().plastic_young_modulus_mpa
+    assert f"plastic E {law.plastic_young_modulus_mpa:.6g} MPa" in so
+    assert any("plastic: plastic E" in ln and "from strips_S1_calibration.json" in ln for ln in law.provenance)
+    rc, so, err = build(capsys, src, tmp_path / "bare.csv")
+    assert rc == 0 and "no plastic modulus stated" in so and so.count("\n") == 1
+    assert load_thickness_law(tmp_path / "bare.csv").plastic_young_modulus_mpa is None
+    one_line_error(*build(capsys, src, tmp_path / "x.csv", "--calibration", cal, "--plastic-modulus", "900")[::2],
+                   "--plastic-modulus and --calibration both state the plastic")
+    (tmp_path / "p.json").write_text('{"modulus_ratio": "abc"}')
+    one_line_error(*build(capsys, src, tmp_path / "x.csv", "--calibration", str(tmp_path / "p.json"))[::2],
+                   "p.json: not a `selfshape calibrate strips` parameters.json")
+    assert not (tmp_path / "x.csv").exists()
+
+
 def test_replicates_are_averaged_and_named(tmp_path, capsys):
     src = template(tmp_path / "m.csv")
     text = src.read_text().splitlines()

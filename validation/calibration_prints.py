@@ -497,7 +497,8 @@ def calibration_law(out_dir, printer: Printer | None = None, *, layer_height_mm=
     if simulate and from_rows:
         raise SelfshapeError("--simulate and --from-rows are exclusive: fill by simulating or from a rows JSON")
     rows_index = _read_rows_json(from_rows) if from_rows else None
-    plastic_info = _plastic(calibration) if simulate or (rows_index is not None and calibration) else None
+    plastic_info = (plastic_from_calibration(calibration) if simulate or (rows_index is not None and calibration)
+                    else None)
     outs = OutputDir(out_dir, LAW_OUTPUTS, patterns=(FRAME_FILE.format(kind="law"),),
                      inputs=list(inputs) + [from_rows, calibration])
     p = print_printer(p0, opts["thickness_mm"], layer_height_mm)
@@ -525,9 +526,11 @@ def calibration_law(out_dir, printer: Printer | None = None, *, layer_height_mm=
     return summary
 
 
-def _plastic(calibration):
-    """(Fabric, Plastic, text) of the simulations: the plastic's E = modulus ratio of the
-    calibration parameters.json x the fabric's (default the shipped strips_S1_calibration.json)."""
+def plastic_from_calibration(calibration):
+    """(Fabric, Plastic, text) of a `calibrate strips` parameters.json (default the shipped
+    strips_S1_calibration.json): the plastic's E (MPa) = its modulus_ratio x the fabric's E, the
+    plastic that `calibration-print law --simulate` simulates and that `law build --calibration`
+    states in the law; text says where it came from (for provenance lines)."""
     from shellfem.materials import Fabric, Plastic
     from validation.textfiles import read_json
     path = calibration or os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "inverse",

@@ -215,25 +215,40 @@ def _git_hash() -> str:
 
 
 def build_law(measured_csv, out_path, *, thickness=None, spacing=None, mirror_back=False,
-              plastic_young_modulus_mpa=None) -> dict:
+              plastic_young_modulus_mpa=None, calibration=None) -> dict:
     """Write the law table of ``measured_csv`` to ``out_path`` (checked before reading, written
     atomically, loadable by inverse.thickness_law: it is parsed before it is written). The
-    plastic modulus key (``# plastic_young_modulus_mpa``) is ``plastic_young_modulus_mpa`` if
-    given, else the one the template states in its comments (a simulated fill), else absent.
-    Returns a summary dict (cells, sides, stretch, replicates, output)."""
+    plastic modulus key (``# plastic_young_modulus_mpa``, MPa) is ``plastic_young_modulus_mpa``
+    if given, else the modulus ratio of ``calibration`` (the lab's `calibrate strips`
+    parameters.json) x the fabric's E, as `calibration-print law --calibration` takes it, else
+    the one the template states in its comments (a simulated fill), else absent. It matters
+    downstream: `design --law` writes it into pattern.toml's [plastic], so a law without it is
+    simulated (`--verify`) with the default plastic, not the lab's; the summary's
+    ``plastic_source`` says which. Returns a summary dict (cells, sides, stretch, replicates,
+    output, plastic modulus and its source)."""
     from inverse.thickness_law import PLASTIC_KEY, STRETCH_KEY, format_thickness_law, parse_thickness_law
-    refuse_overwrite(out_path, [measured_csv])
-    out = check_output_file(out_path, inputs=[measured_csv], suffix=".csv", what="law file (-o)")
+    if plastic_young_modulus_mpa is not None and calibration is not None:
+        raise SelfshapeError("--plastic-modulus and --calibration both state the plastic: give one")
+    refuse_overwrite(out_path, [measured_csv, calibration])
+    out = check_output_file(out_path, inputs=[p for p in (measured_csv, calibration) if p is not None],
+                            suffix=".csv", what="law file (-o)")
     m = read_measurements(measured_csv)
     grids = grid_table(m, thickness, spacing, mirror_back)
     stretch = float(m["cells"][0]["stretch"])
     if stretch <= 1.0:
         raise SelfshapeError(f"{m['file']}: stretch {stretch:g}: a law needs pre-stretched fabric (stretch > 1)")
-    modulus = None if plastic_young_modulus_mpa is None else check_number(
-        "--plastic-modulus", plastic_young_modulus_mpa, lo=0.0, lo_open=True, hi=1e6)
+    modulus, source = None, None
+    if plastic_young_modulus_mpa is not None:
+        modulus = check_number("--plastic-modulus", plastic_young_modulus_mpa, lo=0.0, lo_open=True, hi=1e6)
+        source = "--plastic-modulus"
+    elif calibration is not None:
+        from validation.calibration_prints import plastic_from_calibration
+        _, plastic, source = plastic_from_calibration(calibration)
+        modulus = plastic.young_modulus
     stated = [c.partition("=")[2].strip() for c in m["comments"] if c.partition("=")[0].strip() == PLASTIC_KEY]
     if modulus is None and stated:
         modulus = check_number(f"{m['file']}: comment {PLASTIC_KEY}", stated[0], lo=0.0, lo_open=True, hi=1e6)
+        source = f"stated by {m['file']}"
     rows = []
     for side in SIDES:
         g = grids[side]
@@ -272,11 +287,12 @@ def build_law(measured_csv, out_path, *, thickness=None, spacing=None, mirror_ba
                         f"({', '.join(g['ids'][i][j])}), sd {g['sd'][i, j]:.3g} 1/mm")
     head += [f"  template: {c}" for c in m["comments"] if c.partition("=")[0].strip() not in (PLASTIC_KEY, STRETCH_KEY)]
     if modulus is not None:
+        head.append(f"  plastic: {source}")
         head.append(f"{PLASTIC_KEY} = {modulus:.6g}")
     head.append(f"{STRETCH_KEY} = {stretch:g}")
     text = format_thickness_law(rows, head)
     parse_thickness_law(text, out)     # never write a table the designer cannot load
     write_text_file(out, text)
     return {"output": out, "stretch": stretch, "cells": len(rows), "patches": len(m["cells"]),
-            "replicated_cells": n_rep, "plastic_young_modulus_mpa": modulus,
+            "replicated_cells": n_rep, "plastic_young_modulus_mpa": modulus, "plastic_source": source,
             "thickness_mm": grids["front"]["thickness"].tolist(), "spacing_mm": grids["front"]["spacing"].tolist()}
