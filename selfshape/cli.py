@@ -255,8 +255,11 @@ def _cmd_calibration_print(a):
 def _cmd_law(a):
     from validation.law_build import build_law
     r = build_law(a.measured, a.output, thickness=a.thickness, spacing=a.spacing, mirror_back=a.mirror_back,
-                  plastic_young_modulus_mpa=a.plastic_modulus)
-    print(f"law at stretch {r['stretch']:g}: {r['cells']} rows from {r['patches']} patches -> {r['output']}")
+                  plastic_young_modulus_mpa=a.plastic_modulus, calibration=a.calibration)
+    plastic = (f"plastic E {r['plastic_young_modulus_mpa']:.6g} MPa" if r["plastic_young_modulus_mpa"] is not None
+               else "no plastic modulus stated: design --law simulates it with the default plastic "
+                    "(--calibration or --plastic-modulus)")
+    print(f"law at stretch {r['stretch']:g}: {r['cells']} rows from {r['patches']} patches, {plastic} -> {r['output']}")
 
 
 def _add_calibration_verbs(sub):
@@ -309,6 +312,8 @@ def _add_calibration_verbs(sub):
     lb.add_argument("--mirror-back", action="store_true", help="the back grid is the front one")
     lb.add_argument("--plastic-modulus", type=_POSITIVE, default=None,
                     help="plastic_young_modulus_mpa the law states (MPa; default: the template's, if any)")
+    lb.add_argument("--calibration", default=None,
+                    help="calibrate strips parameters.json: the law states its plastic (modulus ratio x fabric E)")
     lb.set_defaults(fn=_cmd_law)
 
 

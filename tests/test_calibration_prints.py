@@ -88,12 +88,31 @@ def test_layer_height_is_a_common_divisor_of_the_thicknesses():
         layer_height_for([0.2, 0.2013], Printer())
 
 
+def bed_outline(r, origin, axis, side):
+    """The cut rectangle of a strips.csv row in raw bed mm, by the flipped-frame convention
+    written out here rather than taken from geometry.gcode: front at origin + (x, y); back,
+    printed after flipping the frame about the bed line x = axis, at (2 axis - origin_x - x,
+    origin_y + y)."""
+    a = math.radians(float(r["orientation_deg"]))
+    L, W = float(r["length_mm"]), float(r["width_mm"])
+    local = np.array([[-L, -W], [L, -W], [L, W], [-L, W]]) / 2 @ np.array([[math.cos(a), math.sin(a)],
+                                                                          [-math.sin(a), math.cos(a)]])
+    xy = local + [float(r["x_mm"]), float(r["y_mm"])] + origin
+    if side == "back":
+        xy[:, 0] = 2 * axis - xy[:, 0]
+    return shapely.Polygon(xy)
+
+
 def test_strips_gcode_reads_back_to_the_specimens(tmp_path, capsys):
-    """Two stretches (one frame set each), two orientations, both sides, a printer file: each
-    specimen of strips.csv is one printed element of its frame's front or back file, at its
-    position, with its thickness, width, length and orientation."""
+    """Two stretches (one frame set each), two orientations, both sides, a printer file whose
+    flip line (x = 97 mm) is not the origin's x (95 mm), so that a back file printed unflipped
+    or flipped about another line cannot land on the template's places: each specimen of
+    strips.csv is one printed element of its frame's front or back file, at its position, with
+    its thickness, width, length and orientation; the raw bed moves of each file lie in the
+    template's rectangles placed by the flipped-frame convention, every one filled."""
     printer = tmp_path / "p.toml"
-    printer.write_text("[printer]\nbed_size = [200, 180]\nnozzle_mm = 0.6\nfilament_diameter_mm = 1.75\n")
+    printer.write_text("[printer]\nbed_size = [200, 180]\nnozzle_mm = 0.6\nfilament_diameter_mm = 1.75\n"
+                       "origin = [95, 88]\nmirror_axis_x = 97\n")
     out = tmp_path / "strips"
     rc, so, err = run(["calibration-print", "strips", "-o", str(out), "--printer", str(printer), "--repetitions", "2",
                        "--thickness", "0.3", "0.45", "--orientation", "0", "30", "--stretch", "1.2", "1.35",
@@ -123,6 +142,13 @@ def test_strips_gcode_reads_back_to_the_specimens(tmp_path, capsys):
             assert h.filament_diameter_mm == 1.75 and h.nozzle_diameter_mm == 0.6
             els = read_gcode(out / name)
             want = [r for r in mine if r["side"] == side]
+            assert h.origin_mm == (95, 88) and h.mirror_axis_x_mm == 97
+            boxes = [bed_outline(r, (95.0, 88.0), 97.0, side) for r in want]
+            seg = parse_gcode(out / name)
+            lines = shapely.linestrings(np.stack([np.c_[seg["x0"], seg["y0"]], np.c_[seg["x1"], seg["y1"]]], axis=1))
+            home = np.array([[b.buffer(0.01).contains(ln) for b in boxes] for ln in lines])
+            assert np.all(home.sum(axis=1) == 1)                    # every bead in exactly one template rectangle
+            assert np.all(home.any(axis=0))                         # and every rectangle printed
             assert len(els) == len(want) and not els.meta["warnings"]
             for e in els:
                 c, L, W, ang = rect(e)
@@ -178,6 +204,18 @@ def test_strips_bad_options_are_one_line_errors(tmp_path, capsys, argv, needle):
     (tmp_path / "p.toml").write_text("nozzle_mm = 5\n")
     argv = [a.format(printer=tmp_path / "p.toml") for a in argv]
     rc, _, err = run(["calibration-print", "strips", "-o", str(tmp_path / "o")] + argv, capsys)
+    assert rc == 2 and err.count("\n") == 1 and needle in err, err
+    assert not (tmp_path / "o").exists()                    # checked before anything is written
+
+
+@pytest.mark.parametrize("argv, needle", [
+    # 1.5 mm ribbons in rows 1 mm apart overlap: a plate, not the law's parallel ribbons
+    (["--spacing", "1", "3.9"], "--spacing 1 mm: rows of 1.5 mm wide ribbons must be more than their width apart"),
+    (["--rows", "40"], "does not fit the 223 x 223 mm bed"),
+    (["--thickness", "0.25", "--layer-height", "0.2"], "thickness 0.25 mm is not a whole number of 0.2 mm layers"),
+])
+def test_law_bad_options_are_one_line_errors(tmp_path, capsys, argv, needle):
+    rc, _, err = run(["calibration-print", "law", "-o", str(tmp_path / "o")] + argv, capsys)
     assert rc == 2 and err.count("\n") == 1 and needle in err, err
     assert not (tmp_path / "o").exists()                    # checked before anything is written
 
@@ -478,3 +516,26 @@ def test_contraction_columns_are_printed_over_deployed_length():
     R = 20.0
     s = state(np.column_stack([R * np.sin(P[:, 0] / R), P[:, 1], R * (1 - np.cos(P[:, 0] / R))]))
     assert s["sigma_along"] == pytest.approx(1.0, rel=2e-3) and s["sigma_across"] == pytest.approx(1.0, rel=1e-9)
+
+
+@pytest.mark.parametrize("edit, needle", [
+    ({"sigma_along": "x"}, "rows[0], sigma_along: must be a number (or null), got 'x'"),
+    ({"rows": "abc"}, "rows[0], rows: must be an integer >= 1 (or null), got 'abc'"),
+    ({"k1_angle_deg": "abc"}, "rows[0], k1_angle_deg: must be a number (or null)"),
+    ({"kappa_per_mm": -0.1}, "rows[0], kappa_per_mm: must be >= 0, got -0.1"),
+    ({"kappa_across_per_mm": float("inf")}, "rows[0], kappa_across_per_mm: must be finite"),
+    ({"side": "top"}, "rows[0], side: must be \"front\" or \"back\", got 'top'"),
+    ({"converged": "yes"}, "rows[0], converged: must be true or false, got 'yes'"),
+    ({"thickness_mm": 0}, "rows[0], thickness_mm: must be > 0"),
+])
+def test_a_bad_rows_json_is_one_line_naming_the_row_and_key(tmp_path, capsys, edit, needle):
+    """--from-rows copies a rows JSON's values into the template: every field it reads is
+    checked first (a string where a number belongs was an internal error, exit 3; a negative or
+    infinite curvature went into the template, the infinite one as an empty cell)."""
+    row = {"thickness_mm": 0.2, "spacing_mm": 3.9, "side": "front", "kappa_per_mm": 0.3, "converged": True,
+           "sigma_along": 1.2, "rows": 3, "motifs": 2} | edit
+    (tmp_path / "rows.json").write_text(json.dumps({"rows": [row]}))
+    rc, _, err = run(["calibration-print", "law", "-o", str(tmp_path / "o"), "--thickness", "0.2", "--spacing", "3.9",
+                      "--sides", "front", "--from-rows", str(tmp_path / "rows.json")], capsys)
+    assert rc == 2 and err.count("\n") == 1 and f"rows.json: {needle}" in err, err
+    assert not (tmp_path / "o").exists()

@@ -70,6 +70,32 @@ def test_a_full_grid_builds_a_loadable_law(tmp_path, capsys):
     assert rc == 0 and load_thickness_law(tmp_path / "law2.csv").plastic_young_modulus_mpa == 1200.0
 
 
+def test_the_plastic_comes_from_the_labs_strip_calibration(tmp_path, capsys):
+    """`law build --calibration parameters.json` states the plastic its strips measured (modulus
+    ratio x fabric E): with the shipped strips_S1 calibration it is the shipped law's plastic,
+    which `design --law` then writes into pattern.toml. Without any source the one output line
+    says the law states none; --calibration and --plastic-modulus together, or a file that is no
+    calibration, are one-line errors with nothing written."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    cal = os.path.join(root, "inverse", "data", "strips_S1_calibration.json")
+    src = template(tmp_path / "m.csv")
+    rc, so, err = build(capsys, src, tmp_path / "law.csv", "--calibration", cal)
+    assert rc == 0, err
+    law = load_thickness_law(tmp_path / "law.csv")
+    assert law.plastic_young_modulus_mpa == load_thickness_law().plastic_young_modulus_mpa
+    assert f"plastic E {law.plastic_young_modulus_mpa:.6g} MPa" in so
+    assert any("plastic: plastic E" in ln and "from strips_S1_calibration.json" in ln for ln in law.provenance)
+    rc, so, err = build(capsys, src, tmp_path / "bare.csv")
+    assert rc == 0 and "no plastic modulus stated" in so and so.count("\n") == 1
+    assert load_thickness_law(tmp_path / "bare.csv").plastic_young_modulus_mpa is None
+    one_line_error(*build(capsys, src, tmp_path / "x.csv", "--calibration", cal, "--plastic-modulus", "900")[::2],
+                   "--plastic-modulus and --calibration both state the plastic")
+    (tmp_path / "p.json").write_text('{"modulus_ratio": "abc"}')
+    one_line_error(*build(capsys, src, tmp_path / "x.csv", "--calibration", str(tmp_path / "p.json"))[::2],
+                   "p.json: not a `selfshape calibrate strips` parameters.json")
+    assert not (tmp_path / "x.csv").exists()
+
+
 def test_replicates_are_averaged_and_named(tmp_path, capsys):
     src = template(tmp_path / "m.csv")
     text = src.read_text().splitlines()
@@ -95,7 +121,11 @@ def test_replicates_are_averaged_and_named(tmp_path, capsys):
     ({"LP-002": {"stretch": "1.3"}}, ["patch LP-002, column stretch: 1.3, but patch LP-001 has 1.6"]),
     ({"LP-002": {"kappa_per_mm": "", "note": "torn"}, "LP-007": {"thickness_mm": "thick"}},
      ["2 unusable entries", "patch LP-002, column kappa_per_mm: empty (torn)",
-      "patch LP-007, column thickness_mm: must be a number, got 'thick'"]),
+      "patch LP-007, column thickness_mm: must be a number, got 'thick'", "(units and ranges: docs/"]),
+    # the across curvature is a magnitude too (as --simulate writes it): a signed value is refused
+    ({"LP-002": {"kappa_across_per_mm": "-0.02"}}, ["patch LP-002, column kappa_across_per_mm: must be >= 0"]),
+    # a patch id on two rows is not a replicate: LP-004 (front 0.3 / 6.5) relabelled LP-003
+    ({"LP-004": {"patch": "LP-003"}}, ["patch LP-003 (row 4), column patch: the id of row 3 too"]),
 ])
 def test_bad_measurements_name_file_patch_and_column(tmp_path, capsys, edit, needles):
     src = template(tmp_path / "m.csv", **edit)
@@ -106,6 +136,10 @@ def test_bad_measurements_name_file_patch_and_column(tmp_path, capsys, edit, nee
 
 def test_grids_that_cannot_be_inverted_are_reported_per_cell(tmp_path, capsys):
     out = tmp_path / "law.csv"
+    # one thickness per spacing: nothing to invert
+    rc, _, err = build(capsys, template(tmp_path / "m.csv", cells=lambda r: r["thickness_mm"] == 0.3), out)
+    one_line_error(rc, err, "side front: 1 thickness(es) x 2 spacing(s), too sparse to invert (column thickness_mm "
+                            "has 0.3", "over patches LP-003, LP-004", "side back: 1 thickness(es) x 2 spacing(s)")
     # one spacing only: too sparse
     rc, _, err = build(capsys, template(tmp_path / "m.csv", cells=lambda r: r["spacing_mm"] == 3.9), out)
     one_line_error(rc, err, "m.csv: cannot build a law", "side front: 3 thickness(es) x 1 spacing(s), too sparse",
@@ -152,6 +186,8 @@ def test_output_is_checked_before_the_work(tmp_path, capsys):
     one_line_error(*build(capsys, tmp_path / "absent.csv", tmp_path / "law.csv")[::2], "absent.csv")
     (tmp_path / "bin.csv").write_bytes(b"\x00\x01\xff")
     one_line_error(*build(capsys, tmp_path / "bin.csv", tmp_path / "law.csv")[::2], "bin.csv")
+    (tmp_path / "empty.csv").write_text("")
+    one_line_error(*build(capsys, tmp_path / "empty.csv", tmp_path / "law.csv")[::2], "empty.csv: no header line")
     (tmp_path / "h.csv").write_text("# only comments\npatch,side\n")
     one_line_error(*build(capsys, tmp_path / "h.csv", tmp_path / "law.csv")[::2], "h.csv: missing column(s) stretch")
     assert not (tmp_path / "law.csv").exists()

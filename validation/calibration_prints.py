@@ -489,10 +489,16 @@ def calibration_law(out_dir, printer: Printer | None = None, *, layer_height_mm=
         if not (isinstance(opts[key], int) and lo <= opts[key] <= hi):
             raise SelfshapeError(f"--{key} must be an integer in [{lo}, {hi}], got {opts[key]!r}")
     check_number("--aspect", opts["aspect"], lo=0.0, hi=20.0)
+    from validation.law_tables import RIBBON_WIDTH
+    for mu in opts["spacing_mm"]:      # rows closer than a ribbon's width overlap: a plate, not ribbons
+        if mu <= RIBBON_WIDTH:
+            raise SelfshapeError(f"--spacing {mu:g} mm: rows of {RIBBON_WIDTH:g} mm wide ribbons must be more than "
+                                 f"their width apart (mu2 > {RIBBON_WIDTH:g} mm), else they overlap")
     if simulate and from_rows:
         raise SelfshapeError("--simulate and --from-rows are exclusive: fill by simulating or from a rows JSON")
     rows_index = _read_rows_json(from_rows) if from_rows else None
-    plastic_info = _plastic(calibration) if simulate or (rows_index is not None and calibration) else None
+    plastic_info = (plastic_from_calibration(calibration) if simulate or (rows_index is not None and calibration)
+                    else None)
     outs = OutputDir(out_dir, LAW_OUTPUTS, patterns=(FRAME_FILE.format(kind="law"),),
                      inputs=list(inputs) + [from_rows, calibration])
     p = print_printer(p0, opts["thickness_mm"], layer_height_mm)
@@ -520,9 +526,11 @@ def calibration_law(out_dir, printer: Printer | None = None, *, layer_height_mm=
     return summary
 
 
-def _plastic(calibration):
-    """(Fabric, Plastic, text) of the simulations: the plastic's E = modulus ratio of the
-    calibration parameters.json x the fabric's (default the shipped strips_S1_calibration.json)."""
+def plastic_from_calibration(calibration):
+    """(Fabric, Plastic, text) of a `calibrate strips` parameters.json (default the shipped
+    strips_S1_calibration.json): the plastic's E (MPa) = its modulus_ratio x the fabric's E, the
+    plastic that `calibration-print law --simulate` simulates and that `law build --calibration`
+    states in the law; text says where it came from (for provenance lines)."""
     from shellfem.materials import Fabric, Plastic
     from validation.textfiles import read_json
     path = calibration or os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "inverse",
@@ -542,9 +550,52 @@ def _plastic(calibration):
                              f"fabric E {fabric.young_modulus:g} MPa, from {name} (calibrate strips on {data})")
 
 
+#: the keys of a rows JSON row that --from-rows copies into the template (validation.law_tables
+#: ROW_KEYS / EXTRA_ROW_KEYS): (lo, hi) of a finite number, None for any finite number; null is
+#: allowed (not simulated). Curvatures are magnitudes (1/mm), contractions printed / deployed.
+ROWS_JSON_NUMBERS = {"kappa_per_mm": (0.0, 10.0), "kappa_across_per_mm": (0.0, 10.0), "sigma_along": (0.1, 10.0),
+                     "sigma_across": (0.1, 10.0), "k1_angle_deg": (-180.0, 180.0)}
+
+
+def _check_rows_json_row(r, where):
+    """The (thickness, spacing, side) key of one rows JSON row, after checking every field
+    --from-rows reads from it: thickness and spacing finite > 0 mm, side front/back, the
+    ROWS_JSON_NUMBERS null or a number in range, rows/motifs null or an integer >= 1,
+    converged absent or true/false. A bad field is a one-line SelfshapeError naming ``where``
+    and the key, so a hand-edited or foreign file never reaches the template as a wrong value
+    (or as an internal error)."""
+    if not isinstance(r, dict):
+        raise SelfshapeError(f"{where}: not an object with thickness_mm, spacing_mm, side and kappa_per_mm")
+
+    def number(key, lo=None, hi=None, lo_open=False, null=False):
+        v = r.get(key)
+        if v is None and null:
+            return None
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise SelfshapeError(f"{where}, {key}: must be a number{' (or null)' if null else ''}, got {v!r}")
+        return check_number(f"{where}, {key}:", v, lo=lo, hi=hi, lo_open=lo_open)
+    t = number("thickness_mm", 0.0, 10.0, lo_open=True)
+    mu = number("spacing_mm", 0.0, 1e3, lo_open=True)
+    if r.get("side") not in SIDES:
+        raise SelfshapeError(f"{where}, side: must be \"front\" or \"back\", got {r.get('side')!r}")
+    if "kappa_per_mm" not in r:
+        raise SelfshapeError(f"{where}: needs kappa_per_mm (a number in 1/mm, or null when not simulated)")
+    for key, (lo, hi) in ROWS_JSON_NUMBERS.items():
+        number(key, lo, hi, null=True)
+    for key in ("rows", "motifs"):
+        v = r.get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+            raise SelfshapeError(f"{where}, {key}: must be an integer >= 1 (or null), got {v!r}")
+    if "converged" in r and not isinstance(r["converged"], bool):
+        raise SelfshapeError(f"{where}, converged: must be true or false, got {r['converged']!r}")
+    return round(t, 9), round(mu, 9), r["side"]
+
+
 def _read_rows_json(path):
     """{(thickness, spacing, side): row} of a rows JSON (studies/thickness_law_sim.py --rows-json:
-    {"rows": [{thickness_mm, spacing_mm, side, kappa_per_mm, converged, ...}]})."""
+    {"rows": [{thickness_mm, spacing_mm, side, kappa_per_mm, converged, ...}]}), every row
+    checked by _check_rows_json_row; a second row for one cell is refused (which one the
+    template should hold is the user's choice)."""
     from validation.textfiles import read_json
     name = os.path.basename(str(path))
     d = read_json(path, "rows JSON")
@@ -553,14 +604,7 @@ def _read_rows_json(path):
         raise SelfshapeError(f"{name}: not a rows JSON of studies/thickness_law_sim.py (needs \"rows\": [...])")
     out = {}
     for i, r in enumerate(rows):
-        try:
-            key = (round(float(r["thickness_mm"]), 9), round(float(r["spacing_mm"]), 9), str(r["side"]))
-            k = r["kappa_per_mm"]
-            if k is not None:
-                float(k)
-        except (KeyError, TypeError, ValueError):
-            raise SelfshapeError(f"{name}: rows[{i}]: needs thickness_mm, spacing_mm, side and a number (or null) "
-                                 f"kappa_per_mm") from None
+        key = _check_rows_json_row(r, f"{name}: rows[{i}]")
         if key in out:
             raise SelfshapeError(f"{name}: rows[{i}]: a second row for thickness {key[0]:g} mm, spacing {key[1]:g} mm, "
                                  f"side {key[2]}: which one the template should hold is the user's choice (keep one)")
@@ -642,16 +686,15 @@ def _fill_law_rows(rows, simulate, rows_index, mirror_back, sim_options, plastic
             if src is None:
                 n_missing += 1
                 r["note"] = f"no row in {rows_index['_name']}"
-            elif src.get("converged", True) is False or src["kappa_per_mm"] is None \
-                    or not math.isfinite(float(src["kappa_per_mm"])):
+            elif src.get("converged", True) is False or src["kappa_per_mm"] is None:
                 n_missing += 1
                 r["note"] = f"the row in {rows_index['_name']} did not converge (no value)"
             else:
                 r.update(_sim_values(src))
-                if src.get("rows") is not None and (int(src["rows"]), int(src.get("motifs", -1))) != \
-                        (int(r["rows"]), int(r["motifs"])):
-                    r["note"] = "; ".join(filter(None, [r.get("note"), f"simulated on a {src['rows']} rows x "
-                                                        f"{src.get('motifs')} motifs patch"]))
+                if src.get("rows") is not None and (src["rows"], src.get("motifs")) != (r["rows"], r["motifs"]):
+                    r["note"] = "; ".join(filter(None, [r.get("note"), f"simulated on a {src['rows']} rows"
+                                                        + (f" x {src['motifs']} motifs" if src.get("motifs") else "")
+                                                        + " patch"]))
     if mirror_back:
         for r in rows:
             if r["side"] == "back":

@@ -34,9 +34,11 @@ REQUIRED = ("patch", "side", "stretch", "thickness_mm", "spacing_mm", "kappa_per
 OPTIONAL_NUMERIC = ("kappa_across_per_mm", "contraction_along", "contraction_across", "ribbon_length_mm",
                     "ribbon_width_mm", "ribbon_gap_mm")
 #: physical range of each numeric column: a printable thickness, a spacing on a bed, a curvature
-#: of radius >= 0.1 mm, a contraction factor (printed / deployed) of a fabric that stretches <= 5x
+#: of radius >= 0.1 mm (both curvatures are magnitudes, docs/calibration-prints.md, as the
+#: simulated fills write them), a contraction factor (printed / deployed) of a fabric that
+#: stretches <= 5x
 RANGES = {"stretch": (1.0, 5.0), "thickness_mm": (1e-3, 10.0), "spacing_mm": (0.1, 1e3),
-          "kappa_per_mm": (0.0, 10.0), "kappa_across_per_mm": (-10.0, 10.0), "contraction_along": (0.1, 10.0),
+          "kappa_per_mm": (0.0, 10.0), "kappa_across_per_mm": (0.0, 10.0), "contraction_along": (0.1, 10.0),
           "contraction_across": (0.1, 10.0), "ribbon_length_mm": (0.1, 1e3), "ribbon_width_mm": (0.1, 1e3),
           "ribbon_gap_mm": (0.0, 1e3)}
 SIDES = ("front", "back")
@@ -55,8 +57,11 @@ def read_measurements(path) -> dict:
     spacing_mm, kappa_per_mm, optional columns, note), "comments", "file", "sha256"}.
 
     Every problem of every row (an empty or non-numeric measurement, a value outside RANGES, a
-    bad side, a missing patch id) is collected and raised as ONE SelfshapeError line naming the
-    file and, per problem, the patch id and the column."""
+    bad side, a missing patch id, a patch id given to two rows) is collected and raised as ONE
+    SelfshapeError line naming the file and, per problem, the patch id and the column. A
+    repeated id is refused rather than read as a replicate: it is a row pasted twice or a
+    mislabelled patch, and averaging or placing it would be a silent guess (a replicate
+    has its own id: ``calibration-print law --repetitions``)."""
     name = os.path.basename(str(path))
     text = read_text(path, "law_measurements CSV")
     table = read_csv_rows(path, "law_measurements CSV")
@@ -74,7 +79,7 @@ def read_measurements(path) -> dict:
     if not body:
         raise SelfshapeError(f"{name}: no data rows (one row per printed patch)")
     col = {h: i for i, h in enumerate(header)}
-    problems, cells = [], []
+    problems, cells, first_row = [], [], {}
     for i, r in enumerate(body):
         if len(r) != len(header):
             pid = r[col["patch"]].strip() if len(r) > col["patch"] else ""
@@ -86,6 +91,11 @@ def read_measurements(path) -> dict:
         who = f"patch {pid}" if pid else f"row {i + 1}"
         if not pid:
             problems.append(f"row {i + 1}, column patch: empty")
+        elif pid in first_row:
+            problems.append(f"patch {pid} (row {i + 1}), column patch: the id of row {first_row[pid]} too (a row "
+                            f"pasted twice or a mislabelled patch; every printed patch has its own id)")
+        else:
+            first_row[pid] = i + 1
         cell = {"patch": pid or f"row {i + 1}", "row": i + 1, "note": get("note")}
         side = get("side").lower()
         if side not in SIDES:
@@ -107,8 +117,10 @@ def read_measurements(path) -> dict:
         cells.append(cell)
     if problems:
         what = f"{len(problems)} unusable entr{'y' if len(problems) == 1 else 'ies'}"
-        raise SelfshapeError(_problems_line(name, what, problems, "fill in every patch's kappa_per_mm as a number "
-                                                                  "in 1/mm"))
+        hint = ("fill in every patch's kappa_per_mm as a number in 1/mm" if all(", column kappa_per_mm:" in p
+                                                                             for p in problems)
+                else "units and ranges: docs/calibration-prints.md, law_measurements.csv")
+        raise SelfshapeError(_problems_line(name, what, problems, hint))
     s = np.array([c["stretch"] for c in cells])
     if np.ptp(s) > 1e-6:
         j = int(np.argmax(np.abs(s - s[0]) > 1e-6))
@@ -203,25 +215,40 @@ def _git_hash() -> str:
 
 
 def build_law(measured_csv, out_path, *, thickness=None, spacing=None, mirror_back=False,
-              plastic_young_modulus_mpa=None) -> dict:
+              plastic_young_modulus_mpa=None, calibration=None) -> dict:
     """Write the law table of ``measured_csv`` to ``out_path`` (checked before reading, written
     atomically, loadable by inverse.thickness_law: it is parsed before it is written). The
-    plastic modulus key (``# plastic_young_modulus_mpa``) is ``plastic_young_modulus_mpa`` if
-    given, else the one the template states in its comments (a simulated fill), else absent.
-    Returns a summary dict (cells, sides, stretch, replicates, output)."""
+    plastic modulus key (``# plastic_young_modulus_mpa``, MPa) is ``plastic_young_modulus_mpa``
+    if given, else the modulus ratio of ``calibration`` (the lab's `calibrate strips`
+    parameters.json) x the fabric's E, as `calibration-print law --calibration` takes it, else
+    the one the template states in its comments (a simulated fill), else absent. It matters
+    downstream: `design --law` writes it into pattern.toml's [plastic], so a law without it is
+    simulated (`--verify`) with the default plastic, not the lab's; the summary's
+    ``plastic_source`` says which. Returns a summary dict (cells, sides, stretch, replicates,
+    output, plastic modulus and its source)."""
     from inverse.thickness_law import PLASTIC_KEY, STRETCH_KEY, format_thickness_law, parse_thickness_law
-    refuse_overwrite(out_path, [measured_csv])
-    out = check_output_file(out_path, inputs=[measured_csv], suffix=".csv", what="law file (-o)")
+    if plastic_young_modulus_mpa is not None and calibration is not None:
+        raise SelfshapeError("--plastic-modulus and --calibration both state the plastic: give one")
+    refuse_overwrite(out_path, [measured_csv, calibration])
+    out = check_output_file(out_path, inputs=[p for p in (measured_csv, calibration) if p is not None],
+                            suffix=".csv", what="law file (-o)")
     m = read_measurements(measured_csv)
     grids = grid_table(m, thickness, spacing, mirror_back)
     stretch = float(m["cells"][0]["stretch"])
     if stretch <= 1.0:
         raise SelfshapeError(f"{m['file']}: stretch {stretch:g}: a law needs pre-stretched fabric (stretch > 1)")
-    modulus = None if plastic_young_modulus_mpa is None else check_number(
-        "--plastic-modulus", plastic_young_modulus_mpa, lo=0.0, lo_open=True, hi=1e6)
+    modulus, source = None, None
+    if plastic_young_modulus_mpa is not None:
+        modulus = check_number("--plastic-modulus", plastic_young_modulus_mpa, lo=0.0, lo_open=True, hi=1e6)
+        source = "--plastic-modulus"
+    elif calibration is not None:
+        from validation.calibration_prints import plastic_from_calibration
+        _, plastic, source = plastic_from_calibration(calibration)
+        modulus = plastic.young_modulus
     stated = [c.partition("=")[2].strip() for c in m["comments"] if c.partition("=")[0].strip() == PLASTIC_KEY]
     if modulus is None and stated:
         modulus = check_number(f"{m['file']}: comment {PLASTIC_KEY}", stated[0], lo=0.0, lo_open=True, hi=1e6)
+        source = f"stated by {m['file']}"
     rows = []
     for side in SIDES:
         g = grids[side]
@@ -260,11 +287,12 @@ def build_law(measured_csv, out_path, *, thickness=None, spacing=None, mirror_ba
                         f"({', '.join(g['ids'][i][j])}), sd {g['sd'][i, j]:.3g} 1/mm")
     head += [f"  template: {c}" for c in m["comments"] if c.partition("=")[0].strip() not in (PLASTIC_KEY, STRETCH_KEY)]
     if modulus is not None:
+        head.append(f"  plastic: {source}")
         head.append(f"{PLASTIC_KEY} = {modulus:.6g}")
     head.append(f"{STRETCH_KEY} = {stretch:g}")
     text = format_thickness_law(rows, head)
     parse_thickness_law(text, out)     # never write a table the designer cannot load
     write_text_file(out, text)
     return {"output": out, "stretch": stretch, "cells": len(rows), "patches": len(m["cells"]),
-            "replicated_cells": n_rep, "plastic_young_modulus_mpa": modulus,
+            "replicated_cells": n_rep, "plastic_young_modulus_mpa": modulus, "plastic_source": source,
             "thickness_mm": grids["front"]["thickness"].tolist(), "spacing_mm": grids["front"]["spacing"].tolist()}
