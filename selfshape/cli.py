@@ -317,9 +317,14 @@ def _cmd_sweep(a):
     from validation.sweep import run_sweep
 
     def line(row, done, total):
-        print(f"case {done}/{total} #{row['index']} {row['status']} ({row.get('time_s') or 0:.1f} s) {row['case']}",
-              flush=True)
+        # the status line (terminal): cases done / total and the time left; stdout: a line per finished case
+        a.progress({"stage": "tasks", "done": done, "total": total, "unit": "cases",
+                    "last": row and f"#{row['index']} {row['status']}"})
+        if row is not None:
+            a.progress.print_above(f"case {done}/{total} #{row['index']} {row['status']} "
+                                   f"({row.get('time_s') or 0:.1f} s) {row['case']}")
     r = run_sweep(a.sweep, a.output, scheduler=a.scheduler, workers=a.workers, progress=line)
+    a.progress.close()
     print(f"{r['cases']} cases: {r['ran']} run, {r['reused']} reused, {r['failed']} not ok "
           f"({', '.join(f'{k} {v}' for k, v in sorted(r['statuses'].items()))}), {r['time_s']:.1f} s -> "
           f"{os.path.join(a.output, 'results.csv')}")
@@ -336,6 +341,7 @@ def _add_sweep_verb(sub):
     w.add_argument("--workers", type=_number(0, integer=True), default=None,
                    help="local worker processes (default: one per core; 0: serially in this process)")
     w.add_argument("-v", "--verbose", action="store_true", help="show the libraries' and Dask's messages")
+    w.add_argument("-q", "--quiet", action="store_true", help="no progress line on a terminal")
     w.set_defaults(fn=_cmd_sweep)
 
 

@@ -220,3 +220,53 @@ def test_the_line_fits_the_terminal(columns):
     finally:
         os.close(master)
         os.close(slave)
+
+
+def test_law_generation_reports_patches_done(tmp_path, monkeypatch):
+    """validation.law_tables.main counts the simulated patches (the grid and the mirror's check
+    row) through the status factory; --quiet asks for no line."""
+    from validation import law_tables
+
+    def fake_row(call):              # a cheap stand-in for one patch simulation (kappa in 1/mm)
+        return {"thickness_mm": call["thickness"], "spacing_mm": call["spacing"], "side": call["side"],
+                "kappa_per_mm": 0.01 * call["thickness"] / call["spacing"], "converged": True, "reason": "ok",
+                "newton_iterations": 1, "n_triangles": 1, "time_s": 0.0}
+    monkeypatch.setattr(law_tables, "simulate_row_task", fake_row)
+    events, asked = [], []
+
+    class Sink:
+        closed = False
+
+        def __call__(self, e):
+            events.append(e)
+
+        def close(self):
+            Sink.closed = True
+
+    def status(enabled):
+        asked.append(enabled)
+        return Sink()
+    args = ["--model", "sim", "--thickness", "0.3", "0.4", "--spacing", "3.9", "6.5", "--back", "mirror",
+            "--out", str(tmp_path / "law.csv")]
+    assert law_tables.main(args, status=status) == 0
+    assert asked == [True] and Sink.closed
+    assert [(e["done"], e["total"], e["unit"]) for e in events] == [(k, 5, "patches") for k in range(6)]
+    assert events[-1]["last"].endswith(" back") and events[1]["last"] == "t 0.3 mu2 3.9 front"
+    law_tables.main(args + ["-q"], status=status)
+    assert asked[-1] is False
+
+
+def test_sweep_shows_cases_done_and_time_left(tmp_path):
+    """`selfshape sweep` (serial, 6 strips of about a second): the status line counts the cases
+    with the time left and is erased; stdout keeps its line per case and the summary line."""
+    sweep = os.path.join(ROOT, "examples", "sweep_strip.toml")
+    code = (f"import sys; from selfshape.cli import main; "
+            f"sys.exit(main(['sweep', {sweep!r}, '-o', {str(tmp_path / 's')!r}, '--workers', '0']))")
+    rc, out, term = _run_on_pty(code, _env())
+    assert rc == 0, term
+    shown = term.decode()
+    assert "sweep 0 s: 0/6 cases, ? left" in shown
+    assert re.search(r"sweep \d+ s: 5/6 cases, \d\d:\d\d left, last #4 ok", shown), shown[-400:]
+    assert _visible(term) == []
+    lines = out.decode().splitlines()
+    assert [x.split()[1] for x in lines[:6]] == [f"{k}/6" for k in range(1, 7)] and lines[6].startswith("6 cases")
