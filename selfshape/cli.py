@@ -197,7 +197,8 @@ def _cmd_validate(a):
     from validation.strips import check_for_validation  # input contract (issue 19): checked before the loop
     check_for_validation(a.data, [a.output])
     from validation.loop import validate_file
-    r = validate_file(a.data, a.output, seed=a.seed)
+    r = validate_file(a.data, a.output, seed=a.seed, progress=a.progress)
+    a.progress.close()
     print(f"error before {r['error_before']:.4f}, after {r['error_after']:.4f}; "
           f"effects added: {', '.join(r['effects_added']) or 'none'} -> {a.output}")
 
@@ -404,6 +405,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("data")
     v.add_argument("-o", "--output", required=True)
     v.add_argument("--seed", type=_SEED, default=0, help="seed of the cross-validation splits")
+    v.add_argument("-q", "--quiet", action="store_true", help="no progress line on a terminal")
     v.set_defaults(fn=_cmd_validate)
 
     r = sub.add_parser("predict", help="apply a fitted model.json (validation.loop.predict_file)")
