@@ -197,7 +197,8 @@ def _cmd_validate(a):
     from validation.strips import check_for_validation  # input contract (issue 19): checked before the loop
     check_for_validation(a.data, [a.output])
     from validation.loop import validate_file
-    r = validate_file(a.data, a.output, seed=a.seed)
+    r = validate_file(a.data, a.output, seed=a.seed, progress=a.progress)
+    a.progress.close()
     print(f"error before {r['error_before']:.4f}, after {r['error_after']:.4f}; "
           f"effects added: {', '.join(r['effects_added']) or 'none'} -> {a.output}")
 
@@ -322,9 +323,14 @@ def _cmd_sweep(a):
     from validation.sweep import run_sweep
 
     def line(row, done, total):
-        print(f"case {done}/{total} #{row['index']} {row['status']} ({row.get('time_s') or 0:.1f} s) {row['case']}",
-              flush=True)
+        # the status line (terminal): cases done / total and the time left; stdout: a line per finished case
+        a.progress({"stage": "tasks", "done": done, "total": total, "unit": "cases",
+                    "last": row and f"#{row['index']} {row['status']}"})
+        if row is not None:
+            a.progress.print_above(f"case {done}/{total} #{row['index']} {row['status']} "
+                                   f"({row.get('time_s') or 0:.1f} s) {row['case']}")
     r = run_sweep(a.sweep, a.output, scheduler=a.scheduler, workers=a.workers, progress=line)
+    a.progress.close()
     print(f"{r['cases']} cases: {r['ran']} run, {r['reused']} reused, {r['failed']} not ok "
           f"({', '.join(f'{k} {v}' for k, v in sorted(r['statuses'].items()))}), {r['time_s']:.1f} s -> "
           f"{os.path.join(a.output, 'results.csv')}")
@@ -341,6 +347,7 @@ def _add_sweep_verb(sub):
     w.add_argument("--workers", type=_number(0, integer=True), default=None,
                    help="local worker processes (default: one per core; 0: serially in this process)")
     w.add_argument("-v", "--verbose", action="store_true", help="show the libraries' and Dask's messages")
+    w.add_argument("-q", "--quiet", action="store_true", help="no progress line on a terminal")
     w.set_defaults(fn=_cmd_sweep)
 
 
@@ -403,6 +410,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("data")
     v.add_argument("-o", "--output", required=True)
     v.add_argument("--seed", type=_SEED, default=0, help="seed of the cross-validation splits")
+    v.add_argument("-q", "--quiet", action="store_true", help="no progress line on a terminal")
     v.set_defaults(fn=_cmd_validate)
 
     r = sub.add_parser("predict", help="apply a fitted model.json (validation.loop.predict_file)")

@@ -1,24 +1,38 @@
-"""The status line of the long verbs (simulate, design) on a terminal's stderr.
+"""The status line of the long runs (simulate, design, sweep, the law and targets studies) on a
+terminal's stderr, drawn by tqdm.
 
 The lower layers report progress through a callback (forward.simulate, inverse.design:
-dicts such as {"stage": "newton", "iteration": 12, "energy": ..., "gradient_norm": ...});
+dicts such as {"stage": "newton", "iteration": 12, "energy": ..., "gradient_norm": ...}; a
+run of independent tasks: {"stage": "tasks", "done": 3, "total": 6, "unit": "cases"});
 :class:`StatusLine` turns them into one line that is rewritten in place (carriage return and
 erase-line) and erased again before the verb prints its result or error, so a terminal ends
-with the same lines as a pipe. It is shown only when stderr is a terminal, not under CI
-(the ``CI`` variable), not with TERM=dumb and not with ``--quiet`` or ``-v`` (whose
-per-iteration lines go to stdout instead); in a pipe nothing of it is written.
+with the same lines as a pipe. Task counts show done / total and the time left (tqdm's
+estimate: the tasks still to do at the mean rate since the first count, so tasks that were
+already done when the run started do not count as speed). The line is shown only when stderr
+is a terminal, not under CI (the ``CI`` variable), not with TERM=dumb and not with ``--quiet``
+or ``-v`` (whose per-iteration lines go to stdout instead); in a pipe nothing of it is written.
 
-It writes to its own copy of file descriptor 2 taken before the verb runs, because the CLI
-redirects descriptor 2 while a verb runs to keep library chatter from the terminal. Updates
-are synchronous (no thread), at most ``MIN_INTERVAL_S`` apart unless the stage changes.
+It writes to its own copy of file descriptor 2 taken before the verb runs (tqdm's ``file=``),
+because the CLI redirects descriptor 2 while a verb runs to keep library chatter from the
+terminal. tqdm's monitor thread is off: every update is drawn synchronously by the caller, at
+most ``MIN_INTERVAL_S`` apart unless the stage changes, so nothing runs beside the solver.
 """
 from __future__ import annotations
 
 import os
+import sys
+import threading
 import time
 
+from tqdm import tqdm
+
+#: Least time between two redraws of the same stage, s.
 MIN_INTERVAL_S = 0.1
+#: Width assumed when the terminal reports 0 columns (a fresh pseudo-terminal), characters.
+UNKNOWN_COLUMNS = 100
 _ERASE = "\r\x1b[2K"
+_EVENTS = "{desc}"
+_TASKS = "{desc}{n_fmt}/{total_fmt} {unit}, {remaining} left{postfix}"
 
 
 def wanted(fd: int = 2, *, quiet: bool = False, env=None) -> bool:
@@ -32,14 +46,54 @@ def wanted(fd: int = 2, *, quiet: bool = False, env=None) -> bool:
         return False
 
 
+class _Line(tqdm):
+    """A tqdm bar kept to one line: drawn with erase-line (``ESC [2K``) rather than tqdm's
+    padding with spaces, so that erasing it leaves exactly ``\\r ESC [2K`` and nothing of it on
+    screen at any width; no monitor thread; a terminal of unknown width counts as
+    ``UNKNOWN_COLUMNS`` (tqdm keeps one column free, so the cursor never wraps)."""
+
+    monitor_interval = 0            # no TMonitor thread: the caller draws every update
+
+    @staticmethod
+    def status_printer(file):
+        def print_status(s):
+            file.write(_ERASE + s)
+            file.flush()
+        return print_status
+
+    def display(self, msg=None, pos=None):
+        """Draw ``msg`` (default: the formatted bar) or, for ``msg == ""`` (tqdm's erase on close
+        with leave=False), erase the line; always line 0, so tqdm's nesting and its terminal-height
+        checks (a fresh pseudo-terminal reports no rows) do not apply. Returns whether it drew, so
+        that close() writes no '\r' after the erase."""
+        self.sp(self.__str__() if msg is None else msg)
+        return msg != ""
+
+    @property
+    def format_dict(self):
+        d = super().format_dict                 # ncols: tqdm's width less one column, -1 (0 columns) or None
+        cols = d.get("ncols") or 0
+        d["ncols"] = max(cols if cols > 0 else UNKNOWN_COLUMNS - 1, 10)
+        return d
+
+
+# tqdm's default lock also creates a multiprocessing RLock (which fixes this process's start
+# method); a thread lock is all one synchronous line needs
+_Line.set_lock(threading.RLock())
+
+
 class StatusLine:
     """A progress callback for ``verb`` that keeps one line on a terminal (see the module doc);
-    ``StatusLine(verb, None)`` is a no-op callback."""
+    ``StatusLine(verb, None)`` is a no-op callback. ``file`` is a text file (or a descriptor,
+    opened here and closed by :meth:`close`) on the terminal."""
 
-    def __init__(self, verb: str, fd: int | None):
-        self.verb, self.fd = verb, fd
+    def __init__(self, verb: str, file):
+        if isinstance(file, int):
+            file = os.fdopen(file, "w", encoding="utf-8", errors="replace")
+        self.verb, self.file = verb, file
         self.t0 = time.perf_counter()
         self.last = 0.0
+        self.bar: _Line | None = None
         self.shown = False
         self.state: dict = {}
 
@@ -55,18 +109,25 @@ class StatusLine:
 
     @property
     def active(self) -> bool:
-        return self.fd is not None
+        return self.file is not None
+
+    @property
+    def fd(self) -> int | None:
+        """The descriptor the line is drawn on (None once closed, or when inactive)."""
+        return None if self.file is None else self.file.fileno()
 
     def __call__(self, event: dict) -> None:
-        if self.fd is None:
+        if self.file is None:
             return
         kind = event.get("stage")
-        key = (kind, event.get("step"), event.get("level"), event.get("candidate"))
-        new_stage = key != self.state.get("_last")          # a new stage or step is always shown
+        key = (kind, event.get("step"), event.get("level"), event.get("candidate"), event.get("done"))
+        new_stage = key != self.state.get("_last")          # a new stage, step or finished task is always shown
         s = self.state
         s["_last"] = key
         if kind == "newton":
             s["newton"] = event
+        elif kind == "tasks":                       # independent tasks (sweep cases, law patches, targets)
+            s["tasks"] = event
         elif kind == "outer":                       # an outer iteration of design --refine
             s.update(outer=event, newton=None)
         elif kind == "release":
@@ -88,11 +149,12 @@ class StatusLine:
         if not new_stage and now - self.last < MIN_INTERVAL_S:
             return
         self.last = now
-        self._write(self.text(now))
+        self._draw(now)
 
     def text(self, now: float | None = None) -> str:
         """The line for the current state, e.g. ``design 12 s: verify, level 2/3 (1200 vertices),
-        Newton 14: E 1.2345e+01 N mm, |g| 3.1e-04``."""
+        Newton 14: E 1.2345e+01 N mm, |g| 3.1e-04``; with task counts, the part before them
+        (``sweep 12 s: ``, to which tqdm adds ``3/6 cases, 00:08 left, last #2 ok (1.0 s)``)."""
         s = self.state
         phase = s.get("phase")
         if phase == "solving" and (s.get("newton") or (s.get("level") and s["level"]["levels"] > 1)):
@@ -109,34 +171,71 @@ class StatusLine:
             n = s["newton"]
             parts.append(f"Newton {n['iteration']}: E {n['energy']:.4e} N mm, |g| {n['gradient_norm']:.1e}")
         elapsed = (time.perf_counter() if now is None else now) - self.t0
-        return f"{self.verb} {elapsed:.0f} s: " + ", ".join(parts)
+        line = f"{self.verb} {elapsed:.0f} s: " + ", ".join(parts)
+        return line + ("; " if parts and s.get("tasks") else "")
 
-    def _write(self, text: str) -> None:
+    def _draw(self, now: float) -> None:
+        """Hand the current state to the tqdm bar (made at the first event) and draw it."""
+        tasks = self.state.get("tasks")
+        fmt = _TASKS if tasks else _EVENTS
+        desc = self.text(now)
+        postfix = f"last {tasks['last']}" if tasks and tasks.get("last") else ""
         try:
-            width = os.get_terminal_size(self.fd).columns or 100      # 0: a terminal of unknown size
-        except OSError:
-            width = 100
-        try:
-            os.write(self.fd, (_ERASE + text[: max(width - 1, 10)]).encode("utf-8", "replace"))
+            if self.bar is None:                # tqdm draws it once made
+                self.bar = _Line(file=self.file, leave=False, dynamic_ncols=True, position=0, mininterval=0,
+                                 smoothing=0, bar_format=fmt, desc=desc, postfix=postfix or None,
+                                 unit=(tasks or {}).get("unit", "tasks"), total=(tasks or {}).get("total"),
+                                 initial=(tasks or {}).get("done", 0))
+            else:
+                bar = self.bar
+                bar.bar_format = fmt
+                if tasks and bar.total is None:     # the first count: the time left is timed from here
+                    bar.initial, bar.start_t = tasks["done"], bar._time()
+                if tasks:
+                    bar.total, bar.unit, bar.n = tasks["total"], tasks.get("unit", "tasks"), tasks["done"]
+                bar.set_postfix_str(postfix, refresh=False)
+                bar.set_description_str(desc, refresh=False)
+                bar.refresh()
             self.shown = True
         except OSError:
             self.close()
 
+    def print_above(self, text: str, file=None) -> None:
+        """Print ``text`` (one line, to ``file``, default stdout) above the status line: erase
+        it, print, draw it again, so that lines printed during the run are not interleaved."""
+        showing = self.shown
+        self.clear()
+        print(text, file=file or sys.stdout, flush=True)
+        if showing and self.bar is not None:
+            try:
+                self.bar.refresh()
+                self.shown = True
+            except OSError:
+                self.close()
+
     def clear(self) -> None:
         """Erase the line (before the verb prints its result or error)."""
-        if self.fd is not None and self.shown:
+        if self.bar is not None and self.shown:
             try:
-                os.write(self.fd, _ERASE.encode())
+                self.bar.display(msg="")
             except OSError:
                 pass
             self.shown = False
 
     def close(self) -> None:
         """Erase the line and release the descriptor (idempotent)."""
-        self.clear()
-        if self.fd is not None:
+        if self.bar is not None:
+            bar, self.bar = self.bar, None
+            if not self.shown:
+                bar.disable = True                  # nothing on screen: tqdm's close need not erase
             try:
-                os.close(self.fd)
+                bar.close()                         # leave=False: erases the line
             except OSError:
                 pass
-            self.fd = None
+            self.shown = False
+        if self.file is not None:
+            try:
+                self.file.close()
+            except OSError:
+                pass
+            self.file = None

@@ -9,9 +9,17 @@ iterations, the reason the refinement stopped, whether release from flat reaches
 state, seconds per stage; and a final summary line. Long: minutes to tens of minutes per
 target on 2 cores; not part of the test run.
 
+Each target is one task of shellfem.cluster.map_tasks, like a sweep's cases: one after another
+in this process (--workers 0, the default), side by side on a local Dask cluster of N
+single-threaded processes (--workers N), or on a running scheduler's workers (--scheduler
+ADDRESS; they need this repository on their PYTHONPATH and the output folder on a shared file
+system). The JSON lines come as the targets finish; the summary lists them in the order asked.
+On a terminal a status line on stderr counts the targets done and the time left (-q hides it).
+
     python studies/refine_targets.py [--mesh-size 3] [--across 1] [--max-outer 12] [--stretch 1.2]
                                      [--printer inverse/data/printers/layer_0.1mm.toml]
-                                     [--verify-iterations 3000] [--out out/refine] [names or paths...]
+                                     [--verify-iterations 3000] [--out out/refine]
+                                     [--workers N | --scheduler ADDRESS] [-q] [names or paths...]
 """
 from __future__ import annotations
 
@@ -55,7 +63,34 @@ def run_target(path, out_dir, args) -> dict:
     }
 
 
+def target_task(job: dict) -> dict:
+    """``run_target`` of one job {"path", "out_dir", "args"}: a target as a task of
+    shellfem.cluster.map_tasks (module level, so that Dask workers can load it)."""
+    return run_target(job["path"], job["out_dir"], job["args"])
+
+
+def run_targets(jobs: list, *, workers: int | None = 0, scheduler: str | None = None, task=target_task,
+                on_row=None) -> list:
+    """``[task(job) for job in jobs]`` through shellfem.cluster.map_tasks (``workers=0``: in this
+    process, one after another; N: a local cluster of N processes; ``scheduler``: a running
+    scheduler), rows in the jobs' order. ``on_row(row, done, total)`` is called once with
+    ``row=None`` before the first task and then as each task finishes, in this process."""
+    from shellfem.cluster import map_tasks
+    done = [0]
+
+    def finished(i, row):
+        done[0] += 1
+        if on_row is not None:
+            on_row(row, done[0], len(jobs))
+    if on_row is not None:
+        on_row(None, 0, len(jobs))
+    return map_tasks(task, jobs, scheduler=scheduler, workers=workers, retries=0, on_result=finished)
+
+
 def main(argv=None) -> int:
+    from selfshape.progress import StatusLine
+    from shellfem.cluster import check_options
+    from shellfem.errors import SelfshapeError
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("names", nargs="*", help="target names in meshes/targets, analytic targets ("
                     + ", ".join(ANALYTIC_TARGETS) + "), or paths of other target meshes (default: all shipped targets)")
@@ -69,17 +104,35 @@ def main(argv=None) -> int:
     ap.add_argument("--stretch", type=float, help="pre-stretch s (default: the design's own choice)")
     ap.add_argument("--max-thickness", type=float, default=1.6, help="thickest printable ribbon (mm)")
     ap.add_argument("-v", "--verbose", action="store_true")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="targets side by side on a local Dask cluster of this many processes "
+                         "(default 0: one after another in this process)")
+    ap.add_argument("--scheduler", help="run the targets on this running Dask scheduler, e.g. tcp://host:8786")
+    ap.add_argument("-q", "--quiet", action="store_true", help="no progress line on a terminal")
     args = ap.parse_args(argv)
+    workers = args.workers if args.workers is not None or args.scheduler else 0
+    try:
+        check_options(args.scheduler, workers)
+    except SelfshapeError as e:
+        ap.error(str(e))
     files = [n for n in args.names if os.path.splitext(n)[1]]
     files += [analytic_target(n, args.out) for n in args.names if n in ANALYTIC_TARGETS]
     names = [n for n in args.names if not os.path.splitext(n)[1] and n not in ANALYTIC_TARGETS]
     paths = (target_paths(names) if names or not files else []) + files
-    rows = []
-    for p in paths:
-        name = os.path.splitext(os.path.basename(p))[0]
-        row = run_target(p, os.path.join(args.out, name), args)
-        rows.append(row)
-        print(json.dumps(row), flush=True)
+    jobs = [{"path": p, "out_dir": os.path.join(args.out, os.path.splitext(os.path.basename(p))[0]), "args": args}
+            for p in paths]
+    line = StatusLine.for_stderr("refine_targets", not (args.quiet or args.verbose))
+
+    def show(row, done, total):          # the status line: targets done / total; stdout: the target's JSON line
+        line({"stage": "tasks", "done": done, "total": total, "unit": "targets", "last": row and row["target"]})
+        if row is not None:
+            line.print_above(json.dumps(row))
+    try:
+        rows = run_targets(jobs, workers=workers, scheduler=args.scheduler, on_row=show)
+    except SelfshapeError as e:          # e.g. a scheduler that cannot be reached
+        raise SystemExit(f"refine_targets: {e}") from None
+    finally:
+        line.close()                     # erased before the summary or the error
     print(json.dumps({"summary": {r["target"]: {"open": r["open_loop"], "refined": r["refined"]} for r in rows}}))
     return 0
 

@@ -150,7 +150,11 @@ def test_clean_data_add_nothing_and_errors_are_held_out():
     rows = curvature(design(3, n_points=16, stretch=(1.2, 1.35, 1.6), orientation=(0.0, 45.0, 90.0),
                             width=(5.0, 10.0, 20.0), length=(30.0, 60.0, 90.0)), None, seed=4)
     rows[REST] = np.random.default_rng(5).normal(0.004, 0.001, rows[MEASURED].size)  # unrelated column
-    rep = loop.validate(rows, seed=0, outer_folds=4, inner_folds=4)
+    events = []
+    rep = loop.validate(rows, seed=0, outer_folds=4, inner_folds=4, progress=events.append)
+    # progress (issue 21): the 4 outer folds and the final selection, counted for the status line
+    assert [(e["stage"], e["done"], e["total"], e["unit"]) for e in events] == [("tasks", k, 5, "fits") for k in range(6)]
+    assert events[1]["last"] == "outer fold 1/4" and events[-1]["last"] == "selection on all rows"
     assert rep["effects_added"] == []
     assert all(not f for f in rep["effects_added_per_outer_fold"])
     names = {r["name"] for r in rep["effects_rejected"]}

@@ -162,3 +162,111 @@ def test_newton_calls_back_per_accepted_step():
     r = newton(M, q, free, callback=seen.append, max_iterations=20)
     assert len(seen) == len(r.history) - (1 if r.converged else 0)
     assert all({"iteration", "energy", "gradient_norm"} <= set(h) for h in seen)
+
+
+# ----------------------------------------------------------------------------- counted tasks (tqdm)
+def _drain(master) -> bytes:
+    got = b""
+    while select.select([master], [], [], 0.05)[0]:
+        got += os.read(master, 65536)
+    return got
+
+
+def test_task_counts_show_done_total_and_time_left_without_a_thread(tmp_path):
+    """Sweeps and the law's patches: done / total and tqdm's time left, timed from the first count
+    (tasks already done then are not speed); no thread is started; erased on close."""
+    import threading
+    import time
+
+    from selfshape.progress import _Line
+    master, slave = pty.openpty()
+    try:
+        threads = threading.active_count()
+        line = StatusLine("sweep", os.dup(slave))
+        line({"stage": "tasks", "done": 2, "total": 6, "unit": "cases"})           # 2 reused
+        assert threading.active_count() == threads and _Line.monitor is None
+        first = _drain(master).decode()
+        assert first == "\r\x1b[2Ksweep 0 s: 2/6 cases, ? left"
+        time.sleep(0.5)
+        line({"stage": "tasks", "done": 3, "total": 6, "unit": "cases", "last": "#4 ok"})
+        shown = _drain(master).decode().split("\r\x1b[2K")[-1]
+        m = re.fullmatch(r"sweep 1 s: 3/6 cases, 00:0(\d) left, last #4 ok", shown)
+        assert m and 1 <= int(m.group(1)) <= 2, shown         # 1 case in ~0.5 s: 3 more in ~1.5 s
+        line.print_above("case 3/6 #4 ok", file=open(os.dup(slave), "w"))
+        above = _drain(master).decode()
+        assert above.startswith("\r\x1b[2Kcase 3/6 #4 ok") and above.endswith(shown)
+        line.close()
+        assert _drain(master) == ERASE and line.fd is None and threading.active_count() == threads
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+@pytest.mark.parametrize("columns", [0, 40])
+def test_the_line_fits_the_terminal(columns):
+    """tqdm trims the line to the terminal's width less one column; a terminal of unknown size
+    (0 columns, a fresh pseudo-terminal) counts as 100."""
+    import fcntl
+    import struct
+    import termios
+    master, slave = pty.openpty()
+    try:
+        fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, columns, 0, 0))
+        line = StatusLine("design", os.dup(slave))
+        line({"stage": "design", "step": "x" * 200, "index": 1, "steps": 6})
+        shown = _drain(master).decode().split("\r\x1b[2K")[-1]
+        assert len(shown) == (columns or 100) - 1 and shown.startswith("design 0 s: ")
+        line.close()
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+def test_law_generation_reports_patches_done(tmp_path, monkeypatch):
+    """validation.law_tables.main counts the simulated patches (the grid and the mirror's check
+    row) through the status factory; --quiet asks for no line."""
+    from validation import law_tables
+
+    def fake_row(call):              # a cheap stand-in for one patch simulation (kappa in 1/mm)
+        return {"thickness_mm": call["thickness"], "spacing_mm": call["spacing"], "side": call["side"],
+                "kappa_per_mm": 0.01 * call["thickness"] / call["spacing"], "converged": True, "reason": "ok",
+                "newton_iterations": 1, "n_triangles": 1, "time_s": 0.0}
+    monkeypatch.setattr(law_tables, "simulate_row_task", fake_row)
+    events, asked = [], []
+
+    class Sink:
+        closed = False
+
+        def __call__(self, e):
+            events.append(e)
+
+        def close(self):
+            Sink.closed = True
+
+    def status(enabled):
+        asked.append(enabled)
+        return Sink()
+    args = ["--model", "sim", "--thickness", "0.3", "0.4", "--spacing", "3.9", "6.5", "--back", "mirror",
+            "--out", str(tmp_path / "law.csv")]
+    assert law_tables.main(args, status=status) == 0
+    assert asked == [True] and Sink.closed
+    assert [(e["done"], e["total"], e["unit"]) for e in events] == [(k, 5, "patches") for k in range(6)]
+    assert events[-1]["last"].endswith(" back") and events[1]["last"] == "t 0.3 mu2 3.9 front"
+    law_tables.main(args + ["-q"], status=status)
+    assert asked[-1] is False
+
+
+def test_sweep_shows_cases_done_and_time_left(tmp_path):
+    """`selfshape sweep` (serial, 6 strips of about a second): the status line counts the cases
+    with the time left and is erased; stdout keeps its line per case and the summary line."""
+    sweep = os.path.join(ROOT, "examples", "sweep_strip.toml")
+    code = (f"import sys; from selfshape.cli import main; "
+            f"sys.exit(main(['sweep', {sweep!r}, '-o', {str(tmp_path / 's')!r}, '--workers', '0']))")
+    rc, out, term = _run_on_pty(code, _env())
+    assert rc == 0, term
+    shown = term.decode()
+    assert "sweep 0 s: 0/6 cases, ? left" in shown
+    assert re.search(r"sweep \d+ s: 5/6 cases, \d\d:\d\d left, last #4 ok", shown), shown[-400:]
+    assert _visible(term) == []
+    lines = out.decode().splitlines()
+    assert [x.split()[1] for x in lines[:6]] == [f"{k}/6" for k in range(1, 7)] and lines[6].startswith("6 cases")

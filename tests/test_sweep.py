@@ -148,7 +148,7 @@ def test_scheduler_with_a_worker_killed_mid_run(serial, scheduler, tmp_path):
 
     def kill_busy(row, done, total):
         # after the first case: SIGKILL a worker while the scheduler has a case on it
-        if killed:
+        if killed or row is None:               # None: the call before any case runs
             return
         with Client(address, timeout=30) as c:
             t0 = time.time()

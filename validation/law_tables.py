@@ -263,7 +263,11 @@ def read_modulus_ratio(path: str):
 
 
 # ----------------------------------------------------------------------------- main
-def main(argv=None):
+def main(argv=None, status=None):
+    """The command line of studies/thickness_law_sim.py (see the module doc); returns the exit
+    status. ``status(enabled)`` makes the progress callback of the simulated patches (events
+    {"stage": "tasks", "done", "total", "unit": "patches", "last"}, and a ``close()``), e.g. a
+    terminal status line from the script above this layer; ``enabled`` is False under --quiet."""
     from shellfem.memory import keep_freed_memory
     keep_freed_memory()
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -308,6 +312,7 @@ def main(argv=None):
     ap.add_argument("--workers", type=int, default=None,
                     help="simulate the patches on a local Dask cluster of this many processes (sim; default: "
                          "serially in this process; shellfem.cluster)")
+    ap.add_argument("-q", "--quiet", action="store_true", help="no progress line on a terminal (sim)")
     a = ap.parse_args(argv)
     out = a.out or DEFAULT_LAW
     fabric, plastic = Fabric(), Plastic()
@@ -367,9 +372,20 @@ def main(argv=None):
                 return mapped[(t, mu, side)]
             if distributed:                              # the mirror check row: one more task
                 return map_rows([row_call(t, mu, side, *args, **kw)])[0]
-            return simulate_row_task(row_call(t, mu, side, *args, **kw))
+            return patch_done(simulate_row_task(row_call(t, mu, side, *args, **kw)))
         mirror = a.back == "mirror" and "back" in a.sides
         simulated_sides = [sd for sd in a.sides if not (mirror and sd == "back")]
+        # progress: patches done / total (the grid, and the mirror's check row)
+        progress = status(not a.quiet) if status is not None and not a.from_json else None
+        n_patches = len(simulated_sides) * len(a.thickness) * len(a.spacing) + mirror
+        finished = [0]
+
+        def patch_done(r):
+            finished[0] += 1
+            if progress is not None:
+                progress({"stage": "tasks", "done": finished[0], "total": n_patches, "unit": "patches",
+                          "last": f"t {r['thickness_mm']:g} mu2 {r['spacing_mm']:g} {r['side']}"})
+            return r
         common = dict(mesh_size=a.mesh_size, across=a.across, max_iterations=a.max_iterations, n_rows=a.rows,
                       n_motifs=a.motifs, aspect=a.min_aspect, fabric=fabric, plastic=plastic)
         cluster = contextlib.nullcontext()
@@ -383,11 +399,13 @@ def main(argv=None):
                 cluster = contextlib.nullcontext(None)
             else:
                 cluster = dask_client(a.scheduler, a.workers)
-        with cluster as client:
+        with cluster as client, (contextlib.closing(progress) if progress is not None else contextlib.nullcontext()):
+            if progress is not None:                     # the time left is timed from here (cluster started)
+                progress({"stage": "tasks", "done": 0, "total": n_patches, "unit": "patches"})
             if distributed:
                 def map_rows(calls):
                     return map_tasks(simulate_row_task, calls, workers=0 if client is None else None,
-                                     client=client)
+                                     client=client, on_result=lambda i, r: patch_done(r))
                 grid = [(t, mu, side) for side in simulated_sides for t in a.thickness for mu in a.spacing]
                 for key, r in zip(grid, map_rows([row_call(*g, a.stretch, **common) for g in grid])):
                     mapped[key] = r

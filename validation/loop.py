@@ -634,10 +634,13 @@ def _correlated(f, limit=0.95):
 # the loop with honest held-out errors
 
 
-def validate(rows, seed=0, outer_folds=5, inner_folds=5):
+def validate(rows, seed=0, outer_folds=5, inner_folds=5, progress=None):
     """Run the loop on rows (from read_strips). Returns the report dict plus
     ``_final`` (the selection on all rows) and ``_heldout`` (out-of-fold
-    predictions before/after) for writing model.json and plots."""
+    predictions before/after) for writing model.json and plots. ``progress``: called
+    with {"stage": "tasks", "done", "total", "unit": "fits", "last"} before the first and
+    after each of the ``outer_folds`` selections and the final one on all rows (each a
+    nested selection of seconds; a terminal's status line shows them)."""
     n = n_rows(rows)
     if n < 2 * outer_folds:
         raise SelfshapeError(f"{rows.get('_file', 'data')}: {n} rows, validation needs at least "
@@ -645,13 +648,20 @@ def validate(rows, seed=0, outer_folds=5, inner_folds=5):
     y = rows[MEASURED]
     before, after = np.empty(n), np.empty(n)
     per_fold = []
+
+    def fitted(done, last):
+        if progress is not None:
+            progress({"stage": "tasks", "done": done, "total": outer_folds + 1, "unit": "fits", "last": last})
+    fitted(0, None)
     for j, (tr, te) in enumerate(stats.kfold(n, outer_folds, seed, groups=rows["specimen"])):
         train, test = subset(rows, tr), subset(rows, te)
         sel = select_effects(train, seed=seed + 1 + j, folds=inner_folds, report=False)
         before[te] = predict_fit(test, sel["base_fit"])
         after[te] = predict_fit(test, sel["fit"])
         per_fold.append(sel["added"])
+        fitted(j + 1, f"outer fold {j + 1}/{outer_folds}")
     final = select_effects(rows, seed=seed, folds=inner_folds)
+    fitted(outer_folds + 1, "selection on all rows")
     f = final["fit"]
     noise = final["noise"]
     rms_y = float(np.sqrt(np.mean(y ** 2)))
@@ -733,12 +743,13 @@ def _finite(o):
     return o
 
 
-def validate_file(csv_path, out_dir, seed=0) -> dict:
+def validate_file(csv_path, out_dir, seed=0, progress=None) -> dict:
     """Run :func:`validate` on a strips CSV; write report.json, model.json and
-    residual plots (residuals_before.png, residuals_after.png) to out_dir."""
+    residual plots (residuals_before.png, residuals_after.png) to out_dir. ``progress``:
+    see :func:`validate`."""
     rows = read_strips(csv_path)
     outs = OutputDir(out_dir, VALIDATE_OUTPUTS, inputs=[csv_path]).begin()   # checked, stale removed, first
-    rep = validate(rows, seed=seed)
+    rep = validate(rows, seed=seed, progress=progress)
     with outs:                  # atomic, every number finite, report.json last
         _plot_residuals(rows, rep, outs.makedirs())
         outs.write_json("model.json", model_dict(rep["_final"]["fit"]))

@@ -637,7 +637,8 @@ def run_sweep(sweep_path, out_dir, *, scheduler: str | None = None, workers: int
     """`selfshape sweep SWEEP.toml -o DIR`: run every case not finished yet (shellfem.cluster:
     ``scheduler`` address, or a LocalCluster of ``workers`` processes (default one per core),
     ``workers=0`` serially in this process), then write the table, the contact sheet and
-    sweep.json. ``progress(row, done, total)`` is called as each case finishes. Returns
+    sweep.json. ``progress(row, done, total)`` is called once with ``row=None`` before any case
+    runs (``done``: the cases finished in an earlier run) and then as each case finishes. Returns
     {cases, ran, reused, failed (statuses other than ok), statuses, time_s, files}."""
     from shellfem.cluster import check_options, default_workers, map_tasks
     from shellfem.outfiles import OutputDir
@@ -675,6 +676,8 @@ def run_sweep(sweep_path, out_dir, *, scheduler: str | None = None, workers: int
                 "worker": None, **s["inputs"]}
 
     with out:
+        if progress is not None:
+            progress(None, done[0], len(specs))
         if todo:
             map_tasks(run_case, todo, scheduler=scheduler, workers=workers, retries=sweep.retries,
                       keys=[f"sweep-case-{s['hash'][:16]}-{s['index']}" for s in todo], on_result=finished,

@@ -1,0 +1,84 @@
+"""studies/refine_targets.py runs its targets through the Dask machinery (issue 21): each target
+one task of shellfem.cluster.map_tasks; serially (the default) and on a 2-worker LocalCluster the
+rows are the same, in the targets' order; one JSON line per target and the summary; bad
+--workers / --scheduler are refused before any work. A cheap stand-in replaces the refinement
+itself (minutes per target)."""
+import json
+import os
+import sys
+
+import numpy as np
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(ROOT, "studies"))
+import refine_targets  # noqa: E402
+
+TARGETS = ["beetle", "hat", "hemisphere", "saddle"]
+
+
+def fake_target(job: dict) -> dict:
+    """A cheap stand-in for ``run_target``, loaded by the workers by name: the target mesh's face
+    count and bounding-box diagonal (mm) as read on the worker, a file written into the target's
+    folder, the options it was given, and the process that ran it."""
+    from geometry.target import read_mesh
+    V, F = read_mesh(job["path"])
+    os.makedirs(job["out_dir"], exist_ok=True)
+    with open(os.path.join(job["out_dir"], "done.txt"), "w") as f:
+        f.write(job["path"])
+    return {"target": os.path.splitext(os.path.basename(job["path"]))[0], "faces": int(len(F)),
+            "diagonal_mm": float(np.linalg.norm(V.max(0) - V.min(0))), "mesh_size": job["args"].mesh_size,
+            "pid": os.getpid()}
+
+
+def _jobs(tmp_path, args):
+    paths = [os.path.join(ROOT, "meshes", "targets", f"{n}.obj") for n in TARGETS]
+    return [{"path": p, "out_dir": str(tmp_path / os.path.basename(p)[:-4]), "args": args} for p in paths]
+
+
+def test_serial_and_local_cluster_give_the_same_rows(tmp_path):
+    import argparse
+    args = argparse.Namespace(mesh_size=3.0)
+    calls = {}
+    rows = {}
+    for workers in (0, 2):
+        seen = calls[workers] = []
+        rows[workers] = refine_targets.run_targets(_jobs(tmp_path / str(workers), args), workers=workers,
+                                                   task=fake_target, on_row=lambda r, d, t: seen.append((r, d, t)))
+    assert [r["target"] for r in rows[0]] == TARGETS                       # the targets' order
+    assert {r["pid"] for r in rows[0]} == {os.getpid()}                    # serial: in this process
+    assert os.getpid() not in {r["pid"] for r in rows[2]}                  # the cluster's worker processes
+    strip = [[{k: v for k, v in r.items() if k != "pid"} for r in rows[w]] for w in (0, 2)]
+    assert strip[0] == strip[1] and all(r["faces"] > 100 and r["mesh_size"] == 3.0 for r in strip[0])
+    for w in (0, 2):
+        assert calls[w][0] == (None, 0, 4) and [c[1:] for c in calls[w][1:]] == [(k, 4) for k in (1, 2, 3, 4)]
+        assert sorted(c[0]["target"] for c in calls[w][1:]) == TARGETS
+        assert all(os.path.isfile(tmp_path / str(w) / n / "done.txt") for n in TARGETS)
+
+
+def test_main_prints_a_json_line_per_target_and_the_summary(tmp_path, monkeypatch, capsys):
+    """--workers 0 (the default): run_target in this process, as before, for each target asked."""
+    got = []
+
+    def fake_run_target(path, out_dir, args):
+        got.append((os.path.basename(path), out_dir, args.max_outer))
+        name = os.path.splitext(os.path.basename(path))[0]
+        return {"target": name, "open_loop": {"deployed_to_target_pct": 2.0}, "refined": {"deployed_to_target_pct": 1.0}}
+    monkeypatch.setattr(refine_targets, "run_target", fake_run_target)
+    monkeypatch.chdir(ROOT)
+    assert refine_targets.main(["hemisphere", "saddle", "--out", str(tmp_path), "--max-outer", "3", "-q"]) == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert [x["target"] for x in lines[:2]] == ["hemisphere", "saddle"] and len(lines) == 3
+    assert lines[2] == {"summary": {n: {"open": {"deployed_to_target_pct": 2.0}, "refined": {"deployed_to_target_pct": 1.0}}
+                                    for n in ("hemisphere", "saddle")}}
+    assert got == [("hemisphere.obj", str(tmp_path / "hemisphere"), 3), ("saddle.obj", str(tmp_path / "saddle"), 3)]
+
+
+@pytest.mark.parametrize("extra", [["--workers", "-1"], ["--workers", "2", "--scheduler", "tcp://127.0.0.1:1"],
+                                   ["--scheduler", "not an address"]])
+def test_bad_workers_or_scheduler_are_refused_before_any_work(extra, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(refine_targets, "run_target", lambda *a: pytest.fail("ran a target"))
+    with pytest.raises(SystemExit) as e:
+        refine_targets.main(["saddle", "--out", str(tmp_path)] + extra)
+    err = capsys.readouterr().err.splitlines()[-1]
+    assert e.value.code == 2 and ("error: --workers" in err or "error: --scheduler" in err), err
