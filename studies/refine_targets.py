@@ -20,6 +20,7 @@ On a terminal a status line on stderr counts the targets done and the time left 
                                      [--printer inverse/data/printers/layer_0.1mm.toml]
                                      [--verify-iterations 3000] [--out out/refine]
                                      [--workers N | --scheduler ADDRESS] [-q] [names or paths...]
+    python studies/refine_targets.py --table RUN.jsonl [...]     # the README table of runs' JSON lines
 """
 from __future__ import annotations
 
@@ -59,6 +60,7 @@ def run_target(path, out_dir, args) -> dict:
         "feasibility": ref.get("feasibility"), "n_triangles": rep.get("verify_n_triangles"),
         "thickness_rounded_mm": ref.get("thickness_rounded_mm"),
         "out_of_bounds_pct": rep.get("sigma_out_of_bounds_pct"), "stages_s": rep.get("stages_s"),
+        "stretch": rep.get("stretch"), "refine_s": (rep.get("stages_s") or {}).get("refine"),
         "total_s": round(time.perf_counter() - t0, 1),
     }
 
@@ -87,6 +89,44 @@ def run_targets(jobs: list, *, workers: int | None = 0, scheduler: str | None = 
     return map_tasks(task, jobs, scheduler=scheduler, workers=workers, retries=0, on_result=finished)
 
 
+def _pair(v) -> str:
+    return "-" if not v else f"{v[0]:.2f} / {v[1]:.2f}"
+
+
+def table(rows: list) -> str:
+    """The README's markdown table of refine_targets rows (their JSON lines): per target the
+    pre-stretch, the share of area out of the stretch bounds (sigma1 / sigma2, %), open-loop and
+    refined deviations (mean / max, % of the bounding-box diagonal, deployed -> target and
+    target -> deployed), outer iterations, how the refined design deploys, wall time (s)."""
+    head = ("| target | stretch | out of bounds % | open loop | refined | outer it. | deploys | refine s / total s |\n"
+            "|---|---|---|---|---|---|---|---|")
+    lines = [head]
+    for r in rows:
+        ol, rf = r.get("open_loop") or {}, r.get("refined") or {}
+        deploy = (r.get("kept") or ("open loop kept: " + str(r.get("refine_reason")))) + (
+            "" if r.get("release_reaches_refined_state") in (None, True) else " (release from flat misses the refined state)")
+        lines.append(f"| {r['target']} | {r.get('stretch', '-')} | {_pair(r.get('out_of_bounds_pct'))} | "
+                     f"{_pair(ol.get('deployed_to_target_pct'))} ({_pair(ol.get('target_to_deployed_pct'))}) | "
+                     f"{_pair(rf.get('deployed_to_target_pct'))} ({_pair(rf.get('target_to_deployed_pct'))}) | "
+                     f"{r.get('outer_iterations', '-')} | {deploy} | "
+                     f"{round(r.get('refine_s') or 0)} / {round(r.get('total_s') or 0)} |")
+    return "\n".join(lines)
+
+
+def read_rows(paths) -> list:
+    """The target rows (JSON lines with a "target" key) of refine_targets outputs, in order; a
+    later row of the same target replaces an earlier one."""
+    rows = {}
+    for path in paths:
+        with open(path) as f:
+            for line in f:
+                line = line.strip()
+                if line.startswith("{") and '"target"' in line[:12]:
+                    r = json.loads(line)
+                    rows[r["target"]] = r
+    return list(rows.values())
+
+
 def main(argv=None) -> int:
     from selfshape.progress import StatusLine
     from shellfem.cluster import check_options
@@ -109,7 +149,12 @@ def main(argv=None) -> int:
                          "(default 0: one after another in this process)")
     ap.add_argument("--scheduler", help="run the targets on this running Dask scheduler, e.g. tcp://host:8786")
     ap.add_argument("-q", "--quiet", action="store_true", help="no progress line on a terminal")
+    ap.add_argument("--table", nargs="+", metavar="JSONL", help="print the README table of earlier runs' output "
+                    "(their JSON lines) instead of running")
     args = ap.parse_args(argv)
+    if args.table:
+        print(table(read_rows(args.table)))
+        return 0
     workers = args.workers if args.workers is not None or args.scheduler else 0
     try:
         check_options(args.scheduler, workers)

@@ -82,3 +82,21 @@ def test_bad_workers_or_scheduler_are_refused_before_any_work(extra, tmp_path, m
         refine_targets.main(["saddle", "--out", str(tmp_path)] + extra)
     err = capsys.readouterr().err.splitlines()[-1]
     assert e.value.code == 2 and ("error: --workers" in err or "error: --scheduler" in err), err
+
+
+def test_the_readme_table_is_built_from_the_json_lines(tmp_path, capsys):
+    """--table reads runs' output (JSON lines among other lines), keeps the last row per target
+    and prints one markdown row each with both deviations, mean / max to two decimals."""
+    row = {"target": "saddle", "stretch": 1.2, "out_of_bounds_pct": [7.25, 11.2],
+           "open_loop": {"deployed_to_target_pct": [2.047, 7.54], "target_to_deployed_pct": [2.105, 7.225]},
+           "refined": {"deployed_to_target_pct": [0.957, 4.034], "target_to_deployed_pct": [1.086, 4.711]},
+           "outer_iterations": 6, "kept": "refined, on a jig", "release_reaches_refined_state": False,
+           "refine_s": 1720.3, "total_s": 1789.8}
+    log = tmp_path / "run.log"
+    log.write_text("refine 0: J 5.5\n" + json.dumps({**row, "outer_iterations": 9}) + "\n" + json.dumps(row)
+                   + "\n" + json.dumps({"summary": {}}) + "\n")
+    assert refine_targets.main(["--table", str(log)]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 3 and out[0].startswith("| target |")
+    assert out[2] == ("| saddle | 1.2 | 7.25 / 11.20 | 2.05 / 7.54 (2.10 / 7.22) | 0.96 / 4.03 (1.09 / 4.71) | 6 | "
+                      "refined, on a jig (release from flat misses the refined state) | 1720 / 1790 |")
