@@ -42,6 +42,7 @@ import numpy as np
 from geometry.beads import printed_elements
 from geometry.schema import COORD_MAX_MM, PRINTER_NUMBERS
 from shellfem.errors import SelfshapeError
+from shellfem.infiles import read_input_bytes
 
 SEGMENT_DTYPE = np.dtype([
     ("x0", "f8"), ("y0", "f8"), ("x1", "f8"), ("y1", "f8"), ("z", "f8"),
@@ -226,16 +227,13 @@ def _fail(name, lineno, msg):
 
 def _read_lines(path):
     name = os.path.basename(os.fspath(path))
-    try:
-        with open(path, "rb") as f:
-            data = f.read()
-    except OSError as e:
-        raise SelfshapeError(f"{path}: cannot read G-code ({e.strerror})") from None
+    data = read_input_bytes(path, "G-code file", name)
     if data[:4] == b"GCDE":
         raise SelfshapeError(f"{name}: line 1: binary G-code (.bgcode) is not supported; export plain text G-code")
     if b"\x00" in data[:65536]:
         raise SelfshapeError(f"{name}: line 1: not a text G-code file (binary data)")
-    return name, data.decode("utf-8", errors="replace").splitlines()
+    # utf-8-sig: a byte-order mark (Windows editors) is not a command
+    return name, data.decode("utf-8-sig", errors="replace").splitlines()
 
 
 class _State:

@@ -225,8 +225,11 @@ def test_errors_are_one_line_with_file_and_line(tmp_path, text, where, word):
 
 
 def test_unreadable_files(tmp_path):
-    with pytest.raises(SelfshapeError, match="cannot read"):
+    with pytest.raises(SelfshapeError, match="missing.gcode: file not found"):
         read_gcode(tmp_path / "missing.gcode")
+    os.mkfifo(tmp_path / "pipe.gcode")
+    with pytest.raises(SelfshapeError, match="pipe.gcode: is a named pipe"):
+        read_gcode(tmp_path / "pipe.gcode")
     (tmp_path / "b.bgcode").write_bytes(b"GCDE\x01\x00\x00\x00" + bytes(50))
     with pytest.raises(SelfshapeError, match=r"b.bgcode: line 1: binary G-code"):
         read_gcode(tmp_path / "b.bgcode")
@@ -237,6 +240,15 @@ def test_unreadable_files(tmp_path):
         read_gcode(data("s3d_plain.gcode"), cap="butt")
     with pytest.raises(SelfshapeError, match="mirror_axis_x must be a finite number"):
         read_gcode(data("s3d_plain.gcode"), side="back", mirror_axis_x="middle")
+
+
+def test_a_byte_order_mark_is_not_a_command(tmp_path):
+    """G-code saved by a Windows editor starts with a BOM: "line 1: not a G-code command"
+    before (issue 19); it reads as the same file without it."""
+    text = open(data("plain_marlin.gcode"), "rb").read()
+    (tmp_path / "bom.gcode").write_bytes(b"\xef\xbb\xbf" + text)
+    a, b = read_gcode(data("plain_marlin.gcode")), read_gcode(tmp_path / "bom.gcode")
+    assert len(a) == len(b) and all(x.geometry.equals(y.geometry) for x, y in zip(a, b))
 
 
 def test_thin_paths_are_dropped_and_caps_follow_the_option(tmp_path):

@@ -233,10 +233,10 @@ def test_mesh_file_errors(tmp_path):
     with pytest.raises(SelfshapeError, match="file not found"):
         read_msh(tmp_path / "none.msh")
     (tmp_path / "junk.msh").write_text("not a mesh\n")
-    with pytest.raises(SelfshapeError, match="junk.msh: cannot read Gmsh mesh"):
+    with pytest.raises(SelfshapeError, match="junk.msh: cannot read the Gmsh mesh"):
         read_msh(tmp_path / "junk.msh")
     (tmp_path / "cut.msh").write_text("$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\n1 3 1 3\n")
-    with pytest.raises(SelfshapeError, match="cut.msh: cannot read Gmsh mesh"):
+    with pytest.raises(SelfshapeError, match="cut.msh: cannot read the Gmsh mesh"):
         read_msh(tmp_path / "cut.msh")
 
 

@@ -122,6 +122,21 @@ def test_missing_file_and_nan(tmp_path):
         check_disk(V, F, "x.obj")
 
 
+def test_obj_byte_order_mark_tabs_and_devices(tmp_path):
+    """A BOM before the first record, tab-separated records (both valid OBJ from Windows
+    tools) read as without; a path that is a pipe is refused unread (issue 19)."""
+    V, F = plane_patch(4.0, 4.0, 2, 2)
+    V[:, 2] = 0.1 * V[:, 0] ** 2
+    plain = write_obj(tmp_path / "plain.obj", V, F)
+    text = open(plain).read()
+    (tmp_path / "bom.obj").write_bytes(b"\xef\xbb\xbf" + text.replace("v ", "v\t").encode())
+    for a, b in zip(read_mesh(plain), read_mesh(str(tmp_path / "bom.obj"))):
+        np.testing.assert_array_equal(a, b)
+    os.mkfifo(tmp_path / "pipe.obj")
+    with pytest.raises(SelfshapeError, match="pipe.obj: is a named pipe"):
+        read_mesh(str(tmp_path / "pipe.obj"))
+
+
 def test_refine_counts_and_midpoint_keeps_shape():
     V, F = cylinder_patch(n_arc=6, n_len=5)
     for method in ("loop", "midpoint"):
