@@ -170,6 +170,14 @@ SOLVER_CHOICES: dict[str, tuple] = {"model": ("shell", "rods")}
 #: Arm length of a star that is printed (fraction > 0): at least this, mm.
 MIN_ARM_MM = MIN_FEATURE_MM
 
+#: Numbers of `selfshape design` that are not pattern keys (option -> Num). The diagonal
+#: scales the target before anything else runs, so its range is checked first: a 1e300 mm
+#: target overflowed to "zero total area", 1e5 mm flattened for minutes before the bed check.
+DESIGN_NUMBERS: dict[str, Num] = {
+    "diagonal_mm": Num(10.0, 5000.0, _LEN, "no 15 mm ribbon fits a smaller target; a larger one flattens to more "
+                       "than the largest (2 m) printer bed"),
+}
+
 
 # ---------------------------------------------------------------- the printer
 

@@ -12,6 +12,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from geometry.meshops import boundary_loop_count, face_areas, halfedges, remove_unreferenced, unique_edges
+from geometry.schema import DESIGN_NUMBERS, number
 from shellfem.errors import SelfshapeError
 from shellfem.infiles import read_input_bytes, read_meshio
 
@@ -188,13 +189,14 @@ def _vertex_manifold(F: np.ndarray, n: int) -> np.ndarray:
 # ----------------------------------------------------------------------------- scaling
 def normalize(V: np.ndarray, diagonal_mm: float | None = 110.0) -> np.ndarray:
     """Centre the bounding box at the origin and scale uniformly to a bounding-box
-    diagonal of ``diagonal_mm`` (None keeps the units)."""
+    diagonal of ``diagonal_mm`` (None keeps the units), which must be in the range of
+    geometry.schema.DESIGN_NUMBERS["diagonal_mm"] (10-5000 mm; one-line error otherwise)."""
+    if diagonal_mm is not None:
+        diagonal_mm = number(diagonal_mm, "target diagonal (--diagonal, diagonal_mm)", DESIGN_NUMBERS["diagonal_mm"])
     lo, hi = V.min(axis=0), V.max(axis=0)
     V = V - 0.5 * (lo + hi)
     if diagonal_mm is None:
         return V
-    if not (np.isfinite(diagonal_mm) and diagonal_mm > 0):
-        raise SelfshapeError(f"diagonal_mm: must be a positive number, got {diagonal_mm}")
     return V * (float(diagonal_mm) / float(np.linalg.norm(hi - lo)))
 
 

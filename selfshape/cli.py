@@ -55,6 +55,14 @@ def _number(lo=None, lo_open=False, hi=None, integer=False):
     return parse
 
 
+def _schema_number(table: str, key: str):
+    """An argparse type for an option that is a number of geometry.schema (``table`` names a
+    dict of Num there): the option's range is the schema's, as for the same value in a file."""
+    from geometry import schema
+    spec = getattr(schema, table)[key]
+    return _number(spec.lo, lo_open=spec.lo_open, hi=spec.hi, integer=spec.integer)
+
+
 _POSITIVE = _number(0.0, lo_open=True)
 _COUNT = _number(1, integer=True)
 _SEED = _number(0, integer=True)
@@ -375,7 +383,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pattern.toml [mesh] across: triangle rows across a ribbon (default 2)")
     d.add_argument("-v", "--verbose", action="store_true")
     d.add_argument("-q", "--quiet", action="store_true", help="no progress line on a terminal")
-    d.add_argument("--diagonal", type=_POSITIVE, default=110.0, help="scale the target to this bounding-box diagonal, mm")
+    d.add_argument("--diagonal", type=_schema_number("DESIGN_NUMBERS", "diagonal_mm"), default=110.0,
+                   help="scale the target to this bounding-box diagonal, mm (10-5000)")
     d.add_argument("--stretch", type=_stretch, default="auto",
                    help="fabric pre-stretch s, or 'auto' (default): the shipped law's stretch that fits the target best")
     d.add_argument("--law", default=None, help="curvature-law CSV (default: the shipped inverse/data table)")

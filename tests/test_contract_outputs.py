@@ -573,7 +573,8 @@ NUMERIC = {("simulate", "--size"): _GARBAGE | _NEGATIVE | st.just("0"),
            ("simulate", "--max-iterations"): _GARBAGE | _NEGATIVE | st.sampled_from(["0", "2.5"]),
            ("mesh", "--size"): _GARBAGE | _NEGATIVE,
            ("design", "--mesh-size"): _GARBAGE | _NEGATIVE,
-           ("design", "--diagonal"): _GARBAGE | _NEGATIVE | st.just("0"),
+           ("design", "--diagonal"): _GARBAGE | _NEGATIVE | st.just("0") | st.floats(0, 9.999).map(repr)
+           | st.floats(5000.001, 1e308).map(repr),          # the schema's 10-5000 mm (issue 19: 1e300 ran)
            ("design", "--stretch"): _GARBAGE | st.floats(-1e6, 1.0).map(repr),
            ("design", "--lam"): _GARBAGE | st.floats(1e-9, 1e6).map(repr),
            ("design", "--verify-iterations"): _GARBAGE | st.just("0"),

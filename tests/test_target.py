@@ -122,6 +122,16 @@ def test_missing_file_and_nan(tmp_path):
         check_disk(V, F, "x.obj")
 
 
+@pytest.mark.parametrize("diagonal", [1e300, 1e6, 5000.5, 9.99, 1e-6, 0.0, -1.0, float("nan"), float("inf")])
+def test_the_diagonal_is_in_its_range(diagonal):
+    """--diagonal / diagonal_mm scales the target before anything runs: 1e300 overflowed to
+    "zero total area", 1e-6 to "no ribbons", 1e5 flattened for minutes (issue 19)."""
+    with pytest.raises(SelfshapeError, match=r"target diagonal \(--diagonal, diagonal_mm\) must be"):
+        load_target(TARGETS[0], diagonal_mm=diagonal)
+    V, _ = load_target(TARGETS[0], diagonal_mm=5000.0)
+    assert np.linalg.norm(np.ptp(V, axis=0)) == pytest.approx(5000.0)
+
+
 def test_obj_byte_order_mark_tabs_and_devices(tmp_path):
     """A BOM before the first record, tab-separated records (both valid OBJ from Windows
     tools) read as without; a path that is a pipe is refused unread (issue 19)."""
