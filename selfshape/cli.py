@@ -17,6 +17,7 @@ import contextlib
 import io
 import math
 import os
+import re
 import sys
 import tempfile
 import warnings
@@ -35,6 +36,17 @@ class _Parser(argparse.ArgumentParser):
         if action.option_strings and action.nargs is None and list(arg_strings) == ["--"]:
             raise argparse.ArgumentError(action, "expected one argument, got '--'")
         return super()._get_values(action, arg_strings)
+
+
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+
+
+def _printable(text) -> str:
+    """``text`` as one printable line: whitespace runs become one space and the other control
+    characters (ESC, BEL, C1 codes) their \\x escape, so that a file name or key from the
+    input can neither break the one-line contract nor send terminal escape sequences."""
+    one = " ".join(str(text).split())
+    return _CONTROL.sub(lambda m: f"\\x{ord(m.group(0)):02x}", one)
 
 
 def _number(lo=None, lo_open=False, hi=None, integer=False):
@@ -451,13 +463,14 @@ def main(argv=None) -> int:
         finally:
             args.progress.close()
     except SelfshapeError as e:
-        print(f"selfshape {args.verb}: error: {e}", file=sys.stderr)
+        print(f"selfshape {args.verb}: error: {_printable(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"selfshape {args.verb}: interrupted", file=sys.stderr)
         return 130
-    except Exception as e:  # never a traceback: one line, and a distinct status
-        msg = " ".join(str(e).split()) or type(e).__name__
+    except (Exception, SystemExit) as e:  # never a traceback: one line, and a distinct status
+        # (SystemExit: a library that calls exit() inside a verb is an internal error, not status 1)
+        msg = _printable(e.code if isinstance(e, SystemExit) else e) or type(e).__name__
         print(f"selfshape {args.verb}: internal error ({type(e).__name__}): {msg}", file=sys.stderr)
         return 3
     return int(rc or 0)
