@@ -145,7 +145,8 @@ def _cmd_simulate(a):
                               max_iterations=a.max_iterations, verbose=a.verbose, coarse_levels=a.coarse_levels,
                               progress=a.progress)
     a.progress.close()
-    state = "converged" if s["converged"] else "NOT converged"
+    # a run that did not converge says why on its one line (status 1 with its reason)
+    state = "converged" if s["converged"] else f"NOT converged ({_printable(s.get('reason') or 'no reason given')})"
     levels = s.get("timings_s", {}).get("levels") or []
     via = ""
     if len(levels) > 1:      # nested iteration: say where the iterations went
