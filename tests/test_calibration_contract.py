@@ -237,6 +237,22 @@ def _edits(m):
     out.append(("aux nan", dict(m, aux=aux), "aux"))
     out.append(("measured_column", dict(m, measured_column=["x"]), "measured_column"))
     out.append(("not an object", [1, 2, 3], "JSON object"))
+    # keys predict used to ignore, so a model fitted for something else or edited predicted
+    # as if it said the defaults (issue 19)
+    out.append(("other mode", dict(m, mode="plate"), "'mode'"))
+    out.append(("other base model", dict(m, model="os.system"), "'model'"))
+    out.append(("other column", dict(m, measured_column="specimen"), "'measured_column'"))
+    out.append(("other reference stretch", dict(m, reference_stretch=1.6), "'reference_stretch'"))
+    out.append(("names disagree", dict(m, parameter_names=list(reversed(m["parameter_names"]))), "parameter_names"))
+    out.append(("standard errors short", dict(m, standard_errors=m["standard_errors"][:-1]), "standard_errors"))
+    out.append(("standard error negative", dict(m, standard_errors=[-1.0] * len(m["theta"])), "standard_errors[0]"))
+    out.append(("unknown key", dict(m, thetta=m["theta"]), "unknown key 'thetta'"))
+    named = [i for i, e in enumerate(m["effects"]) if e.get("parameters")]
+    if named:
+        eff = json.loads(json.dumps(m["effects"]))
+        q = next(iter(eff[named[0]]["parameters"]))
+        eff[named[0]]["parameters"][q] *= 2.0
+        out.append(("effect parameter disagrees with theta", dict(m, effects=eff), f"effects[{named[0]}].parameters"))
     return out
 
 
@@ -265,6 +281,14 @@ def test_model_json_with_any_non_finite_or_wrong_typed_parameter(fitted_model, t
     p.write_text(json.dumps(dict(m, theta=theta)))
     rc, err = run(["predict", p, S1, "-o", tmp_path / "p.csv"], capsys)
     assert_bad_input(rc, err, "model.json", f"theta[{i}]")
+
+
+def test_a_number_too_long_to_read(tmp_path, capsys):
+    """A 5,000-digit integer parses as JSON but int() refuses it: a raw ValueError, exit 3 (issue 19)."""
+    p = tmp_path / "model.json"
+    p.write_text('{"format": "selfshape-strip-model/1", "theta": [1' + "0" * 5000 + "]}")
+    rc, err = run(["predict", p, S1, "-o", tmp_path / "p.csv"], capsys)
+    assert_bad_input(rc, err, "model.json", "too long")
 
 
 def test_binary_model_json(tmp_path, capsys):

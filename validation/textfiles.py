@@ -62,6 +62,9 @@ def read_json(path, what: str = "JSON file"):
         raise SelfshapeError(f"{name}: line {e.lineno}: invalid JSON ({e.msg})") from None
     except RecursionError:
         raise SelfshapeError(f"{name}: JSON nested too deeply to be a {what}") from None
+    except ValueError as e:         # int('9' * 5000): the digit limit of int(), not a JSON error
+        raise SelfshapeError(f"{name}: a number too long to be read ({' '.join(str(e).split()[:8])}); "
+                             f"expected a {what}") from None
 
 
 def refuse_overwrite(output, inputs, verb_option: str = "-o") -> None:
