@@ -135,6 +135,37 @@ def test_strips_values_outside_physical_ranges(tmp_path, capsys, col, value):
         assert_bad_input(rc, err, "r.csv", "row 2", col)
 
 
+def test_duplicate_columns_and_too_many_rows(tmp_path, capsys):
+    """A header naming a column twice is ambiguous (which curvature?): the error names it. More
+    rows than a lab's strip set (validation.strips.MAX_ROWS) are refused before any fit:
+    100,000 rows ran out of memory in the calibration (issue 19)."""
+    from validation.strips import MAX_ROWS
+    p = tmp_path / "dup.csv"
+    p.write_text(HEADER + ",curvature_per_mm\n" + ROW.format(i=1, h=0.3, k=0.05) + ",0.06\n")
+    rc, err = run(["calibrate", "strips", p, "-o", tmp_path / "o"], capsys)
+    assert_bad_input(rc, err, "dup.csv", "duplicate", "'curvature_per_mm'")
+    many = strips_file(tmp_path / "many.csv", (ROW.format(i=i, h=0.3, k=0.05) for i in range(MAX_ROWS + 1)))
+    for argv in (["calibrate", "strips", many, "-o", tmp_path / "o"], ["validate", many, "-o", tmp_path / "v"],
+                 ["predict", os.path.join(REPO, "tests", "data", "model_S1.json"), many, "-o", tmp_path / "p.csv"]):
+        rc, err = run(argv, capsys)
+        assert_bad_input(rc, err, "many.csv", f"{MAX_ROWS + 1} data rows")
+    assert not {"o", "v", "p.csv"} & set(os.listdir(tmp_path))
+
+
+def test_a_fabric_test_file_with_too_many_rows(tmp_path, capsys):
+    """A tensile file of more rows than a test logs (fabric_files.MAX_TABLE_ROWS) is refused
+    before the fits, which took minutes on 1.9 million rows (issue 19)."""
+    from validation.fabric_files import MAX_TABLE_ROWS
+    folder = G.write_folder(G.random_spec(14), tmp_path / "fab")
+    t = os.path.join(folder, "tensile_00deg_80pct.csv")
+    rows = open(t).read().splitlines()
+    with open(t, "w") as f:
+        f.write("\n".join(rows + rows[1:] * (MAX_TABLE_ROWS // (len(rows) - 1) + 1)) + "\n")
+    rc, err = run(["calibrate", "fabric", folder, "-o", tmp_path / "o"], capsys)
+    assert_bad_input(rc, err, "tensile_00deg_80pct.csv", "data rows, more than the 200,000")
+    assert not os.path.exists(tmp_path / "o")
+
+
 def test_csv_field_over_the_csv_limit(tmp_path, capsys):
     import csv
     big = "x" * (csv.field_size_limit() + 10)
