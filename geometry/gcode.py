@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geometry.beads import printed_elements
+from geometry.beads import MAX_BEAD_MM, printed_elements
 from geometry.schema import COORD_MAX_MM, PRINTER_NUMBERS
 from shellfem.errors import SelfshapeError
 from shellfem.infiles import read_input_bytes
@@ -303,8 +303,8 @@ class _State:
             v = float(text)
         except ValueError:
             _fail(self.name, lineno, f";{what}: hint is not a number")
-        if not (math.isfinite(v) and 0 < v <= 100.0):
-            _fail(self.name, lineno, f";{what}: hint must be in (0, 100] mm, got {v:.4g}")
+        if not (math.isfinite(v) and 0 < v <= MAX_BEAD_MM):
+            _fail(self.name, lineno, f";{what}: hint must be in (0, {MAX_BEAD_MM:g}] mm, got {v:.4g}")
         return v
 
     def move(self, nx, ny, nz, de, lineno):
