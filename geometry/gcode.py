@@ -636,7 +636,9 @@ def read_gcode(path, *, side=None, mirror_axis_x=None, filament_diameter_mm=None
     levels = np.asarray(meta["layer_z_mm"])
     steps = np.diff(np.r_[bed_z, levels])
     heights = np.where(np.isfinite(seg["height_hint"]), seg["height_hint"], steps[seg["layer"]])
-    bad = np.flatnonzero(heights <= 1e-6)
+    # the nozzle must be above the fabric whatever the ;HEIGHT: hint says (Z-5 with a hint was
+    # read as a 0.4 mm bead printed 5 mm under the bed, issue 19)
+    bad = np.flatnonzero((heights <= 1e-6) | (seg["z"] <= bed_z + 1e-6))
     if len(bad):
         k = bad[0]
         raise SelfshapeError(f"{name}: line {seg['line'][k]}: extrusion at z = {seg['z'][k]:g} mm is not above "
