@@ -218,6 +218,7 @@ def test_stack_beads_overlay():
     ("M83\n;HEIGHT:0.4\nG1 Z-5\nG0 X1 Y1\nG1 X10 E1\n", "line 5", "z = -5 mm is not above the fabric"),
     # E1e12 on a 30 mm move: a 1e11 mm bead on a fabric to match, exit 0 (issue 19)
     ("M83\nG1 Z0.4\nG0 X10 Y10\nG1 X40 Y10 E1e12\n", "line 4", "deposits a bead 2.004e+11 mm wide"),
+    ("M83\n;WIDTH:1.5\nG1 Z0.4\nG0 X10 Y10\nG1 X40 Y10 E1e12\n", "line 5", "deposits a bead 2.004e+11 mm wide"),
 ])
 def test_errors_are_one_line_with_file_and_line(tmp_path, text, where, word):
     f = write(tmp_path, text, "bad.gcode")
