@@ -365,7 +365,8 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
 
 
 def round_progressively(problem: ThicknessProblem, p, q, step: float, bounds, *, newton_iterations: int = 200,
-                        leave_factor: float = RefineOptions.leave_factor, radius: float | None = None,
+                        leave_factor: float = RefineOptions.leave_factor, shifted_run: int = RefineOptions.shifted_run,
+                        shifted_grace: int = RefineOptions.shifted_grace, radius: float | None = None,
                         verbose: bool = False):
     """Thicknesses p (P,) mm, continuous, at their equilibrium q rounded to the layer grid
     lo + k step inside ``bounds`` = (lo, hi) a batch at a time, the ribbons not yet rounded
@@ -380,10 +381,8 @@ def round_progressively(problem: ThicknessProblem, p, q, step: float, bounds, *,
     (their step inside ``radius``, default half a layer: they make up for the batch's moves of
     at most half a layer, not for what the refinement left; the model promises more than the
     branch gives beyond that), and re-solves warm-started from the linear prediction. A stage
-    whose solve leaves the branch (objective past ``leave_factor`` times J; not the shifted
-    run of RefineOptions, whose bound is the current J: rounding raises J, and on the saddle
-    that rule stopped every stage down to 3 rounded ribbons) is retried with half the batch
-    and half the radius; a single ribbon
+    whose solve leaves the branch (objective past ``leave_factor`` times J, or the shifted run
+    of RefineOptions) is retried with half the batch and half the radius; a single ribbon
     that cannot be rounded without leaving is rounded to its nearer side and the stage
     accepted as it comes. Returns (p, q, converged, history: per stage dict(rounded, remaining,
     objective (None when the solve did not converge, with ``reason``), predicted, accepted,
@@ -437,7 +436,8 @@ def round_progressively(problem: ThicknessProblem, p, q, step: float, bounds, *,
             p_new = p + s
             model_new = problem.model_at(p_new)
             q_guess = q + dq @ s if M is not None else q
-            res = problem.trial_solve(model_new, q_guess, q, newton_iterations, p_new, leave_factor * J)
+            res = problem.trial_solve(model_new, q_guess, q, newton_iterations, p_new, leave_factor * J,
+                                      (shifted_run, shifted_grace, J))
             J_new = problem.objective(model_new.split(res.q)[0], p_new)[0] if res.converged else np.inf
             ok = bool(res.converged) or size == 1
             history.append(dict(rounded=int(len(batch)), remaining=int(len(todo) - len(batch)),
