@@ -110,7 +110,7 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     p_round, q_round, _, rounding = round_progressively(
         prob, res.thickness, res.q, h, (first, top), newton_iterations=2 * opts.trial_iterations,
         leave_factor=opts.leave_factor, shifted_run=opts.shifted_run, shifted_grace=opts.shifted_grace,
-        verbose=verbose)
+        radius=opts.max_step, verbose=verbose)
     model_r = prob.model_at(p_round)
     rr = prob.solve(model_r, q_round, opts.newton_iterations)      # at once when the last stage converged
     layer_rounds = []

@@ -366,7 +366,7 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
 
 def round_progressively(problem: ThicknessProblem, p, q, step: float, bounds, *, newton_iterations: int = 200,
                         leave_factor: float = RefineOptions.leave_factor, shifted_run: int = RefineOptions.shifted_run,
-                        shifted_grace: int = RefineOptions.shifted_grace, radius: float | None = None,
+                        shifted_grace: int = RefineOptions.shifted_grace, radius: float = RefineOptions.max_step,
                         verbose: bool = False):
     """Thicknesses p (P,) mm, continuous, at their equilibrium q rounded to the layer grid
     lo + k step inside ``bounds`` = (lo, hi) a batch at a time, the ribbons not yet rounded
@@ -378,11 +378,9 @@ def round_progressively(problem: ThicknessProblem, p, q, step: float, bounds, *,
     cannot foresee it. Each stage here linearises J at the current state (gauss_newton_model),
     takes the half of the unrounded ribbons whose rounding moves them least, picks floor or
     ceiling for each in the model with the other unrounded ribbons eliminated by least squares
-    (their step inside ``radius``, default half a layer: they make up for the batch's moves of
-    at most half a layer, not for what the refinement left; the model promises more than the
-    branch gives beyond that), and re-solves warm-started from the linear prediction. A stage
-    whose solve leaves the branch (objective past ``leave_factor`` times J, or the shifted run
-    of RefineOptions) is retried with half the batch and half the radius; a single ribbon
+    (their step inside ``radius`` and the bounds), and re-solves warm-started from the linear
+    prediction. A stage whose solve leaves the branch (objective past ``leave_factor`` times
+    J, or the shifted run of RefineOptions) is retried with half the batch; a single ribbon
     that cannot be rounded without leaving is rounded to its nearer side and the stage
     accepted as it comes. Returns (p, q, converged, history: per stage dict(rounded, remaining,
     objective (None when the solve did not converge, with ``reason``), predicted, accepted,
@@ -409,7 +407,6 @@ def round_progressively(problem: ThicknessProblem, p, q, step: float, bounds, *,
         move = np.minimum(p - floor, ceil - p)[todo]
         order = todo[np.argsort(move, kind="stable")]
         size = max(1, (len(todo) + 1) // 2)
-        reach = 0.5 * step if radius is None else float(radius)
         while True:
             t0 = time.perf_counter()
             batch, rest = np.sort(order[:size]), np.setdiff1d(todo, order[:size])
@@ -428,8 +425,8 @@ def round_progressively(problem: ThicknessProblem, p, q, step: float, bounds, *,
                 s[batch] = _coordinate_descent(MB, res0, offsets, choice)
                 if len(rest):
                     from scipy.optimize import lsq_linear
-                    sol = lsq_linear(MR, b - M[:, batch] @ s[batch], bounds=(np.maximum(lo - p[rest], -reach),
-                                     np.minimum(hi - p[rest], reach)), method="bvls")
+                    sol = lsq_linear(MR, b - M[:, batch] @ s[batch], bounds=(np.maximum(lo - p[rest], -radius),
+                                     np.minimum(hi - p[rest], radius)), method="bvls")
                     s[rest] = sol.x
                 r = M @ s - b
                 predicted = float(r @ r)
@@ -450,7 +447,6 @@ def round_progressively(problem: ThicknessProblem, p, q, step: float, bounds, *,
             if ok:
                 break
             size //= 2
-            reach *= 0.5
         if not res.converged:
             # a lone ribbon that cannot be rounded without leaving the branch: solve there plainly
             res = problem.solve(model_new, q_guess, newton_iterations)
