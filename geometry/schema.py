@@ -179,12 +179,24 @@ SOLVER_CHOICES: dict[str, tuple] = {"model": ("shell", "rods")}
 #: Arm length of a star that is printed (fraction > 0): at least this, mm.
 MIN_ARM_MM = MIN_FEATURE_MM
 
-#: Numbers of `selfshape design` that are not pattern keys (option -> Num). The diagonal
-#: scales the target before anything else runs, so its range is checked first: a 1e300 mm
-#: target overflowed to "zero total area", 1e5 mm flattened for minutes before the bed check.
+#: Numbers of `selfshape design` that are not pattern keys (inverse.design.DesignOptions
+#: field -> Num), checked by design() before it runs, by the CLI's options and by design
+#: sweeps (validation.sweep) before any case runs. The diagonal scales the target before
+#: anything else runs, so its range is checked first: a 1e300 mm target overflowed to "zero
+#: total area", 1e5 mm flattened for minutes before the bed check. The lengths below had no
+#: range before sweeps could set them: a NaN gap or edge reached the layout unchecked.
 DESIGN_NUMBERS: dict[str, Num] = {
     "diagonal_mm": Num(10.0, 5000.0, _LEN, "no 15 mm ribbon fits a smaller target; a larger one flattens to more "
                        "than the largest (2 m) printer bed"),
+    # the designed pattern's [fabric] stretch, and a pre-stretch (> 1: the seed's contraction)
+    "stretch": Num(1.0, PATTERN_NUMBERS["fabric"]["stretch"].hi, "", PATTERN_NUMBERS["fabric"]["stretch"].reason,
+                   lo_open=True),
+    "lam": Num(None, 0.0, "1/mm^2", "the seed's line-field lambda is <= 0"),
+    "edge_mm": Num(0.0, COORD_MAX_MM, _LEN, "the target's mean edge after refinement: a length on a target of at "
+                   "most 10 m", lo_open=True),
+    "gap_mm": Num(0.0, COORD_MAX_MM, _LEN, "a distance between ribbons on a target of at most 10 m"),
+    "layout_edge_mm": Num(0.0, COORD_MAX_MM, _LEN, "the layout mesh's mean edge: a length on a target of at most "
+                          "10 m", lo_open=True),
 }
 
 

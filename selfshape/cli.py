@@ -130,13 +130,13 @@ def _levels(text):
 
 
 def _stretch(text):
-    """--stretch: 'auto' or a finite number > 1."""
+    """--stretch of design: 'auto' or a number in geometry.schema.DESIGN_NUMBERS["stretch"]."""
     if text == "auto":
         return text
     try:
-        return _number(1.0, lo_open=True)(text)
-    except argparse.ArgumentTypeError:
-        raise argparse.ArgumentTypeError(f"must be a finite number > 1 or 'auto', got {text!r}") from None
+        return _schema_number("DESIGN_NUMBERS", "stretch")(text)
+    except argparse.ArgumentTypeError as e:
+        raise argparse.ArgumentTypeError(str(e).replace("must be ", "must be 'auto' or ", 1)) from None
 
 
 def _cmd_simulate(a):
@@ -417,7 +417,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="how stretch maps to ribbon spacing: 'auto' (default: the shipped table of simulated patches "
                         "at the stretch where there is one, else the seed's Eq. 5.15), 'seed', 'table', "
                         "'table-polygon' (its admissible stretches bound the flattening too) or a table CSV")
-    d.add_argument("--lam", type=_number(hi=0.0), default=0.0, help="line-field lambda of the seed (<= 0, 1/mm^2)")
+    d.add_argument("--lam", type=_schema_number("DESIGN_NUMBERS", "lam"), default=0.0, help="line-field lambda of the seed (<= 0, 1/mm^2)")
     d.add_argument("--printer", default=None,
                    help="printer TOML (inverse.printer.Printer fields: bed_size, nozzle_mm, print_speed_mm_s, ...)")
     d.set_defaults(fn=_cmd_design)
