@@ -272,6 +272,15 @@ class Contact:
                 H = Hg if H is None else H + Hg
         return E, g, H
 
+    @property
+    def indefinite_part(self) -> bool:
+        """True when the contact Hessian of the last order-2 :meth:`evaluate` has a self-contact
+        part, the only one PSD projection can change: the ground's diagonal kappa_g b''(h) is
+        positive in the whole band (each of its three terms is >= 0 for 0 < h < dhat). The
+        solver tries the projected contact Hessian only then; with the ground alone each try was
+        a second failed factorisation of an indefinite step (51 of 204 on the 2.5k-vertex dome)."""
+        return getattr(self, "_last", None) is not None
+
     def projected_hessian(self):
         """The PSD-projected contact Hessian (3n, 3n) of the state of the last order-2
         :meth:`evaluate` (ipctk's per-collision CLAMP; the ground's diagonal clamped at 0), or None."""
