@@ -104,6 +104,23 @@ def triangle_distances(x, tri, pairs):
     return d
 
 
+def intersecting_pairs(x, tri, chunk=200_000):
+    """(k, 2) the pairs of triangles of a surface (x (n, 3) mm, tri (m, 3)) that share no vertex
+    and cross each other (an edge of one through the other: :func:`triangle_distances` 0), over
+    ALL such pairs: two triangles can only meet if their centroids are within the sum of their
+    circumradii about the centroid, so a KD-tree query at twice the largest of those radii is
+    exhaustive. Independent of ipctk and of the engine's printed-distance exclusion."""
+    P = x[tri]
+    c = P.mean(1)
+    reach = 2.0 * float(np.linalg.norm(P - c[:, None], axis=2).max())
+    pairs = cKDTree(c).query_pairs(reach, output_type="ndarray")
+    share = (tri[pairs[:, 0]][:, :, None] == tri[pairs[:, 1]][:, None, :]).any(axis=(1, 2))
+    pairs = pairs[~share]
+    hit = [pairs[i:i + chunk][triangle_distances(x, tri, pairs[i:i + chunk]) == 0.0]
+           for i in range(0, len(pairs), chunk)]
+    return np.concatenate(hit) if hit else np.zeros((0, 2), np.int64)
+
+
 def far_pairs_min_distance(sheet, x, printed_apart, reach):
     """Smallest exact distance (mm) between triangles at least ``printed_apart`` mm apart in the
     printed sheet (centroids), over all such pairs whose deformed centroids are within
@@ -197,6 +214,7 @@ def test_self_contact_gradient_and_hessian_match_differences(seed):
     # the projected Hessian is positive semi-definite
     Hp = c.projected_hessian().toarray()
     assert np.linalg.eigvalsh((Hp + Hp.T) / 2).min() >= -1e-8 * np.abs(Hp).max()
+    assert c.indefinite_part                                    # the solver may try the projection
 
 
 def test_ground_barrier_derivatives():
@@ -210,6 +228,26 @@ def test_ground_barrier_derivatives():
     assert np.allclose(b2[inside], ((b1p - b1m) / (2 * eps))[inside], rtol=1e-5, atol=1e-7)
     assert np.all(b[h >= 0.1] == 0) and np.all(b[h < 0.1] > 0)
     assert ground_barrier(np.array([0.0, -1.0]), 0.1)[0].tolist() == [np.inf, np.inf]
+    assert np.all(b2[h < 0.1] > 0)              # convex in the band: the ground's Hessian is PSD
+    # so a ground alone has nothing to project (the solver skips the projected retry)
+    pat = _strip(L=30.0, W=2.0, size=1.0)
+    sheet = mesh_pattern(pat)
+    c = Contact(sheet.points, sheet.triangles, offset=0.35, self_contact=False, ground=0.0)
+    c.set_stiffness(np.ones(3))
+    x = np.column_stack([sheet.points, np.linspace(0.01, 0.2, sheet.n_vertices)])
+    E, g, H = c.evaluate(x, order=2)
+    assert E > 0 and H.nnz > 0 and H.diagonal().min() >= 0 and not c.indefinite_part
+
+
+def test_intersection_check_finds_crossing_triangles_only():
+    """The independent check: two triangles through each other are found; the same two 0.01 mm
+    apart, and two triangles sharing a vertex, are not."""
+    tri = np.array([[0, 1, 2], [3, 4, 5]])
+    a = np.array([[0.0, 0, 0], [2, 0, 0], [0, 2, 0]])
+    b = np.array([[0.5, 0.5, -1], [0.5, 0.5, 1], [3, 3, 0.2]])
+    assert intersecting_pairs(np.vstack([a, b]), tri).tolist() == [[0, 1]]
+    assert len(intersecting_pairs(np.vstack([a, a + [0, 0, 0.01]]), tri)) == 0
+    assert len(intersecting_pairs(np.vstack([a, b]), np.array([[0, 1, 2], [0, 4, 5]]))) == 0
 
 
 def test_step_filter_stops_a_move_through_the_other_layer():
@@ -262,6 +300,8 @@ def test_rolled_strip_is_a_spiral_whose_layers_keep_the_thickness():
     edge = float(np.linalg.norm(np.diff(sheet.points[sheet.triangles][:, [0, 1, 2, 0]], axis=1), axis=2).max())
     assert far_pairs_min_distance(sheet, free.positions, apart, offset + 2 * edge) < 0.5 * offset
     assert far_pairs_min_distance(sheet, sim.positions, apart, offset + 2 * edge) >= offset
+    assert len(intersecting_pairs(free.positions, sheet.triangles)) > 0                # through itself
+    assert len(intersecting_pairs(sim.positions, sheet.triangles)) == 0                # over all pairs
     assert sim.result.energy > free.result.energy
     turns, r_in, r_out = centreline_turns(sheet, sim.positions)
     assert turns > 2.0
