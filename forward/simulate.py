@@ -19,7 +19,8 @@ import numpy as np
 from shellfem.errors import SelfshapeError, check_number
 from forward.outputs import write_cad, write_vtu
 from forward.supports import carry_support_motion, support_constraints
-from shellfem.boundary import gauge_dofs, gauge_reaction, smooth_perturbation
+from shellfem.boundary import (gauge_dofs, gauge_reaction, graph_laplacian, harmonic_extension, lifted_perturbation,
+                               smooth_perturbation)
 from shellfem.layers import RHO_TRUNCATED
 from shellfem.model import ShellModel
 from shellfem.multilevel import prolongate
@@ -85,17 +86,38 @@ class Simulation:
         }
 
 
+def contact_offset(sheet: Sheet, fabric) -> float:
+    """The contact offset (mm): the sheet's largest total thickness (fabric + plastic on both
+    faces), the distance two surfaces of the sheet keep apart (shellfem.contact)."""
+    return float(fabric.thickness + np.max(sheet.thickness_front + sheet.thickness_back))
+
+
+def support_plane(sheet: Sheet, fabric, ground: float | None) -> float:
+    """The z (mm) at which supports that stand on the table hold the sheet (fix = "z", and "xyz"
+    at relaxed positions): 0 without a ground; with one, the top of the ground barrier's band,
+    ``ground`` + band (shellfem.contact.BAND_FRACTION x the offset), where the barrier exerts no
+    force. Why not on the plane itself: the barrier is +inf there, so a held vertex on the plane
+    forces its free neighbours up to where the barrier balances the sheet (most of the band,
+    0.2 mm on the gallery dome) within one edge: a step at every support, which folded the
+    printed triangles next to the dome's rim (|k z| 6.7) and took the solve into a state 9 %
+    higher in energy. At the band's top a sheet that presses on the table next to its support
+    sinks into the band like any vertex resting on it, and one that rises from it is free."""
+    if ground is None:
+        return 0.0
+    from shellfem.contact import BAND_FRACTION
+    return float(ground) + BAND_FRACTION * contact_offset(sheet, fabric)
+
+
 def make_contact(sheet: Sheet, fabric, fixed: np.ndarray, self_contact: bool, ground: float | None):
-    """shellfem.contact.Contact of a sheet (None when both are off): the offset is the sheet's
-    largest total thickness (fabric + plastic on both faces, mm), the ground plane at ``ground``
-    (mm, None: no ground) under the vertices whose z is not held by ``fixed``."""
+    """shellfem.contact.Contact of a sheet (None when both are off): the offset is
+    :func:`contact_offset`, the ground plane at ``ground`` (mm, None: no ground) under the
+    vertices whose z is not held by ``fixed``."""
     if not self_contact and ground is None:
         return None
     from shellfem.contact import Contact
-    offset = float(fabric.thickness + np.max(sheet.thickness_front + sheet.thickness_back))
     held_z = np.zeros(sheet.n_vertices, bool)
     held_z[fixed[fixed % 3 == 2] // 3] = True
-    return Contact(sheet.points, sheet.triangles, offset, stretch_max=float(max(fabric.stretch)),
+    return Contact(sheet.points, sheet.triangles, contact_offset(sheet, fabric), stretch_max=float(max(fabric.stretch)),
                    self_contact=self_contact, ground=ground, held_z=held_z)
 
 
@@ -104,28 +126,37 @@ def _level_setup(sheet: Sheet, fabric, plastic, supports, seed: int, tol_support
     """(model, perturbed flat start, held DOFs, their values, gauge DOFs, free mask) of one mesh;
     ``start``: (n_vertices, 3) start positions instead of the perturbed flat state; ``factory``:
     (sheet, fabric, plastic) -> model (default ShellModel.from_materials, exact metric). ``contact``,
-    ``ground``: see :func:`make_contact` (with a ground, the flat start's perturbation is lifted
-    above the plane and "z" supports start on it)."""
+    ``ground``: see :func:`make_contact` (with a ground, supports that stand on the table hold the
+    sheet at :func:`support_plane`, and the flat start is the held heights carried harmonically
+    into the sheet plus shellfem.boundary.lifted_perturbation, above the plane)."""
     model = (factory or ShellModel.from_materials)(sheet, fabric, plastic)
     q = model.initial_state()
     x, _ = model.split(q)
     edge = np.linalg.norm(sheet.points[sheet.triangles[:, 1]] - sheet.points[sheet.triangles[:, 0]], axis=1)
     tol = tol_support if tol_support is not None else 2.0 * float(edge.max())
-    fixed, values = support_constraints(sheet, model.topo, supports, fabric, tol)
+    fixed, values = support_constraints(sheet, model.topo, supports, fabric, tol,
+                                        plane_z=support_plane(sheet, fabric, ground))
     model.contact = make_contact(sheet, fabric, fixed, contact, ground)
     if start is not None:
         x[:] = np.asarray(start, dtype=float).reshape(x.shape)
     else:
         size = float(np.linalg.norm(sheet.points.max(0) - sheet.points.min(0)))
-        pert = smooth_perturbation(sheet.points, seed, 0.01 * size)
         if ground is not None:
-            # above the plane: |perturbation| plus the barrier's band; held z on their values
-            c = model.contact
-            x[:, 2] = ground + c.dhat + np.abs(pert)
+            # above the plane: the held z at their values, carried harmonically into the sheet,
+            # plus a seeded bubble that is 0 at them (no step at a support, see lifted_perturbation)
             zf = fixed[fixed % 3 == 2]
-            q[zf] = values[np.isin(fixed, zf)]
+            held = np.zeros(sheet.n_vertices, bool)
+            held[zf // 3] = True
+            zv = values[np.isin(fixed, zf)]
+            base = np.full(sheet.n_vertices, float(ground))
+            if len(zf):
+                hz = harmonic_extension(graph_laplacian(sheet.n_vertices, model.topo.edges), zf // 3, zv)[:, 0]
+                base[held] = hz[held]
+                base[~held] = np.maximum(hz[~held], ground)
+            x[:, 2] = base + lifted_perturbation(sheet.points, sheet.triangles, model.topo.edges, held, seed,
+                                                 0.01 * size, model.contact.dhat)
         else:
-            x[:, 2] += pert
+            x[:, 2] += smooth_perturbation(sheet.points, seed, 0.01 * size)
     gravity = model.external_force is not None
     from shellfem.boundary import rigid_modes
     gauge = np.zeros(0, dtype=np.int64)
@@ -234,7 +265,8 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
 
     ``contact``: self-contact (shellfem.contact; off by default here, on by default for a
     pattern's :func:`simulate`); ``ground``: the height (mm) of a ground plane under the sheet,
-    None for none. A start that intersects, or a support below the ground, ends the solve
+    None for none; with one, "z" supports and "xyz" ones at relaxed positions hold the sheet at
+    :func:`support_plane` (the top of the ground barrier's band), not at z = 0. A start that intersects, or a support below the ground, ends the solve
     unconverged with that reason; an interpolated start of nested iteration that intersects or
     comes closer than the offset is dropped for the level's flat start.
 

@@ -8,11 +8,13 @@ from shellfem.boundary import graph_laplacian, harmonic_extension, nearest_verti
 from shellfem.errors import SelfshapeError
 
 
-def support_constraints(sheet: Sheet, topo, supports, fabric, tol: float):
+def support_constraints(sheet: Sheet, topo, supports, fabric, tol: float, plane_z: float = 0.0):
     """(dofs (k,), values (k,)) held by the pattern's [[support]]s on the sheet (printed-state mm):
-    "z" holds the vertices' z at 0, "xyz" holds them at ``position`` or at their relaxed (printed
-    / stretch) positions; ``tol`` (mm) is how far a support point may lie from its vertex.
-    topo: the model's edge topology (the boundary of a boundary support)."""
+    "z" holds the vertices' z at ``plane_z``, "xyz" holds them at ``position`` or at their relaxed
+    (printed / stretch) positions at z = ``plane_z``; ``tol`` (mm) is how far a support point may
+    lie from its vertex. topo: the model's edge topology (the boundary of a boundary support).
+    plane_z (mm): where the sheet rests on the table, 0 without a ground (the plane z = 0); with
+    a ground, the top of its barrier's band (forward.simulate.support_plane)."""
     dofs, vals = [], []
     sx, sy = fabric.stretch
     for k, sup in enumerate(supports):
@@ -23,13 +25,13 @@ def support_constraints(sheet: Sheet, topo, supports, fabric, tol: float):
             idx = nearest_vertices(sheet.points, sup.points, tol, label)
         if sup.fix == "z":
             dofs.append(3 * idx + 2)
-            vals.append(np.zeros(len(idx)))
+            vals.append(np.full(len(idx), float(plane_z)))
         elif sup.fix == "xyz":
             if sup.position is not None:
                 pos = np.asarray(sup.position, float).reshape(-1, 3)
             else:
                 p = sheet.points[idx]
-                pos = np.column_stack([p[:, 0] / sx, p[:, 1] / sy, np.zeros(len(idx))])
+                pos = np.column_stack([p[:, 0] / sx, p[:, 1] / sy, np.full(len(idx), float(plane_z))])
             dofs.append((3 * idx[:, None] + np.arange(3)).ravel())
             vals.append(pos.ravel())
         else:

@@ -32,7 +32,9 @@ class Support:
     """Boundary condition after release: nearest mesh vertices to ``points`` are held.
 
     fix: "z" (on the ground plane z = 0, free to slide) or "xyz" (held at
-    ``position`` or, when None, at the relaxed-fabric position (x/sx, y/sy, 0)).
+    ``position`` or, when None, at the relaxed-fabric position (x/sx, y/sy, 0)). With a ground
+    ([ground]) "z" and relaxed "xyz" supports stand on it: at its height plus the barrier's band
+    (forward.simulate.support_plane).
     boundary: hold every mesh vertex on the fabric's outline (``points`` empty), as the
     seed's Fig. 3.8 sheets "fixed at the boundary".
     """

@@ -99,7 +99,8 @@ class Pattern:
     (unknown [solver] and [meta] keys are kept here for the solver).
     contact: self-contact on ([contact] enabled, default true; shellfem.contact). ground: the
     height (mm) of the ground plane under the sheet ([ground] height_mm, default 0), or None
-    without a ground ([ground] enabled, default false).
+    without a ground ([ground] enabled; default: on when a support stands the sheet on the
+    table, :func:`on_the_table`).
     """
     fabric: Fabric
     plastic: Plastic
@@ -169,15 +170,24 @@ def _flag(table: dict, key: str, where: str, default: bool) -> bool:
     return v
 
 
+def on_the_table(supports, gravity: bool) -> bool:
+    """True when a support stands the sheet on the table, so that a ground is on by default: a
+    ``fix = "z"`` support (on the plane z = 0, free to slide), or, under gravity, an "xyz"
+    support at its relaxed position (z = 0: pinned to the table). "xyz" supports at a stated
+    ``position`` are posts or a frame in the air (a jig, a rim held above the table): they do
+    not put a table under the sheet, with or without gravity; ``[ground] enabled = true`` does."""
+    return any(s.fix == "z" or (gravity and s.fix == "xyz" and s.position is None) for s in supports)
+
+
 def contact_options(raw: dict, src: str, fabric, supports) -> tuple[bool, float | None]:
-    """([contact] enabled, ground height or None) of a pattern: see :class:`Pattern`."""
+    """([contact] enabled, ground height or None) of a pattern: see :class:`Pattern`. The
+    ground's default is :func:`on_the_table` (issue 20: on wherever a support holds the sheet
+    on the ground, or gravity pulls it onto the table it is pinned to)."""
     contact = _flag(_table(raw.get("contact", {}), f"{src}: [contact]", KEYS["contact"]), "enabled",
                     f"{src}: [contact]", True)
     where = f"{src}: [ground]"
     g = _table(raw.get("ground", {}), where, KEYS["ground"])
-    # off unless asked for: with the ground on wherever a support holds z, a sheet held on its
-    # rim did not converge (docs/notes.md, session 15)
-    on = _flag(g, "enabled", where, False)
+    on = _flag(g, "enabled", where, on_the_table(supports, fabric.areal_weight > 0))
     height = _num(g, "height_mm", where, 0.0, "ground")
     return contact, (height if on else None)
 

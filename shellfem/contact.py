@@ -30,11 +30,14 @@ boxes of printed-grid patches of vertices, inflated by the longest edge, compare
 patches that are not printed neighbours); then the barrier is 0 with zero derivatives and nothing
 is built, so a sheet that never touches itself pays only that test.
 
-Ground: the plane z = height (mm) under the sheet's mid-surface (the plane fix = "z" supports hold
-the sheet on): a barrier on each free vertex's height above it, kappa_g b(z - height, dhat)
-(hand-written, vectorised, exact first and second derivatives: the Hessian is diagonal); vertices
-whose z is held are not in it (they sit on the plane by their support), and a held vertex below
-the plane is a support that forces penetration (an error, see :meth:`Contact.check_start`).
+Ground: the plane z = height (mm) under the sheet's mid-surface: a barrier on each free vertex's
+height above it, kappa_g b(z - height, dhat) (hand-written, vectorised, exact first and second
+derivatives: the Hessian is diagonal). A vertex resting on the ground sits in the band (0, dhat);
+supports that stand the sheet on the table hold it at the band's top, height + dhat, where the
+barrier exerts no force (forward.simulate.support_plane: a held vertex on the plane itself, where
+the barrier is infinite, pushed its free neighbours up by most of the band within one edge).
+Vertices whose z is held are not in the barrier, and a held vertex below the plane is a support
+that forces penetration (an error, see :meth:`Contact.check_start`).
 
 Barrier stiffness (scale-free): kappa = 0.01 median(diag H_x) / (offset + dhat)^2, with diag H_x
 the position diagonal of the elastic Hessian at the start of a solve: the barrier's curvature
@@ -268,6 +271,15 @@ class Contact:
                 Hg = sp.csr_matrix((w[keep], (idx[keep], idx[keep])), shape=(3 * self.n, 3 * self.n))
                 H = Hg if H is None else H + Hg
         return E, g, H
+
+    @property
+    def indefinite_part(self) -> bool:
+        """True when the contact Hessian of the last order-2 :meth:`evaluate` has a self-contact
+        part, the only one PSD projection can change: the ground's diagonal kappa_g b''(h) is
+        positive in the whole band (each of its three terms is >= 0 for 0 < h < dhat). The
+        solver tries the projected contact Hessian only then; with the ground alone each try was
+        a second failed factorisation of an indefinite step (51 of 204 on the 2.5k-vertex dome)."""
+        return getattr(self, "_last", None) is not None
 
     def projected_hessian(self):
         """The PSD-projected contact Hessian (3n, 3n) of the state of the last order-2

@@ -39,7 +39,7 @@ def default_backend() -> str:
     return "cholmod" if HAVE_CHOLMOD else "superlu"
 
 
-def _same_frozen(a: np.ndarray, b: np.ndarray) -> bool:
+def same_frozen(a: np.ndarray, b: np.ndarray) -> bool:
     """a and b are read-only views of the same memory (so equal, now and later)."""
     return (not a.flags.writeable and not b.flags.writeable and a.shape == b.shape and a.dtype == b.dtype
             and a.ctypes.data == b.ctypes.data and a.strides == b.strides)
@@ -65,7 +65,7 @@ class SparseSPD:
     def _same_pattern(self, A) -> bool:
         """True if A (CSR or CSC) has the pattern of the last analysis; else remember A's."""
         p = self._pattern
-        if p is not None and p[0] == A.shape and _same_frozen(p[1], A.indptr) and _same_frozen(p[2], A.indices):
+        if p is not None and p[0] == A.shape and same_frozen(p[1], A.indptr) and same_frozen(p[2], A.indices):
             return True           # the same read-only index arrays (BlockScatter's matrices)
         if (p is not None and p[0] == A.shape and len(p[2]) == len(A.indices) and np.array_equal(p[1], A.indptr)
                 and np.array_equal(p[2], A.indices)):

@@ -391,7 +391,7 @@ class _Newton:
             self.exact = True
         except NotPositiveDefinite:
             self.factor, self.exact = None, False
-            if self.union is not None and self.model.contact_hessian is not None:
+            if self.union is not None and self.model.contact_hessian is not None and self.contact.indefinite_part:
                 # the contact blocks projected to PSD (ipctk): a Newton step that cannot decide
                 # convergence (the exact Hessian, tried first, gives the quadratic end game: with
                 # the projected one the last phase converged linearly, |g| x 0.85 per step)

@@ -34,3 +34,31 @@ def test_scatter_matches_coo_assembly(upper):
         sc.matrix([blocks[0], blocks[0]])
     with pytest.raises(ValueError, match="two index sets"):
         BlockScatter(sets + sets[:1], n, free)
+
+
+def test_pattern_union_sums_and_keeps_its_pattern_across_calls(monkeypatch):
+    """PatternUnion (the contact Hessian added to the scatter's): A + B exactly; a B whose
+    entries are already in the union (a contact set that settled) reuses the union's index arrays
+    (the solver then keeps its symbolic analysis) and does not rebuild the union; a new entry grows it."""
+    from shellfem.assembly import PatternUnion
+    from shellfem.linalg import same_frozen
+    rng = np.random.default_rng(2)
+    n = 30
+    sets = [rng.integers(0, n, (20, 3))]
+    free = np.ones(n, bool)
+    sc = BlockScatter(sets, n, free, upper=True)
+    blocks = [rng.standard_normal((20, 3, 3))]
+    builds = []
+    orig = PatternUnion._grow
+    monkeypatch.setattr(PatternUnion, "_grow", lambda self, A: (builds.append(1), orig(self, A)))
+    B = sp.triu(sp.random(n, n, density=0.05, random_state=3, format="csr") + sp.eye(n)).tocsr()
+    u = PatternUnion()
+    M1 = u.add(sc.matrix(blocks), B)
+    assert np.abs(M1.toarray() - (sc.matrix(blocks) + B).toarray()).max() < 1e-14
+    M2 = u.add(sc.matrix(blocks), 2 * B)           # a new matrix object from the scatter, same pattern
+    assert len(builds) == 1 and same_frozen(M2.indices, M1.indices) and same_frozen(M2.indptr, M1.indptr)
+    assert np.abs(M2.toarray() - (sc.matrix(blocks) + 2 * B).toarray()).max() < 1e-14
+    C = sp.csr_matrix(([1.0], ([0], [n - 1])), shape=(n, n))
+    if (sc.matrix(blocks) + B)[0, n - 1] == 0:
+        M3 = u.add(sc.matrix(blocks), C)
+        assert len(builds) == 2 and M3.nnz > M1.nnz and M3[0, n - 1] == pytest.approx(sc.matrix(blocks)[0, n - 1] + 1)

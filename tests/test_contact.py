@@ -8,7 +8,7 @@ from scipy.optimize import minimize_scalar
 from scipy.spatial import cKDTree
 
 from fd import central_difference
-from forward.simulate import make_contact, simulate, simulate_sheet
+from forward.simulate import make_contact, simulate, simulate_sheet, support_plane
 from geometry.meshing import mesh_pattern
 from geometry.patterns import load_pattern, parse_pattern
 from shellfem.contact import Contact, ground_barrier
@@ -104,6 +104,23 @@ def triangle_distances(x, tri, pairs):
     return d
 
 
+def intersecting_pairs(x, tri, chunk=200_000):
+    """(k, 2) the pairs of triangles of a surface (x (n, 3) mm, tri (m, 3)) that share no vertex
+    and cross each other (an edge of one through the other: :func:`triangle_distances` 0), over
+    ALL such pairs: two triangles can only meet if their centroids are within the sum of their
+    circumradii about the centroid, so a KD-tree query at twice the largest of those radii is
+    exhaustive. Independent of ipctk and of the engine's printed-distance exclusion."""
+    P = x[tri]
+    c = P.mean(1)
+    reach = 2.0 * float(np.linalg.norm(P - c[:, None], axis=2).max())
+    pairs = cKDTree(c).query_pairs(reach, output_type="ndarray")
+    share = (tri[pairs[:, 0]][:, :, None] == tri[pairs[:, 1]][:, None, :]).any(axis=(1, 2))
+    pairs = pairs[~share]
+    hit = [pairs[i:i + chunk][triangle_distances(x, tri, pairs[i:i + chunk]) == 0.0]
+           for i in range(0, len(pairs), chunk)]
+    return np.concatenate(hit) if hit else np.zeros((0, 2), np.int64)
+
+
 def far_pairs_min_distance(sheet, x, printed_apart, reach):
     """Smallest exact distance (mm) between triangles at least ``printed_apart`` mm apart in the
     printed sheet (centroids), over all such pairs whose deformed centroids are within
@@ -197,6 +214,7 @@ def test_self_contact_gradient_and_hessian_match_differences(seed):
     # the projected Hessian is positive semi-definite
     Hp = c.projected_hessian().toarray()
     assert np.linalg.eigvalsh((Hp + Hp.T) / 2).min() >= -1e-8 * np.abs(Hp).max()
+    assert c.indefinite_part                                    # the solver may try the projection
 
 
 def test_ground_barrier_derivatives():
@@ -210,6 +228,26 @@ def test_ground_barrier_derivatives():
     assert np.allclose(b2[inside], ((b1p - b1m) / (2 * eps))[inside], rtol=1e-5, atol=1e-7)
     assert np.all(b[h >= 0.1] == 0) and np.all(b[h < 0.1] > 0)
     assert ground_barrier(np.array([0.0, -1.0]), 0.1)[0].tolist() == [np.inf, np.inf]
+    assert np.all(b2[h < 0.1] > 0)              # convex in the band: the ground's Hessian is PSD
+    # so a ground alone has nothing to project (the solver skips the projected retry)
+    pat = _strip(L=30.0, W=2.0, size=1.0)
+    sheet = mesh_pattern(pat)
+    c = Contact(sheet.points, sheet.triangles, offset=0.35, self_contact=False, ground=0.0)
+    c.set_stiffness(np.ones(3))
+    x = np.column_stack([sheet.points, np.linspace(0.01, 0.2, sheet.n_vertices)])
+    E, g, H = c.evaluate(x, order=2)
+    assert E > 0 and H.nnz > 0 and H.diagonal().min() >= 0 and not c.indefinite_part
+
+
+def test_intersection_check_finds_crossing_triangles_only():
+    """The independent check: two triangles through each other are found; the same two 0.01 mm
+    apart, and two triangles sharing a vertex, are not."""
+    tri = np.array([[0, 1, 2], [3, 4, 5]])
+    a = np.array([[0.0, 0, 0], [2, 0, 0], [0, 2, 0]])
+    b = np.array([[0.5, 0.5, -1], [0.5, 0.5, 1], [3, 3, 0.2]])
+    assert intersecting_pairs(np.vstack([a, b]), tri).tolist() == [[0, 1]]
+    assert len(intersecting_pairs(np.vstack([a, a + [0, 0, 0.01]]), tri)) == 0
+    assert len(intersecting_pairs(np.vstack([a, b]), np.array([[0, 1, 2], [0, 4, 5]]))) == 0
 
 
 def test_step_filter_stops_a_move_through_the_other_layer():
@@ -262,6 +300,8 @@ def test_rolled_strip_is_a_spiral_whose_layers_keep_the_thickness():
     edge = float(np.linalg.norm(np.diff(sheet.points[sheet.triangles][:, [0, 1, 2, 0]], axis=1), axis=2).max())
     assert far_pairs_min_distance(sheet, free.positions, apart, offset + 2 * edge) < 0.5 * offset
     assert far_pairs_min_distance(sheet, sim.positions, apart, offset + 2 * edge) >= offset
+    assert len(intersecting_pairs(free.positions, sheet.triangles)) > 0                # through itself
+    assert len(intersecting_pairs(sim.positions, sheet.triangles)) == 0                # over all pairs
     assert sim.result.energy > free.result.energy
     turns, r_in, r_out = centreline_turns(sheet, sim.positions)
     assert turns > 2.0
@@ -276,65 +316,140 @@ def test_rolled_strip_is_a_spiral_whose_layers_keep_the_thickness():
 # ----------------------------------------------------------------------------- the ground
 
 
-def _draping(ground=True, **extra):
+def _draping(ground=None, **extra):
     raw = {"fabric": {"rectangle": [20.0, 20.0], "stretch": 1.2, "thickness_mm": 0.8, "areal_weight_n_per_mm2": 1e-5},
            "support": [{"points": [[10.0, 10.0], [8.0, 10.0], [12.0, 10.0], [10.0, 8.0], [10.0, 12.0]], "fix": "z"}],
-           "mesh": {"size_mm": 2.0}, "solver": {"coarse_levels": 0}, "ground": {"enabled": ground}}
+           "mesh": {"size_mm": 2.0}, "solver": {"coarse_levels": 0}}
+    if ground is not None:
+        raw["ground"] = {"enabled": ground}
     raw.update(extra)
     return parse_pattern(raw)
 
 
+def _held_z(sim):
+    """(n,) bool: the vertices whose z a support holds."""
+    held = np.zeros(sim.sheet.n_vertices, bool)
+    held[sim.fixed[sim.fixed % 3 == 2] // 3] = True
+    return held
+
+
 def test_bare_sheet_under_gravity_rests_on_the_ground():
-    """A bare fabric sheet held at its centre (five points) under gravity: without the ground its rim hangs
-    below the table; with it no point is below the plane and the sheet rests on it (in the
-    barrier's band: its distance tolerance)."""
+    """A bare fabric sheet held at its centre (five points, fix = "z") under gravity: the ground
+    is on by default; with [ground] enabled = false its rim hangs below the table; with the
+    ground no point is below the plane, the supports stand at the top of the barrier's band and
+    the rim rests in the band (the barrier's distance tolerance)."""
     hanging = simulate(_draping(ground=False))
+    assert hanging.model.contact.ground is None
     assert hanging.result.converged and hanging.positions[:, 2].min() < -0.3
     pat = _draping()
-    assert pat.ground == 0.0                                    # [ground] enabled = true
+    assert pat.ground == 0.0                                    # on by default: a "z" support and gravity
     sim = simulate(pat)
     assert sim.result.converged, sim.result.reason
     z = sim.positions[:, 2]
     c = sim.model.contact
-    held = sim.fixed[sim.fixed % 3 == 2] // 3
-    free_z = np.delete(z, held)
-    assert np.all(z[held] == 0.0) and free_z.min() > 0.0       # nothing below the plane
-    assert free_z.min() < c.dhat and free_z.max() < 2 * c.dhat        # resting on it
+    held = _held_z(sim)
+    assert np.all(z[held] == support_plane(sim.sheet, pat.fabric, 0.0)) and c.dhat == support_plane(sim.sheet, pat.fabric, 0.0)
+    assert z.min() > 0.0                                        # nothing below the plane
+    assert z[~held].min() < c.dhat and z.max() < 2 * c.dhat     # resting on it
     rep = sim.summary()["contact"]
     assert rep["ground"] == 0.0 and 0 < rep["ground_min_height_mm"] < c.dhat
 
 
-def _curling(ground=True):
+def _curling(ground=None):
     raw = {"fabric": {"rectangle": [30.0, 8.0], "stretch": 1.35, "thickness_mm": 0.8},
            "region": [{"polygon": [[0, 0], [30, 0], [30, 8], [0, 8]], "thickness_mm": 0.3, "side": "front"}],
            "support": [{"points": [[13.0, 2.0], [17.0, 2.0], [13.0, 6.0], [17.0, 6.0]], "fix": "z"}],
-           "mesh": {"size_mm": 1.5},
-           "solver": {"coarse_levels": 0}, "ground": {"enabled": ground}}
+           "mesh": {"size_mm": 1.5}, "solver": {"coarse_levels": 0}}
+    if ground is not None:
+        raw["ground"] = {"enabled": ground}
     return parse_pattern(raw)
 
 
 def test_printed_sheet_on_its_support_has_its_lowest_point_at_the_plane():
-    """Front plastic curls the sheet towards -z: held at four points of its centre on the table, its ends go
-    below the plane without the ground; with the ground ([ground] enabled = true) the
-    lowest point is the support, at the plane."""
+    """Front plastic curls the sheet towards -z: held at four points of its centre on the table
+    (fix = "z", no gravity), its ends go below the plane with [ground] enabled = false; with the
+    ground (on by default) its lowest point is at the plane, within the barrier's band above it,
+    and nothing is below it."""
     below = simulate(_curling(ground=False))
     assert below.result.converged and below.positions[:, 2].min() < -1.0
-    sim = simulate(_curling())
+    pat = _curling()
+    assert pat.ground == 0.0
+    sim = simulate(pat)
     assert sim.result.converged, sim.result.reason
     z = sim.positions[:, 2]
-    assert z.min() == pytest.approx(0.0, abs=1e-12)
-    held = sim.fixed[sim.fixed % 3 == 2] // 3
-    assert np.all(z[held] == 0.0) and np.all(np.delete(z, held) > 0.0)
+    c = sim.model.contact
+    held = _held_z(sim)
+    assert np.all(z[held] == c.dhat)                            # the supports at the band's top
+    assert 0.0 < z.min() < c.dhat                               # the lowest point at the plane
     assert sim.result.energy > below.result.energy
 
 
+def _small_dome(ground=None):
+    """The gallery dome (examples/gallery/dome.toml) at 15 mm: stars whose arms shorten towards
+    the rim, the rim held on the table (boundary, fix = "z")."""
+    raw = {"fabric": {"hexagon": 15.0, "stretch": 1.35, "thickness_mm": 0.8},
+           "plastic": {"young_modulus_mpa": 3360.0, "poisson": 0.5},
+           "stars": {"spacing_mm": 6.0, "arm_length": "clip(0.75 - 0.45 * r / 15, 0.2, 0.75)", "thickness_mm": 0.3,
+                     "arm_width_mm": 0.8, "side": "front"},
+           "support": [{"boundary": True, "fix": "z"}], "mesh": {"size_mm": 2.0, "across": 1.0},
+           "solver": {"coarse_levels": 0}}
+    if ground is not None:
+        raw["ground"] = {"enabled": ground}
+    return parse_pattern(raw)
+
+
+def test_held_rim_dome_on_the_ground_is_the_dome_without_it():
+    """A dome held on its rim rises from the table (the solution without the ground dips 0.015 mm
+    below its supports): the ground, on by default, leaves it as it is - the same energy to 1e-4
+    and the same largest fibre bend - with nothing below the plane. With the supports held on
+    the plane itself (where the barrier is infinite) and a lifted start snapped down to them, the
+    rim's neighbours were pushed up by most of the band within one edge: the energy 5 % higher
+    here, and at 18 mm a folded state (|k z| 78, not converged)."""
+    off = simulate(_small_dome(ground=False))
+    pat = _small_dome()
+    assert pat.ground == 0.0
+    on = simulate(pat)
+    assert off.result.converged and on.result.converged, on.result.reason
+    assert off.positions[~_held_z(off), 2].min() < 0.0          # it would dip below its supports
+    assert on.result.energy == pytest.approx(off.result.energy, rel=1e-4)
+    assert on.summary()["max_fibre_kz"] == pytest.approx(off.summary()["max_fibre_kz"], rel=1e-3)
+    assert on.positions[:, 2].min() > 0.0
+
+
+def test_lifted_start_is_smooth_and_above_the_plane():
+    """The ground's start (shellfem.boundary.lifted_perturbation): 0 at the held vertices,
+    positive elsewhere, with no step at the supports (no neighbour of a held vertex farther above
+    it than the slope of the bubble allows), seeded; a sheet without held vertices is lifted whole."""
+    from shellfem.boundary import lifted_perturbation
+    sheet = mesh_pattern(_small_dome())
+    tri = sheet.triangles
+    e = np.unique(np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1), axis=0)
+    r = np.linalg.norm(sheet.points - sheet.points.mean(0), axis=1)
+    held = r > r.max() - 1e-6
+    z = lifted_perturbation(sheet.points, tri, e, held, 0, 0.3, 0.1)
+    assert np.all(z[held] == 0.0) and z[~held].min() > 0.0 and z.max() <= 0.45 + 1e-12
+    length = np.linalg.norm(sheet.points[e[:, 0]] - sheet.points[e[:, 1]], axis=1)
+    slope = np.abs(z[e[:, 0]] - z[e[:, 1]]) / length
+    assert slope.max() < 0.3                                    # 0.45 mm over a 15 mm radius: no step
+    assert not np.array_equal(z, lifted_perturbation(sheet.points, tri, e, held, 1, 0.3, 0.1))
+    free = lifted_perturbation(sheet.points, tri, e, np.zeros(len(z), bool), 0, 0.3, 0.1)
+    assert free.min() == pytest.approx(0.1) and 0.1 + 0.3 <= free.max() <= 0.1 + 0.6 + 1e-12
+
+
 def test_support_below_the_ground_is_a_reason_not_a_converged_state():
+    """A post (fix = "xyz") held below a raised ground forces penetration: a reason, not a
+    converged state; "z" supports stand on the ground wherever it is (at the band's top)."""
     raw = {"fabric": {"rectangle": [20.0, 8.0], "stretch": 1.35, "thickness_mm": 0.8},
            "region": [{"polygon": [[0, 0], [20, 0], [20, 8], [0, 8]], "thickness_mm": 0.3, "side": "front"}],
-           "support": [{"points": [[10.0, 4.0]], "fix": "z"}], "mesh": {"size_mm": 2.0},
-           "solver": {"coarse_levels": 0}, "ground": {"enabled": True, "height_mm": 1.0}}
+           "support": [{"points": [[10.0, 4.0]], "fix": "xyz", "position": [[7.4, 3.0, 0.0]]}],
+           "mesh": {"size_mm": 2.0}, "solver": {"coarse_levels": 0}, "ground": {"enabled": True, "height_mm": 1.0}}
     sim = simulate(parse_pattern(raw))
     assert not sim.result.converged and "forces penetration" in sim.result.reason
+    raw["support"] = [{"points": [[10.0, 4.0], [9.0, 4.0], [11.0, 4.0]], "fix": "z"}]
+    sim = simulate(parse_pattern(raw))
+    assert sim.result.converged, sim.result.reason
+    held = _held_z(sim)
+    assert np.all(sim.positions[held, 2] == 1.0 + sim.model.contact.dhat) and sim.positions[:, 2].min() > 1.0
 
 
 def test_intersecting_start_is_a_reason_not_a_converged_state():
@@ -390,13 +505,25 @@ def test_contact_keys_bad_input_is_one_line(table, message):
 
 
 def test_contact_key_defaults():
+    """Self-contact on by default; the ground on by default where a support stands the sheet on
+    the table: a "z" support, or under gravity an "xyz" support at its relaxed position (z = 0);
+    not for a free sheet nor for posts at stated positions (a jig, a frame in the air), gravity
+    or not; [ground] enabled overrides either way."""
     base = {"fabric": {"rectangle": [20.0, 8.0]},
             "region": [{"polygon": [[0, 0], [20, 0], [20, 8], [0, 8]], "thickness_mm": 0.3}]}
+    heavy = {"rectangle": [20.0, 8.0], "areal_weight_n_per_mm2": 1e-5}
     p = parse_pattern(dict(base))
     assert p.contact is True and p.ground is None                     # free sheet: no ground
     p = parse_pattern({**base, "support": [{"points": [[10.0, 4.0]], "fix": "z"}]})
-    assert p.ground is None                                             # the ground only when asked for
-    p = parse_pattern({**base, "support": [{"points": [[10.0, 4.0]], "fix": "z"}], "ground": {"enabled": True}})
+    assert p.ground == 0.0                                              # on the table
+    p = parse_pattern({**base, "fabric": heavy, "support": [{"points": [[10.0, 4.0]], "fix": "xyz"}]})
+    assert p.ground == 0.0                                              # pinned to the table, gravity
+    p = parse_pattern({**base, "support": [{"points": [[10.0, 4.0]], "fix": "xyz"}]})
+    assert p.ground is None                                             # pinned, no gravity
+    post = {"points": [[10.0, 4.0]], "fix": "xyz", "position": [[7.4, 3.0, 20.0]]}
+    p = parse_pattern({**base, "fabric": heavy, "support": [post]})
+    assert p.ground is None                                             # hung from a post in the air
+    p = parse_pattern({**base, "fabric": heavy, "support": [post], "ground": {"enabled": True}})
     assert p.ground == 0.0
     p = parse_pattern({**base, "support": [{"points": [[10.0, 4.0]], "fix": "z"}],
                        "ground": {"enabled": False}, "contact": {"enabled": False}})
