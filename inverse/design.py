@@ -246,12 +246,6 @@ def _check_curved(V, where: str) -> None:
 DESIGN_STAGES = ("load and refine", "curvature", "line field", "flattening", "ribbon layout", "thickness")
 
 
-# The design is the same at every thread count: multithreaded OpenBLAS (CHOLMOD's supernodal
-# factorisations and numpy's products) sums in an order that depends on the thread count, and the
-# flattening's iterations carry that round-off into the pattern (the saddle at 1 and 2 threads:
-# coordinates a median 0.001 mm and up to 0.45 mm apart, one ribbon point fewer), which a
-# multistable sheet can turn into another equilibrium. One BLAS thread here (restored on return).
-@threadpool_limits.wrap(limits=1, user_api="blas")
 def check_design_numbers(o: DesignOptions) -> None:
     """The numbers of ``o`` in their geometry.schema.DESIGN_NUMBERS ranges (None turns an
     option off; stretch may be "auto"), before anything runs: a one-line SelfshapeError naming
@@ -263,6 +257,12 @@ def check_design_numbers(o: DesignOptions) -> None:
             number(v, f"design: {key}", spec)
 
 
+# The design is the same at every thread count: multithreaded OpenBLAS (CHOLMOD's supernodal
+# factorisations and numpy's products) sums in an order that depends on the thread count, and the
+# flattening's iterations carry that round-off into the pattern (the saddle at 1 and 2 threads:
+# coordinates a median 0.001 mm and up to 0.45 mm apart, one ribbon point fewer), which a
+# multistable sheet can turn into another equilibrium. One BLAS thread here (restored on return).
+@threadpool_limits.wrap(limits=1, user_api="blas")
 def design(V, F, options: DesignOptions | None = None, *, where: str = "target", progress=None,
            **overrides) -> Design:
     """Inverse design of a disk-topology target (V (n, 3), F (m, 3)); see the module doc.

@@ -542,3 +542,21 @@ def test_pattern_larger_than_the_bed_is_refused_before_the_layout():
         design(V, F, diagonal_mm=None, edge_mm=None, printer=Printer(bed_size=(10.0, 10.0)))
     msg = str(e.value)
     assert "larger than the printer's 10 x 10 mm bed" in msg and "\n" not in msg
+
+
+def test_the_design_runs_on_one_blas_thread():
+    """design() holds BLAS to one thread while it runs (the flattening's round-off, and so the
+    pattern, would otherwise depend on the thread count), checked from inside its progress
+    callback; the caller's setting is back afterwards."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+    seen = []
+
+    def progress(event):
+        seen.extend(p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas")
+
+    V, F = cylinder_patch()
+    with threadpool_limits(limits=2, user_api="blas"):
+        design(V, F, diagonal_mm=None, edge_mm=None, stretch=1.6, progress=progress)
+        after = {p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}
+    assert seen and set(seen) == {1}
+    assert after == {2}
