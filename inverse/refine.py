@@ -55,7 +55,10 @@ class RefineOptions:
     (a shifted Hessian: indefinite, or a full Newton step that did not lower the energy) while
     its iterate's objective is above the current J: the prediction put it beyond a fold of the
     branch and it is crossing to another state (0: never). A trial that stays on the branch
-    converges from the prediction in Newton steps after at most a few shifted ones."""
+    converges from the prediction in Newton steps after at most a few shifted ones.
+    stability: the stability margin (:class:`StabilityMargin`) as a fraction of the start
+    equilibrium's lowest eigenvalue (0: no margin; the eigenvalue is recorded either way);
+    stability_weight: its penalty at a fold, in units of the start's objective."""
     bounds: tuple = (0.1, 1.6)
     max_outer: int = 12
     ftol: float = 1e-2
@@ -67,6 +70,8 @@ class RefineOptions:
     leave_factor: float = 1.25
     shifted_run: int = 6
     shifted_grace: int = 3
+    stability: float = 0.0
+    stability_weight: float = 1.0
     verbose: bool = False
 
 
@@ -261,11 +266,12 @@ class ThicknessProblem:
         return msd + float(r @ r), msd
 
 
-def gauss_newton_model(problem: ThicknessProblem, model, q, p):
+def gauss_newton_model(problem: ThicknessProblem, model, q, p, solve=None):
     """The Gauss-Newton model of J at the equilibrium q of thicknesses p (P,) mm:
     (M, b, dq, A) with J(p + s) ~ |M s - b|^2 (mm^2), dq (n_dofs, P) the equilibrium's
     Jacobian dq/dp (-H^-1 dg/dp: one factorisation, P back-substitutions; zero on held DOFs)
-    and A the residual rows of M (the regulariser's rows below them). Raises
+    and A the residual rows of M (the regulariser's rows below them). ``solve``: the free
+    Hessian's factorisation at q if the caller has it. Raises
     shellfem.linalg.NotPositiveDefinite where the equilibrium is not stable."""
     from shellfem.sensitivity import equilibrium_factor, equilibrium_jacobian, thickness_form, thickness_gradient
 
@@ -275,7 +281,8 @@ def gauss_newton_model(problem: ThicknessProblem, model, q, p):
     rr, L = problem.regulariser(p)
     form = thickness_form(model, problem.fabric, problem.plastic)
     _, G = thickness_gradient(model, form, q, problem.parameter, P)
-    solve = equilibrium_factor(model, q, free)
+    if solve is None:
+        solve = equilibrium_factor(model, q, free)
     S = equilibrium_jacobian(solve, G, free)               # (n_free, P)
     dq = np.zeros((model.n_dofs, P))
     dq[free] = S
@@ -296,6 +303,56 @@ def gauss_newton_model(problem: ThicknessProblem, model, q, p):
     M = np.concatenate([A, L.toarray()], 0)
     b = -np.concatenate([r, rr])
     return M, b, dq, A
+
+
+class StabilityMargin:
+    """A penalty that keeps the refined equilibrium away from a fold (mm^2, added to J):
+
+        weight * J0 * max(0, 1 - lambda / lambda_star)^2,   lambda_star = fraction * lambda0
+
+    lambda: the equilibrium's lowest eigenvalue (shellfem.stability.lowest_mode, N/mm^3),
+    lambda0 and J0 those of the start. Why: the objective is often lowest where the branch is
+    about to end (the target asks for a shape the sheet only just holds); there, rounding the
+    thicknesses to printer layers, or a print's tolerance, tips the sheet into another state,
+    and release from flat misses the refined state. The Gauss-Newton model gains the row
+    sqrt(weight J0) (1 - (lambda + dlambda/dp s) / lambda_star) where lambda < lambda_star."""
+
+    def __init__(self, problem: ThicknessProblem, fraction: float, weight: float = 1.0):
+        self.problem, self.fraction, self.weight = problem, float(fraction), float(weight)
+        self.lam_star = self.scale = None
+        self.form = None
+
+    def reference(self, lam0: float, J0: float):
+        """Set lambda_star from the start's eigenvalue lam0 (none if the start is not stable)."""
+        if not lam0 > 0:
+            return
+        self.lam_star = self.fraction * float(lam0)
+        self.scale = float(np.sqrt(self.weight * J0))
+
+    def value(self, lam: float) -> float:
+        if self.fraction <= 0 or self.lam_star is None:
+            return 0.0
+        if not lam > 0:
+            return np.inf
+        return self.scale ** 2 * max(0.0, 1.0 - lam / self.lam_star) ** 2
+
+    def active(self, lam: float) -> bool:
+        return self.fraction > 0 and self.lam_star is not None and lam < self.lam_star
+
+    def gradient(self, model, q, solve, lam, u) -> np.ndarray:
+        """dlambda/dp (P,) at the equilibrium q (shellfem.stability.mode_sensitivity)."""
+        from shellfem.sensitivity import thickness_form, thickness_gradient
+        from shellfem.stability import mode_sensitivity
+
+        pr = self.problem
+        form = thickness_form(model, pr.fabric, pr.plastic)
+        return mode_sensitivity(model, q, pr.free, u, lam,
+                                lambda s: thickness_gradient(model, form, s, pr.parameter, pr.P)[1], solve)
+
+    def row(self, model, q, solve, lam, u):
+        """(M row (P,), b entry) of the penalty's Gauss-Newton row at lambda (active only)."""
+        d = self.gradient(model, q, solve, lam, u)
+        return -self.scale * d / self.lam_star, -self.scale * (1.0 - lam / self.lam_star)
 
 
 def finite_or_none(x):
@@ -401,6 +458,8 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
     from scipy.optimize import lsq_linear
 
     from shellfem.linalg import NotPositiveDefinite
+    from shellfem.sensitivity import equilibrium_factor
+    from shellfem.stability import lowest_mode
 
     lo, hi = (float(b) for b in options.bounds)
     p = np.clip(np.asarray(p0, float), lo, hi)
@@ -412,12 +471,19 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
         raise SelfshapeError(f"refine: no equilibrium near the start ({res.reason}; {res.iterations} iterations)")
     q = res.q
     J, msd = problem.objective(model.split(q)[0], p)
+    margin = StabilityMargin(problem, options.stability, options.stability_weight)
+    try:
+        solve = equilibrium_factor(model, q, problem.free)
+        lam, u = lowest_mode(model, q, problem.free, solve)
+    except NotPositiveDefinite:
+        solve, lam, u = None, 0.0, None
+    margin.reference(lam, J)
     history = [dict(iteration=0, objective=J, rms_mm=float(np.sqrt(msd)), accepted=True, damping=None,
-                    newton_iterations=int(res.iterations), seconds=round(time.perf_counter() - t0, 2))]
+                    lambda_min=lam, newton_iterations=int(res.iterations), seconds=round(time.perf_counter() - t0, 2))]
     if callback is not None:
         history[-1].update(callback(0, p, q, model) or {})
     if options.verbose:
-        print(f"refine 0: J {J:.4e} mm^2, rms {np.sqrt(msd):.4f} mm, {res.iterations} Newton iterations", flush=True)
+        print(f"refine 0: J {J:.4e} mm^2, rms {np.sqrt(msd):.4f} mm, lambda_min {lam:.4e} N/mm^3, {res.iterations} Newton iterations", flush=True)
     mu = None
     radius = options.max_step
     reason = f"reached max_outer = {options.max_outer}"
@@ -427,10 +493,16 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
         it += 1
         t_it = time.perf_counter()
         try:
-            M, b, dq, A = gauss_newton_model(problem, model, q, p)
+            M, b, dq, A = gauss_newton_model(problem, model, q, p, solve)
         except NotPositiveDefinite:
             reason = "the equilibrium is not stable (Hessian not positive definite): no sensitivity"
             break
+        Jt = J + margin.value(lam)              # the objective with the stability margin's penalty
+        if margin.active(lam):
+            if solve is None:
+                solve = equilibrium_factor(model, q, problem.free)
+            row, rhs = margin.row(model, q, solve, lam, u)
+            M, b = np.concatenate([M, row[None]], 0), np.concatenate([b, [rhs]])
         t_sens = time.perf_counter() - t_it
         t_solves, trials = 0.0, 0
         last_model = (p.copy(), M, b)
@@ -461,14 +533,22 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
             res = problem.trial_solve(model_try, q_guess, q, options.trial_iterations, p_try, options.leave_factor * J,
                                       (options.shifted_run, options.shifted_grace, J))
             t_solves += time.perf_counter() - t_s
+            solve_try, lam_try, u_try = None, 0.0, None
             if res.converged:
                 J_try, msd_try = problem.objective(model_try.split(res.q)[0], p_try)
-                rho = (J - J_try) / max(J - predicted, 1e-300)
+                try:
+                    solve_try = equilibrium_factor(model_try, res.q, problem.free)
+                    lam_try, u_try = lowest_mode(model_try, res.q, problem.free, solve_try, v0=u)
+                except NotPositiveDefinite:      # converged to a saddle point of the energy: not a state
+                    J_try = np.inf
+                Jt_try = J_try + margin.value(lam_try)
+                rho = (Jt - Jt_try) / max(Jt - predicted, 1e-300)
             else:
-                J_try, rho = np.inf, -np.inf
+                J_try, Jt_try, rho = np.inf, np.inf, -np.inf
             if options.verbose:
                 peak = max(problem.trace, default=np.nan) / J
-                print(f"  trial: J {J_try:.4e} (predicted {predicted:.4e}), rho {rho:.3f}, mu {mu:.2e}, radius {radius:.3g} mm, "
+                print(f"  trial: J {J_try:.4e}, with the margin {Jt_try:.4e} (predicted {predicted:.4e}), lambda_min {lam_try:.4e}, "
+                      f"rho {rho:.3f}, mu {mu:.2e}, radius {radius:.3g} mm, "
                       f"{res.iterations} Newton iterations, peak J / J {peak:.3f}"
                       f"{'' if res.converged else ' (' + res.reason + ')'}", flush=True)
                 pred_move = float(np.sqrt(problem.w @ np.sum((model.split(q_guess)[0] - model.split(q)[0]) ** 2, 1)))
@@ -493,15 +573,18 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
             history.append(dict(iteration=it, objective=J, rms_mm=float(np.sqrt(msd)), accepted=False,
                                 damping=float(mu), radius_mm=radius, newton_iterations=0, seconds=round(time.perf_counter() - t_it, 2)))
             break
-        decrease = (J - J_try) / max(J, 1e-300)
+        decrease = (Jt - Jt_try) / max(Jt, 1e-300)
         p, q, model, J, msd = p_try, res.q, model_try, J_try, msd_try
+        solve, lam, u = solve_try, lam_try, u_try
         history.append(dict(iteration=it, objective=J, rms_mm=float(np.sqrt(msd)), accepted=True, damping=float(mu),
+                            lambda_min=lam, penalty=margin.value(lam),
                             radius_mm=radius, newton_iterations=int(res.iterations), trials=trials, sensitivity_s=round(t_sens, 2),
                             solves_s=round(t_solves, 2), seconds=round(time.perf_counter() - t_it, 2)))
         if callback is not None:
             history[-1].update(callback(it, p, q, model) or {})
         if options.verbose:
-            print(f"refine {it}: J {J:.4e} mm^2, rms {np.sqrt(msd):.4f} mm", flush=True)
+            print(f"refine {it}: J {J:.4e} mm^2, rms {np.sqrt(msd):.4f} mm, lambda_min {lam:.4e} N/mm^3 "
+                  f"(start {history[0]['lambda_min']:.4e})", flush=True)
         if decrease < options.ftol:
             reason = f"relative decrease {decrease:.2e} < ftol {options.ftol:g}"
             break

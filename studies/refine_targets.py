@@ -39,7 +39,8 @@ def run_target(path, out_dir, args) -> dict:
     from inverse.refine import RefineOptions
 
     printer = load_printer(args.printer) if args.printer else Printer(layer_height_mm=args.layer)
-    opts = RefineOptions(bounds=(printer.layer_height_mm, args.max_thickness), max_outer=args.max_outer, verbose=args.verbose)
+    opts = RefineOptions(bounds=(printer.layer_height_mm, args.max_thickness), max_outer=args.max_outer, verbose=args.verbose,
+                         stability=args.stability)
     t0 = time.perf_counter()
     rep = design_file(path, out_dir, refine=True, mesh_size_mm=args.mesh_size, mesh_across=args.across,
                       verify_iterations=args.verify_iterations, refine_options=opts, printer=printer,
@@ -139,6 +140,8 @@ def main(argv=None) -> int:
     ap.add_argument("--across", type=float, default=1.0, help="[mesh] across: triangle rows across a ribbon")
     ap.add_argument("--verify-iterations", type=int, default=3000, help="Newton cap of the release from flat")
     ap.add_argument("--max-outer", type=int, default=12, help="outer (Gauss-Newton) iterations")
+    ap.add_argument("--stability", type=float, default=0.0,
+                    help="stability margin: keep the lowest eigenvalue above this fraction of the start's (0: off)")
     ap.add_argument("--layer", type=float, default=0.2, help="printer layer height (mm), without --printer")
     ap.add_argument("--printer", help="printer file (TOML), e.g. inverse/data/printers/layer_0.1mm.toml")
     ap.add_argument("--stretch", type=float, help="pre-stretch s (default: the design's own choice)")
