@@ -227,3 +227,30 @@ def test_a_layer_trial_that_does_not_converge_is_recorded_without_an_objective(d
     assert hist and all(h["objective"] is None and not h["accepted"] and h["reason"].startswith("left the branch")
                         for h in hist)
     json.dumps(hist, allow_nan=False)
+
+
+def test_the_history_records_the_lowest_eigenvalue_and_the_margin_raises_it(deployed):
+    """Each accepted iterate records lambda_min (N/mm^3), the lowest eigenvalue of its
+    equilibrium (shellfem.stability), and the last one is that of the returned state. With a
+    margin above every reachable eigenvalue (fraction 2 of the start's, weight 10) the
+    refinement trades objective for stability: it ends with a larger lambda_min and a larger
+    objective than without."""
+    from shellfem.stability import lowest_mode
+    base, param, X = deployed
+    p0 = TRUE * (1 + 0.3 * np.array([1, -1, 1, -1, -1, 1, 1, -1, 1]))
+    out = {}
+    for fraction in (0.0, 2.0):
+        prob = ThicknessProblem(sheet_at(base, param, p0), FABRIC, PLASTIC, param, X, None, smoothness=0.0)
+        prob.free = np.ones(3 * base.n_vertices + prob.model_at(p0).n_edges, bool)
+        prob.free[gauge_dofs(X, np.zeros(0, int))] = False
+        q0 = np.concatenate([X.ravel(), np.zeros(len(prob.free) - X.size)])
+        res = refine_thickness(prob, p0, q0, RefineOptions(ftol=1e-8, max_outer=4, stability=fraction,
+                                                           stability_weight=10.0))
+        lam = [h["lambda_min"] for h in res.history if h["accepted"]]
+        assert all(np.isfinite(lam)) and min(lam) > 0
+        again = lowest_mode(prob.model_at(res.thickness), res.q, prob.free, tol=1e-10)[0]
+        assert lam[-1] == pytest.approx(again, rel=1e-5)
+        out[fraction] = (lam[-1], res.objective, lam[0])
+    assert out[2.0][2] == pytest.approx(out[0.0][2], rel=1e-9)        # the same start
+    assert out[2.0][0] > 1.002 * out[0.0][0]
+    assert out[2.0][1] > out[0.0][1]
