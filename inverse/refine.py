@@ -350,9 +350,10 @@ class StabilityMargin:
                                 lambda s: thickness_gradient(model, form, s, pr.parameter, pr.P)[1], solve)
 
     def row(self, model, q, solve, lam, u):
-        """(M row (P,), b entry) of the penalty's Gauss-Newton row at lambda (active only)."""
+        """(M row (P,), b entry, dlambda/dp (P,)) of the penalty's Gauss-Newton row at lambda,
+        the linearisation of its active side: |row s - b|^2 = the penalty at lambda + dlambda/dp s."""
         d = self.gradient(model, q, solve, lam, u)
-        return -self.scale * d / self.lam_star, -self.scale * (1.0 - lam / self.lam_star)
+        return -self.scale * d / self.lam_star, -self.scale * (1.0 - lam / self.lam_star), d
 
 
 def finite_or_none(x):
@@ -498,28 +499,38 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
             reason = "the equilibrium is not stable (Hessian not positive definite): no sensitivity"
             break
         Jt = J + margin.value(lam)              # the objective with the stability margin's penalty
-        if margin.active(lam):
+        systems = [(M, b)]
+        dlam = None
+        if margin.fraction > 0 and margin.lam_star is not None:
+            # the penalty's row (exact on its active side, lambda < lambda_star): used where the
+            # current state is active, or where a step's linearised lambda would cross
             if solve is None:
                 solve = equilibrium_factor(model, q, problem.free)
-            row, rhs = margin.row(model, q, solve, lam, u)
-            M, b = np.concatenate([M, row[None]], 0), np.concatenate([b, [rhs]])
+            row, rhs, dlam = margin.row(model, q, solve, lam, u)
+            systems.append((np.concatenate([M, row[None]], 0), np.concatenate([b, [rhs]])))
         t_sens = time.perf_counter() - t_it
         t_solves, trials = 0.0, 0
-        last_model = (p.copy(), M, b)
+        last_model = (p.copy(), *systems[-1 if margin.active(lam) else 0])
         g_scale = float(np.mean(np.sum(A ** 2, 0))) + 1e-300
         if mu is None:
             mu = options.damping * g_scale
         accepted = False
         # |M s - b|^2 = |R s - Q^T b|^2 + |b|^2 - |Q^T b|^2 (thin QR): the bounded steps are
         # solved on the P x P factor instead of the (3n + pairs) x P matrix
-        Qm, Rm = np.linalg.qr(M, mode="reduced")
-        Qb = Qm.T @ b
-        rest = max(float(b @ b) - float(Qb @ Qb), 0.0)
+        factors = []
+        for Ms, bs in systems:
+            Qm, Rm = np.linalg.qr(Ms, mode="reduced")
+            Qb = Qm.T @ bs
+            factors.append((Rm, Qb, max(float(bs @ bs) - float(Qb @ Qb), 0.0)))
         while True:
-            sol = lsq_linear(np.concatenate([Rm, np.sqrt(mu) * np.eye(P)], 0), np.concatenate([Qb, np.zeros(P)]),
-                             bounds=(np.maximum(lo - p, -radius), np.minimum(hi - p, radius)),
-                             method="bvls")
-            step = sol.x
+            for k in range(1 if margin.active(lam) else 0, len(factors)):
+                Rm, Qb, rest = factors[k]
+                sol = lsq_linear(np.concatenate([Rm, np.sqrt(mu) * np.eye(P)], 0), np.concatenate([Qb, np.zeros(P)]),
+                                 bounds=(np.maximum(lo - p, -radius), np.minimum(hi - p, radius)),
+                                 method="bvls")
+                step = sol.x
+                if dlam is None or lam + dlam @ step >= margin.lam_star:
+                    break
             pred_lin = Rm @ step - Qb
             predicted = float(pred_lin @ pred_lin) + rest   # the Gauss-Newton model's J at the step
             if np.max(np.abs(step)) < 1e-6:
