@@ -128,7 +128,7 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
         p_round, rr.q, _, layer_rounds = refine_layers(prob, p_round, rr.q, h, (first, top), rounds=layer_rounds_max,
                                                        newton_iterations=2 * opts.trial_iterations, verbose=verbose,
                                                        leave_factor=opts.leave_factor, shifted_run=opts.shifted_run,
-                                                       shifted_grace=opts.shifted_grace)
+                                                       shifted_grace=opts.shifted_grace, margin=res.margin)
         model_r = prob.model_at(p_round)
     block = {
         "start": start, "outer_iterations": len(res.history) - 1, "reason": res.reason,

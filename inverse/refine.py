@@ -89,6 +89,7 @@ class RefineResult:
     reason: str = ""
     converged: bool = True
     model: tuple | None = None     # (p_lin, M, b): the last Gauss-Newton model |M (p - p_lin) - b|^2 of J
+    margin: "StabilityMargin | None" = None    # the stability margin used (its lambda_star), for the rounding
 
 
 def _coordinate_descent(M, res, offsets, choice, sweeps: int = 20) -> np.ndarray:
@@ -376,7 +377,7 @@ def layer_descent(M, b, p, step: float, lo: float, hi: float, sweeps: int = 20) 
 def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: int = 2,
                   newton_iterations: int = 400, max_trials: int = 4, verbose: bool = False,
                   leave_factor: float = RefineOptions.leave_factor, shifted_run: int = RefineOptions.shifted_run,
-                  shifted_grace: int = RefineOptions.shifted_grace):
+                  shifted_grace: int = RefineOptions.shifted_grace, margin: "StabilityMargin | None" = None):
     """Layer-count refinement of rounded thicknesses p (P,) mm at their equilibrium q: up to
     ``rounds`` times, linearise J at the rounded state (gauss_newton_model), move ribbons by
     at most one layer (layer_descent), re-solve warm-started, and keep the move if J fell;
@@ -386,22 +387,40 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
     ``shifted_run`` shifted iterations in a row above J (RefineOptions), is stopped.
     Rounding a continuous optimum to layers is linearised at the continuous point, far from
     the rounded one for thin ribbons (a 0.1 mm layer is 20 % of a 0.5 mm ribbon); this
-    re-linearises where the design now is. Returns (p, q, J, history: per trial dict(round,
-    changed, objective (None, with the solve's ``reason``, when the trial did not converge),
-    predicted, accepted, seconds))."""
+    re-linearises where the design now is. ``margin`` (a StabilityMargin with its reference
+    set, or None): moves are judged with its penalty, and the move is chosen with its row where
+    the move's linearised eigenvalue would fall below lambda_star. Returns (p, q, J, history:
+    per trial dict(round, changed, objective (None, with the solve's ``reason``, when the trial
+    did not converge), predicted, accepted, seconds, lambda_min when a margin is given))."""
     from shellfem.linalg import NotPositiveDefinite
+    from shellfem.sensitivity import equilibrium_factor
+    from shellfem.stability import lowest_mode
 
+    on = margin is not None and margin.fraction > 0 and margin.lam_star is not None
     lo, hi = bounds
     model = problem.model_at(p)
     J = problem.objective(model.split(q)[0], p)[0]
+    lam = u = None
+    if on:
+        try:
+            lam, u = lowest_mode(model, q, problem.free)
+        except NotPositiveDefinite:
+            return p, q, J, []
     history = []
     for k in range(1, rounds + 1):
         shifted = (shifted_run, shifted_grace, J)
         try:
-            M, b, dq, _ = gauss_newton_model(problem, model, q, p)
+            solve = equilibrium_factor(model, q, problem.free)
+            M, b, dq, _ = gauss_newton_model(problem, model, q, p, solve)
         except NotPositiveDefinite:
             break
+        Jt = J + (margin.value(lam) if on else 0.0)
         move = layer_descent(M, b, p, step, lo, hi) - p
+        if on:
+            row, rhs, dlam = margin.row(model, q, solve, lam, u)
+            if margin.active(lam) or lam + dlam @ move < margin.lam_star:
+                M, b = np.concatenate([M, row[None]], 0), np.concatenate([b, [rhs]])
+                move = layer_descent(M, b, p, step, lo, hi) - p
         idx = np.flatnonzero(np.abs(move) > 1e-9)
         # each move's own gain in the model from the current state: |b|^2 - |m M_j - b|^2
         m, Mj = move[idx], M[:, idx]
@@ -419,15 +438,25 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
             model_new = problem.model_at(p_new)
             res = problem.trial_solve(model_new, q + dq @ s, q, newton_iterations, p_new, leave_factor * J, shifted)
             J_new = problem.objective(model_new.split(res.q)[0], p_new)[0] if res.converged else np.inf
-            ok = bool(J_new < J)
+            Jt_new, lam_new, u_new = J_new, None, None
+            if on and res.converged:
+                try:
+                    lam_new, u_new = lowest_mode(model_new, res.q, problem.free, v0=u)
+                    Jt_new = J_new + margin.value(lam_new)
+                except NotPositiveDefinite:
+                    Jt_new = np.inf
+            ok = bool(Jt_new < Jt)
             history.append(dict(round=k, changed=int(len(idx)), objective=finite_or_none(J_new),
                                 predicted=float(pred @ pred), accepted=ok, seconds=round(time.perf_counter() - t0, 2),
+                                **({"lambda_min": lam_new} if on else {}),
                                 **({} if res.converged else {"reason": res.reason})))
             if verbose:
                 print(f"layers {k}: {len(idx)} ribbons moved one layer, J {J:.4e} -> {J_new:.4e} "
-                      f"(predicted {pred @ pred:.4e}){'' if ok else ', rejected'}", flush=True)
+                      f"(predicted {pred @ pred:.4e}{'' if lam_new is None else f', lambda_min {lam_new:.4e}'})"
+                      f"{'' if ok else ', rejected'}", flush=True)
             if ok:
                 p, q, model, J, accepted = p_new, res.q, model_new, J_new, True
+                lam, u = lam_new, u_new
                 break
             idx = idx[:len(idx) // 2]
         if not accepted:
@@ -600,4 +629,4 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
             reason = f"relative decrease {decrease:.2e} < ftol {options.ftol:g}"
             break
     return RefineResult(thickness=p, q=q, objective=J, rms_mm=float(np.sqrt(msd)), history=history, reason=reason,
-                        model=last_model)
+                        model=last_model, margin=margin)

@@ -132,6 +132,16 @@ def test_layer_refinement_returns_layer_counts_that_are_one_layer_off(deployed):
     np.testing.assert_allclose(p, TRUE, atol=1e-9)
     assert J < 1e-8 * J0 and J0 > 5e-5                 # mm^2: one layer off is ~0.01 mm rms here
     assert all(h["accepted"] for h in hist if h["changed"])
+    # with a stability margin below every eigenvalue on the way the moves are the same, and
+    # each trial records its equilibrium's lowest eigenvalue
+    from inverse.refine import StabilityMargin
+    from shellfem.stability import lowest_mode
+    lam0 = lowest_mode(prob.model_at(p0), r0.q, prob.free)[0]
+    low = StabilityMargin(prob, 0.5)
+    low.reference(lam0, J0)
+    p_low, _, J_low, hist_low = refine_layers(prob, p0, r0.q, 0.1, (0.1, 1.6), rounds=4, margin=low)
+    np.testing.assert_allclose(p_low, TRUE, atol=1e-9)
+    assert all(h["lambda_min"] > 0.5 * lam0 for h in hist_low if h["accepted"])
 
 
 def test_following_the_thicknesses_in_steps_reaches_the_direct_equilibrium(deployed):
