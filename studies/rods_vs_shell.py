@@ -345,7 +345,7 @@ def sheet_tensor(pattern, points, triangles, x, grid=1.0) -> dict:
                 k_min=kmin, principal_ratio=kmax / max(kmin, 1e-12), n_stations=int(len(S)))
 
 
-def size_sweep(sizes=SWEEP_SIZES, models=("rods", "shell"), save=None, max_iterations=400) -> list:
+def size_sweep(sizes=SWEEP_SIZES, models=("rods", "shell"), save=None, max_iterations=400, stars=None) -> list:
     """Where each model's star sheet turns from a cap into a tube: the gallery's tube pattern
     (validation.cases.GALLERY_CASES["tube"]: stars every 10 mm, arms 0.7 of it, 0.3 mm plastic at
     E ratio 3200, mesh 2.5 mm) on rectangles of the given (width, height) mm, the star pattern
@@ -353,7 +353,9 @@ def size_sweep(sizes=SWEEP_SIZES, models=("rods", "shell"), save=None, max_itera
     Per size and model: vertices, Newton iterations, wall time (s, includes meshing),
     convergence, energy (N mm) and the tube's centre-line measures (k_x, k_y and their ratio at
     the star spacing; validation.measures.centreline_measures). ``save``: each solve's mesh and
-    deployed state (DIR/tube_<w>x<h>_<model>.npz) and its row (.json), written as it finishes."""
+    deployed state (DIR/tube_<w>x<h>_<model>.npz) and its row (.json), written as it finishes.
+    ``stars``: overrides of the [stars] table (e.g. {"arm_width_mm": 0.4}; the files then
+    carry them in their names)."""
     from forward.simulate import simulate
     from geometry.patterns import parse_pattern
     rows = []
@@ -362,11 +364,12 @@ def size_sweep(sizes=SWEEP_SIZES, models=("rods", "shell"), save=None, max_itera
             raw = copy.deepcopy(GALLERY_CASES["tube"]())
             raw["fabric"]["rectangle"] = [float(w), float(h)]
             raw["solver"]["model"] = model
+            raw["stars"].update(stars or {})
             pattern = parse_pattern(raw, f"tube {w:g} x {h:g} ({model})")
             t0 = time.perf_counter()
             sim = simulate(pattern, max_iterations=max_iterations)
             P, T, x = sim.sheet.points, sim.sheet.triangles, sim.positions
-            row = {"size_mm": [w, h], "model": model, "n_vertices": int(sim.sheet.n_vertices),
+            row = {"size_mm": [w, h], "model": model, "stars": stars or {}, "n_vertices": int(sim.sheet.n_vertices),
                    "newton_iterations": int(sim.result.iterations), "converged": bool(sim.result.converged),
                    "wall_s": round(time.perf_counter() - t0, 1),
                    "energy_nmm": float(sim.model.energy(sim.result.q)),
@@ -377,7 +380,8 @@ def size_sweep(sizes=SWEEP_SIZES, models=("rods", "shell"), save=None, max_itera
             print(json.dumps(row), flush=True)
             if save:
                 os.makedirs(save, exist_ok=True)
-                stem = os.path.join(save, f"tube_{w:g}x{h:g}_{model}")
+                tag = "".join(f"_{k}{v:g}" for k, v in sorted((stars or {}).items()))
+                stem = os.path.join(save, f"tube_{w:g}x{h:g}_{model}{tag}")
                 extra = {"rod_edges": sim.model.rods.edges} if model == "rods" else {}
                 np.savez_compressed(stem + ".npz", points=P, triangles=T, x=x, side=sim.sheet.side, **extra)
                 with open(stem + ".json", "w") as f:
@@ -385,7 +389,38 @@ def size_sweep(sizes=SWEEP_SIZES, models=("rods", "shell"), save=None, max_itera
     return rows
 
 
-VARIANT_KEYS = ("EA", "B1", "B2", "T", "rest", "band", "offset")
+def sweep_table(folder) -> str:
+    """Markdown table of the size sweep's and the variants' rows saved in ``folder`` (size,
+    model, variant, vertices, Newton iterations, wall s, energy, k_x / k_y and their ratio of
+    sheet_tensor, recomputed from the saved solve where a row predates it)."""
+    from geometry.patterns import parse_pattern
+    rows = ["| size mm | model | variant | vertices | Newton it. | wall s | k_x / k_y (1/mm) | ratio |",
+            "|---|---|---|---|---|---|---|---|"]
+    recs = []
+    for js in glob.glob(os.path.join(folder, "tube_*.json")):
+        r = json.load(open(js))
+        if "sheet_tensor" not in r:
+            d = np.load(js[:-5] + ".npz")
+            raw = copy.deepcopy(GALLERY_CASES["tube"]())
+            raw["fabric"]["rectangle"] = list(r["size_mm"])
+            raw["stars"].update(r.get("stars", {}))
+            r["sheet_tensor"] = sheet_tensor(parse_pattern(raw, "tube"), d["points"], d["triangles"], d["x"])
+            with open(js, "w") as f:
+                json.dump(r, f, indent=1)
+        recs.append(r)
+    recs.sort(key=lambda r: (r["size_mm"][0], r["model"] != "shell", json.dumps(r.get("factors", {})),
+                             json.dumps(r.get("stars", {}))))
+    for r in recs:
+        t = r["sheet_tensor"]
+        var = ", ".join(f"{k} {v:g}" for k, v in {**r.get("factors", {}), **r.get("stars", {})}.items()) or "-"
+        conv = "" if r["converged"] else " (not converged)"
+        rows.append(f"| {r['size_mm'][0]:g} x {r['size_mm'][1]:g} | {r['model']} | {var} | {r['n_vertices']} | "
+                    f"{r['newton_iterations']}{conv} | {r['wall_s']:.0f} | {t.get('k_x', float('nan')):.3f} / "
+                    f"{t.get('k_y', float('nan')):.3f} | {t.get('ratio', float('nan')):.2f} |")
+    return "\n".join(rows)
+
+
+VARIANT_KEYS = ("EA", "B1", "B2", "T", "rest", "band", "offset", "junction")
 
 
 def _banded_rod_model(sheet, fabric, plastic, rm, band_nmm, band_mpa=3.36e5):
@@ -423,6 +458,14 @@ def _banded_rod_model(sheet, fabric, plastic, rm, band_nmm, band_mpa=3.36e5):
     return RodShellModel(shell, arm_rods(bare, rm.edges, rm.thickness, rm.width, fabric, plastic, rm.side))
 
 
+def _junction(rods) -> np.ndarray:
+    """The stencils at the stars' centres (vertices where three or more rod edges meet: the
+    pairwise stencils of weight 1 / (d - 1) < 1)."""
+    e = rods.edges
+    deg = np.bincount(e.ravel(), minlength=rods.n_vertices)
+    return deg[rods.points[:, 1]] >= 3
+
+
 def rods_variant(w, h, factors: dict, save=None, max_iterations=400) -> dict:
     """A diagnostic (not a model): the rods model of the tube pattern on a w x h mm sheet (as
     size_sweep) with its rod network's constants scaled by ``factors`` {key: factor}, keys in
@@ -430,7 +473,8 @@ def rods_variant(w, h, factors: dict, save=None, max_iterations=400) -> dict:
     T (twist; 0 removes the twist energy: an upper bound on what a free material frame can
     relieve), rest (the bilayer's normal rest curvature k1: the curvature drive). EA and B2
     together stiffen the stars in-plane (candidate (a)); T tests the twist (candidate (b));
-    rest scales the drive; offset=1 (not a factor) puts the arms on the fabric
+    rest scales the drive; junction scales B1, B2 and T of the stars' centre stencils (a
+    plate centre in the shell); offset=1 (not a factor) puts the arms on the fabric
     (shellfem.rods.coupled.arm_rods offset=True: the model change this study tests, not a
     scaling); band (N/mm, not a factor) stiffens the fabric next to the rods
     in-plane (_banded_rod_model). The same row as size_sweep, with the factors."""
@@ -456,6 +500,11 @@ def rods_variant(w, h, factors: dict, save=None, max_iterations=400) -> dict:
         r = m.rods
         for key, f in factors.items():
             if key in ("band", "offset"):
+                continue
+            if key == "junction":                        # the stars' centres: B1, B2, T of the pairwise stencils
+                at = _junction(r)
+                for name in ("B1", "B2", "T"):
+                    setattr(r, name, np.where(at, getattr(r, name) * f, getattr(r, name)))
                 continue
             if key == "rest":
                 r.rest[:, 0] = r.rest[:, 0] * f        # printed k1 is 0 on every stencil: the bilayer's part
@@ -500,17 +549,25 @@ def main(argv=None):
     ap.add_argument("--size-sweep", action="store_true",
                     help="the tube's star pattern on sheets 30 x 21 ... 85 x 60 mm in --models (see size_sweep)")
     ap.add_argument("--sizes", nargs="*", default=None, help="with --size-sweep: sizes as WxH mm, e.g. 30x21 50x35")
+    ap.add_argument("--stars", nargs="*", default=None, metavar="KEY=VALUE",
+                    help="with --size-sweep: overrides of the [stars] table, e.g. arm_width_mm=0.4")
     ap.add_argument("--rods-variant", nargs="*", default=None, metavar="KEY=FACTOR",
                     help="with --sizes: the rods model with its constants scaled (diagnostic; see rods_variant)")
+    ap.add_argument("--sweep-table", nargs="*", default=None, metavar="DIR",
+                    help="print the table of the --size-sweep / --rods-variant rows saved in these folders")
     a = ap.parse_args(argv)
-    if a.rods_variant is not None:
+    if a.sweep_table:
+        print("\n".join(sweep_table(d) if i == 0 else "\n".join(sweep_table(d).splitlines()[2:])
+                        for i, d in enumerate(a.sweep_table)))
+    elif a.rods_variant is not None:
         factors = {k: float(v) for k, v in (t.split("=") for t in a.rods_variant)}
         for s in a.sizes or ["50x35"]:
             w, h = (float(v) for v in s.split("x"))
             print(json.dumps(rods_variant(w, h, factors, a.save, a.max_iterations)), flush=True)
     elif a.size_sweep:
         sizes = [tuple(float(v) for v in s.split("x")) for s in a.sizes] if a.sizes else SWEEP_SIZES
-        size_sweep(sizes, a.models, a.save, a.max_iterations)
+        stars = {k: float(v) for k, v in (t.split("=") for t in a.stars)} if a.stars else None
+        size_sweep(sizes, a.models, a.save, a.max_iterations, stars)
     elif a.table:
         print(markdown_table(a.table, bench=a.bench_json))
     elif a.render:
