@@ -24,10 +24,17 @@ builds it: nested iteration, no contact) with the shell model and then with the 
 the same process and reports vertices, Newton iterations, wall time and convergence.
 --cross-start DIR solves the rods model from the shell's saved shapes (see cross_start).
 --strips CSV compares both models' strip curvature with measured strips (see strip_check).
+--size-sweep solves the tube's star pattern on sheets from 30 x 21 to 85 x 60 mm (--sizes WxH ...,
+--stars KEY=VALUE overrides of its [stars] table) in --models: where each model's cap turns into
+a tube (see size_sweep, sheet_tensor); --rods-variant KEY=FACTOR ... [--sizes] the diagnostics of
+the rods model behind that (see rods_variant); --sweep-table DIR ... their table.
 
 Run: python studies/rods_vs_shell.py [--only NAME ...] [--models shell rods] [--save DIR] [--png DIR]
      python studies/rods_vs_shell.py --remeasure DIR | --render DIR | --table DIR [--bench-json FILE]
      python studies/rods_vs_shell.py --benchmark | --cross-start DIR [--only NAME ...] | --strips CSV
+     python studies/rods_vs_shell.py --size-sweep [--sizes WxH ...] [--stars KEY=VALUE ...] [--save DIR]
+     python studies/rods_vs_shell.py --rods-variant KEY=FACTOR ... [--sizes WxH ...] [--save DIR]
+     python studies/rods_vs_shell.py --sweep-table DIR ...
 """
 from __future__ import annotations
 
