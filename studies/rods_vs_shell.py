@@ -27,7 +27,8 @@ the same process and reports vertices, Newton iterations, wall time and converge
 --size-sweep solves the tube's star pattern on sheets from 30 x 21 to 85 x 60 mm (--sizes WxH ...,
 --stars KEY=VALUE overrides of its [stars] table) in --models: where each model's cap turns into
 a tube (see size_sweep, sheet_tensor); --rods-variant KEY=FACTOR ... [--sizes] the diagnostics of
-the rods model behind that (see rods_variant); --sweep-table DIR ... their table.
+the rods model behind that (see rods_variant); --sweep-table DIR ... their table; --arms DIR the
+arms' own curl in those solves (see arm_measures).
 
 Run: python studies/rods_vs_shell.py [--only NAME ...] [--models shell rods] [--save DIR] [--png DIR]
      python studies/rods_vs_shell.py --remeasure DIR | --render DIR | --table DIR [--bench-json FILE]
@@ -396,6 +397,53 @@ def size_sweep(sizes=SWEEP_SIZES, models=("rods", "shell"), save=None, max_itera
     return rows
 
 
+def arm_measures(folder) -> dict:
+    """Per saved tube solve in ``folder`` (--size-sweep / --rods-variant files): the normal
+    curvature (1/mm) of the deployed surface along each printed arm, through its points at 5,
+    50 and 95 % of its length (validation.measures.curve_curvatures: the arm's own curl, the
+    same measure for both models), as the median, the fraction of arms flatter than -0.02 /mm
+    or reversed, and the median per arm direction; for plain rods solves (not --rods-variant
+    ones) also the median axial force of the rod edges (N, < 0 compression; EA of
+    shellfem.rods.monolayer.arm_section times the edge strain |e| / l - 1)."""
+    from geometry.centrelines import pattern_centrelines
+    from geometry.patterns import parse_pattern
+    from shellfem.materials import Fabric
+    from shellfem.rods.monolayer import arm_section
+    from validation.cases import PLASTIC_CH3
+    from validation.measures import _along, curve_curvatures
+    out = {}
+    for f in sorted(glob.glob(os.path.join(folder, "tube_*.npz"))):
+        d = np.load(f)
+        r = json.load(open(f[:-4] + ".json"))
+        raw = copy.deepcopy(GALLERY_CASES["tube"]())
+        raw["fabric"]["rectangle"] = list(r["size_mm"])
+        raw["stars"].update(r.get("stars", {}))
+        raw["solver"]["model"] = "rods"
+        pattern = parse_pattern(raw, "tube")
+        st = raw["stars"]
+        k, ang = [], []
+        for line, *_ in pattern_centrelines(pattern):
+            line = np.asarray(line, float)
+            v = line[-1] - line[0]
+            k.append(curve_curvatures(d["points"], d["triangles"], d["x"], _along(line, [0.05, 0.5, 0.95]))[0])
+            ang.append(int(round(np.degrees(np.arctan2(v[1], v[0])))) % 360)
+        k, ang = np.array(k), np.array(ang)
+        ok = np.isfinite(k)
+        row = {"arms": int(ok.sum()), "median_arm_curvature": round(float(np.median(k[ok])), 4),
+               "fraction_flatter_than_0.02": round(float(np.mean(k[ok] > -0.02)), 3),
+               "median_by_direction_deg": {int(a): round(float(np.median(k[ok & (ang == a)])), 4)
+                                           for a in sorted(set(ang[ok].tolist()))}}
+        if "rod_edges" in d and not r.get("factors"):     # the plain rods model (not a variant's constants)
+            E, P, x = d["rod_edges"], d["points"], d["x"]
+            sec = arm_section(st["thickness_mm"], st["arm_width_mm"], raw["fabric"]["thickness_mm"],
+                              PLASTIC_CH3["young_modulus_mpa"], Fabric().young_modulus, raw["fabric"]["stretch"])
+            l0 = np.linalg.norm(P[E[:, 1]] - P[E[:, 0]], axis=1)
+            l1 = np.linalg.norm(x[E[:, 1]] - x[E[:, 0]], axis=1)
+            row["median_axial_force_n"] = round(float(np.median(sec.EA * (l1 / l0 - 1))), 3)
+        out[os.path.basename(f)[:-4]] = row
+    return out
+
+
 def sweep_table(folder) -> str:
     """Markdown table of the size sweep's and the variants' rows saved in ``folder`` (size,
     model, variant, vertices, Newton iterations, wall s, energy, k_x / k_y and their ratio of
@@ -427,7 +475,7 @@ def sweep_table(folder) -> str:
     return "\n".join(rows)
 
 
-VARIANT_KEYS = ("EA", "B1", "B2", "T", "rest", "band", "offset", "junction")
+VARIANT_KEYS = ("EA", "B1", "B2", "T", "rest", "band", "offset", "junction", "junction_B2")
 
 
 def _banded_rod_model(sheet, fabric, plastic, rm, band_nmm, band_mpa=3.36e5):
@@ -481,7 +529,8 @@ def rods_variant(w, h, factors: dict, save=None, max_iterations=400) -> dict:
     relieve), rest (the bilayer's normal rest curvature k1: the curvature drive). EA and B2
     together stiffen the stars in-plane (candidate (a)); T tests the twist (candidate (b));
     rest scales the drive; junction scales B1, B2 and T of the stars' centre stencils (a
-    plate centre in the shell); offset=1 (not a factor) puts the arms on the fabric
+    plate centre in the shell), junction_B2 their B2 only (it holds the 3D angle between two
+    arms, so a star cannot cone without bending its pairs in-plane); offset=1 (not a factor) puts the arms on the fabric
     (shellfem.rods.coupled.arm_rods offset=True: the model change this study tests, not a
     scaling); band (N/mm, not a factor) stiffens the fabric next to the rods
     in-plane (_banded_rod_model). The same row as size_sweep, with the factors."""
@@ -508,9 +557,9 @@ def rods_variant(w, h, factors: dict, save=None, max_iterations=400) -> dict:
         for key, f in factors.items():
             if key in ("band", "offset"):
                 continue
-            if key == "junction":                        # the stars' centres: B1, B2, T of the pairwise stencils
+            if key in ("junction", "junction_B2"):       # the stars' centres: the pairwise stencils
                 at = _junction(r)
-                for name in ("B1", "B2", "T"):
+                for name in (("B1", "B2", "T") if key == "junction" else ("B2",)):
                     setattr(r, name, np.where(at, getattr(r, name) * f, getattr(r, name)))
                 continue
             if key == "rest":
@@ -562,8 +611,12 @@ def main(argv=None):
                     help="with --sizes: the rods model with its constants scaled (diagnostic; see rods_variant)")
     ap.add_argument("--sweep-table", nargs="*", default=None, metavar="DIR",
                     help="print the table of the --size-sweep / --rods-variant rows saved in these folders")
+    ap.add_argument("--arms", default=None, metavar="DIR",
+                    help="the arms' curl (and the rods' axial force) of the tube solves saved in DIR")
     a = ap.parse_args(argv)
-    if a.sweep_table:
+    if a.arms:
+        print(json.dumps(arm_measures(a.arms), indent=1))
+    elif a.sweep_table:
         print("\n".join(sweep_table(d) if i == 0 else "\n".join(sweep_table(d).splitlines()[2:])
                         for i, d in enumerate(a.sweep_table)))
     elif a.rods_variant is not None:
