@@ -76,6 +76,45 @@ def test_network_energy_derivatives_match_central_differences(part):
     assert np.allclose(H, Hfd, atol=2e-6 * np.abs(H).max())
 
 
+def test_offset_term_derivatives_and_its_closed_form():
+    # the offset's stretch-bend coupling (shellfem.rods.energy): FD gradient and Hessian on a
+    # random state, and on a uniform arc (up frame) the exact value
+    #   sum_stencils EA [ -e g (k1 - r) + e^2 (k1 - r)^2 / (l0 + l1) ]  (g the Green strain)
+    # and, stretched hard in compression and kinked, it stays above zero (bounded below)
+    net, x = _random_surface_network(3)
+    for name in ("B1", "B2", "T"):
+        setattr(net, name, np.zeros_like(getattr(net, name)))
+    off = build_network(_strip_mesh(5, 10.0, 1.0)[0], net.edges, EA=net.EA, B1=0.0, B2=0.0, T=0.0,
+                        triangles=_strip_mesh(5, 10.0, 1.0)[1], normal_rest_curvature=0.05, offset=0.55)
+    assert off.offset is not None and np.allclose(off.offset, 0.55)
+    E, g, _, _ = off.evaluate(x)
+    assert E != pytest.approx(net.evaluate(x)[0])                      # the term is there
+    assert np.allclose(g, central_difference(lambda z: off.energy(z), x.ravel()), rtol=1e-6,
+                       atol=1e-7 * np.abs(g).max())
+    H = off.hessian(x).toarray()
+    assert np.allclose(H, central_difference(lambda z: off.gradient(z), x.ravel()), atol=2e-6 * np.abs(H).max())
+    # a regular polygon arc: n edges of chord c, turning phi per vertex, stretched by (1 + eps0)
+    n, c, phi, eps0, e, EA = 6, 1.0, 0.1, -0.01, 0.4, 100.0
+    ang = np.concatenate([[0.0], np.cumsum(np.full(n - 1, phi))])
+    P = np.concatenate([[[0.0, 0.0]], np.cumsum(c * np.stack([np.cos(ang), np.sin(ang)], 1), 0)])
+    edges = np.stack([np.arange(n), np.arange(1, n + 1)], 1)
+    flat = np.stack([np.arange(n + 1) * c, np.zeros(n + 1)], 1)
+    rod = build_network(flat, edges, EA=EA, B1=0.0, B2=0.0, T=0.0, up=[0.0, 0.0, 1.0], offset=e)
+    X = np.concatenate([P * (1 + eps0), np.zeros((n + 1, 1))], 1)[:, [0, 2, 1]]   # the arc in the x-z plane
+    k1 = rod.measures(X)[:, 0]
+    assert np.allclose(np.abs(k1), 2 * np.tan(phi / 2))
+    stretch = n * EA / 8 * ((c * (1 + eps0)) ** 2 - c ** 2) ** 2 / c ** 3
+    g = ((1 + eps0) ** 2 - 1) / 2
+    expect = stretch + np.sum(EA * (-e * g * k1 + e * e * k1 ** 2 / (2 * c)))
+    assert rod.energy(X) == pytest.approx(expect, rel=1e-12)
+    rng = np.random.default_rng(4)
+    for squeeze in (0.2, 0.5, 0.9):          # edges shortened to 1 - squeeze, random kinks: never below 0
+        Y = X.copy()
+        Y[:, 0] *= 1 - squeeze
+        Y[1:-1, 2] += 0.3 * rng.normal(size=n - 1)
+        assert off.energy(x * (1 - squeeze)) > 0 and rod.energy(Y) > 0
+
+
 def test_energy_is_invariant_under_rigid_motions_and_zero_when_printed():
     net, x = _random_surface_network(2)
     P3 = np.concatenate([_strip_mesh(5, 10.0, 1.0)[0], np.zeros((18, 1))], 1)
@@ -326,6 +365,49 @@ def test_free_arm_on_fabric_bends_to_the_bilayer_closed_form():
     # front plastic: the arm bends towards -z (centre of curvature on the fabric side)
     k1 = M.rod_measures(r.q)[:, 0]
     assert np.all(k1 < 0)
+
+
+def test_offset_rod_on_fabric_is_timoshenkos_bilayer():
+    # the arm printed ON the fabric (coupled.arm_rods offset=True): the plastic's rod (h1 0.3, width 2,
+    # E1/E2 3200, no rest curvature) 0.55 mm above the mid-surface of a 40 x 2 mm fabric strip,
+    # released from s = 1.001: the bilayer effect now comes from the mesh's fabric pulling at the
+    # mid-surface, and the curvature is Timoshenko's for these two layers (the rod: EA, B1; the
+    # fabric: E2 h2 W and its k_B W; distance between their centre lines e):
+    #   kappa = delta / (e + (B1 + D_f) (1 / Y_f + 1 / EA) / e),  delta = 1 - 1/s
+    from shellfem.boundary import gauge_dofs, smooth_perturbation
+    from shellfem.materials import Fabric, Plastic
+    from shellfem.newton import newton
+    from shellfem.rods.coupled import rod_shell_model
+    from shellfem.sheet import Sheet
+    s, L, W = 1.001, 40.0, 2.0
+    sh = Sheet.rectangle(L, W, 40, 2)
+    P = sh.points
+    mid = np.flatnonzero(np.abs(P[:, 1] - W / 2) < 1e-9)
+    mid = mid[np.argsort(P[mid, 0])]
+    fab, pla = Fabric(stretch=s, young_modulus=1.0), Plastic(young_modulus=3200.0, poisson=0.3)
+    M = rod_shell_model(sh, fab, pla, np.stack([mid[:-1], mid[1:]], 1), 0.3, W, gravity=False, offset=True)
+    assert np.allclose(M.rods.offset, 0.55) and np.all(M.rods.rest[:, 0] == 0.0)
+    q = M.initial_state()
+    x, _ = M.split(q)
+    x[:, 2] += smooth_perturbation(sh.points, 0, 0.4)
+    free = np.ones(M.n_dofs, bool)
+    free[gauge_dofs(x, np.zeros(0, int))] = False
+    r = newton(M, q, free, max_iterations=100)
+    assert r.converged, r.reason
+    xm = M.split(r.q)[0][mid]
+    pts = xm[(sh.points[mid, 0] > 10) & (sh.points[mid, 0] < 30)]
+    c = pts.mean(0)
+    pl = (pts - c) @ np.linalg.svd(pts - c)[2][:2].T
+    a, b, kk = np.linalg.lstsq(np.stack([2 * pl[:, 0], 2 * pl[:, 1], np.ones(len(pl))], 1), (pl ** 2).sum(1),
+                               rcond=None)[0]
+    kappa = 1 / np.sqrt(kk + a * a + b * b)
+    EA, B1, e = 3200.0 * 0.3 * W, 3200.0 * 0.3 ** 3 * W / 12, 0.55
+    Yf, Df = 1.0 * 0.8 * W, fab.bending_stiffness * W
+    closed = (1 - 1 / s) / (e + (B1 + Df) * (1 / Yf + 1 / EA) / e)
+    assert kappa == pytest.approx(closed, rel=0.01)                # measured -0.70 %
+    # and the seed's monolayer of the same arm (rods in the fabric) within a few per cent: the same bilayer
+    assert kappa == pytest.approx(monolayer_curvature(0.3, 0.8, 3200.0, 1.0, s), rel=0.01)   # -0.34 %
+    assert np.all(M.rod_measures(r.q)[:, 0] < 0)                 # front: towards -z, as the bilayer
 
 
 # --- [solver] model = "rods" ----------------------------------------------------------------------

@@ -22,7 +22,7 @@ import numpy as np
 
 from shellfem.model import ShellModel
 from shellfem.rods.energy import RodNetwork, build_network
-from shellfem.rods.monolayer import arm_section
+from shellfem.rods.monolayer import arm_section, offset_arm_section
 from shellfem.sheet import Sheet
 
 
@@ -124,13 +124,18 @@ class RodShellModel:
         return self.rods.measures(self.split(q)[0])
 
 
-def arm_rods(sheet: Sheet, edges, plastic_thickness, width, fabric, plastic, side="front") -> RodNetwork:
+def arm_rods(sheet: Sheet, edges, plastic_thickness, width, fabric, plastic, side="front",
+             offset: bool = False) -> RodNetwork:
     """Rods on mesh edges ``edges`` (ne, 2) of the sheet for printed arms of plastic thickness
     and width (mm, per edge or scalars): the effective monolayer of each edge
     (shellfem.rods.monolayer) with the fabric's misfit along the edge, 1 - t^T diag(1/sx^2,
     1/sy^2) t (t the printed edge direction), and the plastic set. Front plastic bends
     towards -z (rest k1 < 0: centre of curvature on the fabric side), back plastic towards +z;
-    side: "front", "back" or per edge +1 (front) / -1 (back)."""
+    side: "front", "back" or per edge +1 (front) / -1 (back).
+    offset: the arms as printed ON the fabric (shellfem.rods.monolayer.offset_arm_section:
+    the plastic's rod with its centre line (h1 + h2) / 2 above the fabric's mid-surface,
+    shellfem.rods.energy's offset term; the bilayer effect from the mesh's fabric, the rest
+    curvature the plastic set only) instead of the seed's rods in the fabric (default)."""
     edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
     P = sheet.points
     t = P[edges[:, 1]] - P[edges[:, 0]]
@@ -138,21 +143,28 @@ def arm_rods(sheet: Sheet, edges, plastic_thickness, width, fabric, plastic, sid
     sx, sy = fabric.stretch
     misfit_metric = t[:, 0] ** 2 / sx ** 2 + t[:, 1] ** 2 / sy ** 2
     s_edge = 1 / np.sqrt(misfit_metric)
-    sec = arm_section(plastic_thickness, width, fabric.thickness, plastic.young_modulus, fabric.young_modulus, s_edge,
-                      plastic_poisson=plastic.poisson, plastic_set=plastic.rest_curvature)
+    if offset:
+        sec, height = offset_arm_section(plastic_thickness, width, fabric.thickness, plastic.young_modulus,
+                                         plastic_poisson=plastic.poisson, plastic_set=plastic.rest_curvature)
+    else:
+        sec = arm_section(plastic_thickness, width, fabric.thickness, plastic.young_modulus, fabric.young_modulus,
+                          s_edge, plastic_poisson=plastic.poisson, plastic_set=plastic.rest_curvature)
+        height = 0.0
     if isinstance(side, str):
         if side not in ("front", "back"):
             raise ValueError(f"side must be 'front' or 'back', got {side!r}")
         sign = -1.0 if side == "front" else 1.0
     else:
         sign = -np.sign(np.asarray(side, float))
+    # the neutral axis on the plastic's side: +d1 (+z flat) for front plastic, -d1 for back
     return build_network(P, edges, EA=sec.EA, B1=sec.B1, B2=sec.B2, T=sec.T, triangles=sheet.triangles,
-                         normal_rest_curvature=sign * sec.rest_curvature)
+                         normal_rest_curvature=sign * sec.rest_curvature, offset=-sign * height)
 
 
 def rod_shell_model(sheet: Sheet, fabric, plastic, edges, plastic_thickness, width, side="front",
-                    gravity: bool = True) -> RodShellModel:
-    """Bare fabric on the whole sheet (its printed thicknesses ignored) + rods on ``edges``."""
+                    gravity: bool = True, offset: bool = False) -> RodShellModel:
+    """Bare fabric on the whole sheet (its printed thicknesses ignored) + rods on ``edges``
+    (offset: the arms on the fabric, see arm_rods)."""
     bare = Sheet(sheet.points, sheet.triangles, region=sheet.region)
     shell = ShellModel.from_materials(bare, fabric, plastic, gravity=gravity)
-    return RodShellModel(shell, arm_rods(bare, edges, plastic_thickness, width, fabric, plastic, side))
+    return RodShellModel(shell, arm_rods(bare, edges, plastic_thickness, width, fabric, plastic, side, offset=offset))

@@ -53,6 +53,28 @@ each copy bonded to one copy of each other arm). The rest curvatures of every st
 its printed (flat) values plus the bilayer's normal rest curvature in k1 (see
 :func:`build_network`), so a junction's in-plane angle is its rest state.
 
+Offset (optional, ``offset`` in build_network; shellfem.rods.coupled with offset=True): the
+rod's vertices are the fabric's mid-surface, where the fabric's membrane forces act; a printed
+arm's neutral axis lies e above it (front plastic: e = (h1 + h2) / 2 along +d1). A beam whose
+reference line is e below its neutral axis has the energy density EA/2 (eps - e kappa)^2 +
+B1/2 kappa^2 (eps the reference line's strain, kappa the curvature about the width axis, B1
+about the neutral axis): an axial force N carried at the reference line bends the rod with
+the moment N e. The seed's collocation puts the rods IN the fabric (e = 0: Eq. 3.3 has no
+such term) and carries the bilayer by the rest curvature of a fabric strip as wide as the
+arm only. With the offset the stencil adds, over its Voronoi length (l0 + l1) / 2,
+
+    w EA [ -e g (k1 - k1_rest) + e^2 (k1 - k1_rest)^2 / (l0 + l1) ],
+    g = (l0 g0 + l1 g1) / (l0 + l1),   g_j = (|e_j|^2 / l_j^2 - 1) / 2,
+
+the cross and square terms of EA/2 (g - e kappa)^2 (kappa = (k1 - k1_rest) / Voronoi
+length) with g the length-weighted mean of the two edges' Green strains, the strain of the
+stretching term above (EA/8 (|e|^2 - l^2)^2 / l^3 = EA l g^2 / 2). That choice keeps the energy
+bounded below: by Jensen, (l0 + l1)/2 g^2 <= (l0 g0^2 + l1 g1^2) / 2, and the stencils' weights
+at a vertex sum to at most 1 per edge end, so the edges' EA l g^2 / 2 cover every stencil's
+EA (l0 + l1)/4 g^2 and the total is a sum of squares plus a positive remainder. (With the
+engineering strain |e|/l - 1 instead, whose square the stretching term does not bound in
+strong compression, a 30 x 21 mm star sheet found a collapse at -287 N mm.)
+
 Derivatives: per stencil, the energy is a function of 12 inputs v = (e0, e1, s0, s1)
 (edge vectors and frame source vectors), each LINEAR in the stencil's 21 coordinates,
 v = G x_local with a constant G (12 x 21) per stencil; W_v and W_vv come exact from the
@@ -68,16 +90,17 @@ import numpy as np
 from shellfem.rods import ad
 
 
-def bend_measures(v: np.ndarray, frame: str = "surface", order: int = 2):
+def bend_measures(v: np.ndarray, frame: str = "surface", order: int = 2, lengths: bool = False):
     """(k1, k2, tau) of stencils from inputs v (k, 12) = (e0, e1, s0, s1) as Jets.
 
     frame "surface": d1_j = unit(e_j x s_j) (s_j = x_L - x_R); "up": s_j is the up vector
     u and d1_j = unit(e_j x (u x e_j)). order 0: plain arrays (values only, the same
-    formulas: the line search's energy evaluations skip the derivatives)."""
+    formulas: the line search's energy evaluations skip the derivatives). lengths: also
+    |e0|, |e1| (the offset term's strains)."""
     J = ad.Jet.inputs(v) if order > 0 else [np.ascontiguousarray(v[:, i]) for i in range(v.shape[1])]
     e0, e1, s0, s1 = tuple(J[0:3]), tuple(J[3:6]), tuple(J[6:9]), tuple(J[9:12])
-    t0, _ = ad.unit(e0)
-    t1, _ = ad.unit(e1)
+    t0, n_e0 = ad.unit(e0)
+    t1, n_e1 = ad.unit(e1)
     if frame == "surface":
         n0, _ = ad.unit(ad.cross(e0, s0))
         n1, _ = ad.unit(ad.cross(e1, s1))
@@ -97,6 +120,8 @@ def bend_measures(v: np.ndarray, frame: str = "surface", order: int = 2):
     kn = ad.cross(kvec, n0)
     pn0 = ad.add(ad.add(n0, kn), ad.scale(ad.cross(kvec, kn), rchi))
     tau = ad.atan2(ad.dot(t1, ad.cross(pn0, n1)), ad.dot(pn0, n1))
+    if lengths:
+        return k1, k2, tau, n_e0, n_e1
     return k1, k2, tau
 
 
@@ -119,6 +144,8 @@ class RodNetwork:
     stencil's 21 coordinates to v = (e0, e1, s0, s1); up (nb, 3) the up vectors ("up"
     frame, added to s as constants); weight (nb,) = w / (l0 + l1) (1/mm);
     B1, B2, T (nb,) N mm^2; rest (nb, 3) the rest (k1, k2, tau) (dimensionless).
+    offset (nb,) mm or None: the height of the rods' neutral axis above their vertices along
+    d1 (module docstring), with stencil_EA (nb,) N and stencil_length (nb, 2) = (l0, l1) mm.
     """
     n_vertices: int
     edges: np.ndarray
@@ -133,6 +160,19 @@ class RodNetwork:
     T: np.ndarray
     rest: np.ndarray
     frame: str = "surface"
+    offset: np.ndarray | None = None
+    stencil_EA: np.ndarray | None = None
+    stencil_length: np.ndarray | None = None
+
+    def _offset_energy(self, k1, n0, n1):
+        """The offset's stencil terms (module docstring) of Jets or arrays k1, |e0|, |e1|."""
+        l0, l1 = self.stencil_length[:, 0], self.stencil_length[:, 1]
+        d = k1 - self.rest[:, 0]
+        # g = (l0 g0 + l1 g1) / (l0 + l1), g_j = (|e_j|^2 / l_j^2 - 1) / 2
+        g = (n0 * n0) * (0.5 / (l0 * (l0 + l1))) + (n1 * n1) * (0.5 / (l1 * (l0 + l1))) - 0.5
+        a = -self.weight * (l0 + l1) * self.stencil_EA * self.offset          # the cross term's factor
+        b = self.weight * self.stencil_EA * self.offset ** 2
+        return (d * g) * a + (d * d) * b
 
     @property
     def stretch_dofs(self) -> np.ndarray:
@@ -166,16 +206,21 @@ class RodNetwork:
         l2 = self.rest_length ** 2
         c = self.EA / (8 * self.rest_length ** 3)
         E = float(np.sum(c * (s - l2) ** 2))
-        # bending and twist
-        k1, k2, tau = bend_measures(self.stencil_inputs(x), self.frame, order=order)
+        # bending and twist (and the offset's coupling)
+        off = self.offset is not None
+        k1, k2, tau, *lens = bend_measures(self.stencil_inputs(x), self.frame, order=order, lengths=off)
         if order == 0:
             for m, B, r in ((k1, self.B1, self.rest[:, 0]), (k2, self.B2, self.rest[:, 1]), (tau, self.T, self.rest[:, 2])):
                 E += float(np.sum(B * self.weight * (m - r) ** 2))
+            if off:
+                E += float(np.sum(self._offset_energy(k1, *lens)))
             return E, None, None, None
         W = None
         for jet, B, r in ((k1, self.B1, self.rest[:, 0]), (k2, self.B2, self.rest[:, 1]), (tau, self.T, self.rest[:, 2])):
             d = (jet - r).square() * (B * self.weight)
             W = d if W is None else W + d
+        if off:
+            W = W + self._offset_energy(k1, *lens)
         if len(self.weight):
             E += float(W.v.sum())
         n = len(x)
@@ -221,7 +266,7 @@ def _as_edge_array(v, ne):
 
 
 def build_network(points: np.ndarray, edges, *, EA, B1, B2, T, triangles=None, up=None,
-                  normal_rest_curvature=0.0) -> RodNetwork:
+                  normal_rest_curvature=0.0, offset=0.0) -> RodNetwork:
     """A rod network over the vertices ``points`` (printed positions (n, 2) or (n, 3), mm).
 
     edges: (ne, 2) vertex ids, the rods' edges (mesh edges when ``triangles`` is given).
@@ -232,6 +277,9 @@ def build_network(points: np.ndarray, edges, *, EA, B1, B2, T, triangles=None, u
     (> 0: centre of curvature on the +normal side), per edge or scalar; a stencil's rest
     k1 is rest_turning_curvature(mean k, l0, l1) added to its printed k1 (0 on a flat
     print). The rest k2 and tau are the printed state's (its in-plane turning, 0 twist).
+    offset: the height (mm, along the frame normal d1) of the rods' neutral axis above their
+    vertices, per edge or scalar (a stencil takes the mean); 0 everywhere (the default, the
+    seed's Eq. 3.3) adds no term.
     """
     P = np.asarray(points, float)
     n = len(P)
@@ -240,6 +288,7 @@ def build_network(points: np.ndarray, edges, *, EA, B1, B2, T, triangles=None, u
     ne = len(edges)
     EA, B1, B2, T = (_as_edge_array(v, ne) for v in (EA, B1, B2, T))
     kn = _as_edge_array(normal_rest_curvature, ne)
+    off = _as_edge_array(offset, ne)
     rest_length = np.linalg.norm(X[edges[:, 1]] - X[edges[:, 0]], axis=1)
     if np.any(rest_length <= 0):
         raise ValueError("rod edges of zero length")
@@ -290,6 +339,10 @@ def build_network(points: np.ndarray, edges, *, EA, B1, B2, T, triangles=None, u
     l0, l1 = rest_length[ea], rest_length[eb]
     net = RodNetwork(n, edges, rest_length, EA, pts.astype(np.int64), G, upv, w / (l0 + l1),
                      0.5 * (B1[ea] + B1[eb]), 0.5 * (B2[ea] + B2[eb]), 0.5 * (T[ea] + T[eb]), np.zeros((nb, 3)), frame)
+    if np.any(off != 0):
+        net.offset = 0.5 * (off[ea] + off[eb])
+        net.stencil_EA = 0.5 * (EA[ea] + EA[eb])
+        net.stencil_length = np.stack([l0, l1], 1)
     printed = net.measures(X)
     net.rest = printed + np.stack([rest_turning_curvature(0.5 * (kn[ea] + kn[eb]), l0, l1),
                                    np.zeros(nb), np.zeros(nb)], 1)

@@ -95,5 +95,23 @@ def arm_section(plastic_thickness, width, fabric_thickness, plastic_modulus, fab
                       mu1 * (h1 ** 3 * w + w ** 3 * h1) / 24)
 
 
+def offset_arm_section(plastic_thickness, width, fabric_thickness, plastic_modulus, plastic_poisson=0.5,
+                       plastic_set=0.0) -> tuple:
+    """The rod of an arm printed ON the fabric (shellfem.rods.energy's offset): the plastic
+    alone, EA = E1 h1 w, B1 = E1 h1^3 w / 12 about its own centre line, B2 = E1 h1 w^3 / 12,
+    T as arm_section, rest curvature the plastic set only, and its centre line's height above
+    the fabric's mid-surface (h1 + h2) / 2 (mm). The fabric, under the arm as around it, is the
+    bare fabric of the mesh, pulling at the mid-surface: the bilayer effect of the arm's own
+    strip (arm_section's rest curvature) then comes from the mesh's fabric through the offset
+    (Timoshenko's bilayer, tests/test_rods.py), and so does the moment of the surrounding
+    fabric's pull, which the seed's collocated rods (offset 0) do not feel.
+    Returns (ArmSection, offset)."""
+    h1, w, h2, E1 = (np.asarray(v, float) for v in (plastic_thickness, width, fabric_thickness, plastic_modulus))
+    mu1 = E1 / (2 * (1 + plastic_poisson))
+    sec = ArmSection(np.asarray(plastic_set, float) + 0 * h1, E1 * h1 * w, E1 * h1 ** 3 * w / 12,
+                     E1 * h1 * w ** 3 / 12, mu1 * (h1 ** 3 * w + w ** 3 * h1) / 24)
+    return sec, 0.5 * (h1 + h2)
+
+
 def _d4(h1, h2, E1, E2):
     return h1 ** 4 * E1 ** 2 + 2 * h1 * h2 * E1 * E2 * (2 * h1 ** 2 + 3 * h1 * h2 + 2 * h2 ** 2) + h2 ** 4 * E2 ** 2
