@@ -197,7 +197,19 @@ DESIGN_NUMBERS: dict[str, Num] = {
     "gap_mm": Num(0.0, COORD_MAX_MM, _LEN, "a distance between ribbons on a target of at most 10 m"),
     "layout_edge_mm": Num(0.0, COORD_MAX_MM, _LEN, "the layout mesh's mean edge: a length on a target of at most "
                           "10 m", lo_open=True),
+    # the rest are Python-only (and sweep) options: -1 reached numpy's generator after the
+    # flattening (a raw ValueError, exit 3), 0 faces or iterations ran to nonsense
+    "seed": PATTERN_NUMBERS["solver"]["seed"],
+    "max_faces": Num(1, MAX_TRIANGLES, "", "the refined target's face cap: at most the mesh budget", integer=True),
+    "flatten_max_iter": Num(1, 100_000, "", "flattening iterations on the fine mesh", integer=True),
+    "ribbon_length": Num(1.0, 1000.0, _LEN, "a printed dash of 1 mm to 1 m"),
+    "ribbon_width": WIDTH,
 }
+#: The flattening's stretch bounds (s1min, s1max, s2min, s2max) of a design: each in this range
+#: and each minimum at most its maximum (DesignOptions.bounds; None: the contraction model's).
+DESIGN_BOUND = Num(0.0, 10.0, "", "a principal stretch of the flattening", lo_open=True)
+#: The flattening's stop rules (DesignOptions.stop).
+DESIGN_STOPS = ("mean", "norm")
 
 
 # ---------------------------------------------------------------- the printer

@@ -246,23 +246,37 @@ def _check_curved(V, where: str) -> None:
 DESIGN_STAGES = ("load and refine", "curvature", "line field", "flattening", "ribbon layout", "thickness")
 
 
+def check_design_numbers(o: DesignOptions) -> None:
+    """The numbers of ``o`` in their geometry.schema.DESIGN_NUMBERS ranges (None turns an
+    option off; stretch may be "auto"), before anything runs: a one-line SelfshapeError naming
+    the option otherwise (a NaN gap or a stretch of 5 would run and write nonsense)."""
+    from geometry.schema import DESIGN_BOUND, DESIGN_NUMBERS, DESIGN_STOPS, number
+    for key, spec in DESIGN_NUMBERS.items():
+        v = getattr(o, key)
+        if v is not None and not (key == "stretch" and v == "auto"):
+            number(v, f"design: {key}", spec)
+    if o.ribbon_width > o.ribbon_length:
+        raise SelfshapeError(f"design: ribbon_width ({o.ribbon_width:g} mm) must be at most ribbon_length "
+                             f"({o.ribbon_length:g} mm): a ribbon is longer than wide")
+    if o.stop not in DESIGN_STOPS:
+        raise SelfshapeError(f"design: stop must be one of {', '.join(map(repr, DESIGN_STOPS))}, got {o.stop!r:.40}")
+    if o.bounds is not None:
+        b = o.bounds
+        if isinstance(b, (str, bytes)) or not hasattr(b, "__len__") or len(b) != 4:
+            raise SelfshapeError(f"design: bounds must be 4 numbers (s1min, s1max, s2min, s2max), got {b!r:.60}")
+        b = [number(v, f"design: bounds[{i}]", DESIGN_BOUND) for i, v in enumerate(b)]
+        for i in (0, 2):
+            if b[i] > b[i + 1]:
+                raise SelfshapeError(f"design: bounds[{i}] = {b[i]:g} is above bounds[{i + 1}] = {b[i + 1]:g} "
+                                     f"(s1min, s1max, s2min, s2max)")
+
+
 # The design is the same at every thread count: multithreaded OpenBLAS (CHOLMOD's supernodal
 # factorisations and numpy's products) sums in an order that depends on the thread count, and the
 # flattening's iterations carry that round-off into the pattern (the saddle at 1 and 2 threads:
 # coordinates a median 0.001 mm and up to 0.45 mm apart, one ribbon point fewer), which a
 # multistable sheet can turn into another equilibrium. One BLAS thread here (restored on return).
 @threadpool_limits.wrap(limits=1, user_api="blas")
-def check_design_numbers(o: DesignOptions) -> None:
-    """The numbers of ``o`` in their geometry.schema.DESIGN_NUMBERS ranges (None turns an
-    option off; stretch may be "auto"), before anything runs: a one-line SelfshapeError naming
-    the option otherwise (a NaN gap or a stretch of 5 would run and write nonsense)."""
-    from geometry.schema import DESIGN_NUMBERS, number
-    for key, spec in DESIGN_NUMBERS.items():
-        v = getattr(o, key)
-        if v is not None and not (key == "stretch" and v == "auto"):
-            number(v, f"design: {key}", spec)
-
-
 def design(V, F, options: DesignOptions | None = None, *, where: str = "target", progress=None,
            **overrides) -> Design:
     """Inverse design of a disk-topology target (V (n, 3), F (m, 3)); see the module doc.

@@ -417,6 +417,78 @@ def test_flat_target_has_nothing_to_design(tmp_path, obj, word):
     assert not (tmp_path / "out").exists()
 
 
+# ---------------------------------------------------------------- design options (Python and sweeps)
+
+def design_keys():
+    from geometry.schema import DESIGN_NUMBERS
+    return [(k, s) for k, s in DESIGN_NUMBERS.items()]
+
+
+@pytest.mark.parametrize("key,spec", design_keys(), ids=lambda v: v if isinstance(v, str) else "")
+@SETTINGS
+@given(data=st.data())
+def test_design_option_out_of_range_is_refused_before_the_target_is_read(key, spec, data, tmp_path_factory):
+    """Every number of DesignOptions in geometry.schema.DESIGN_NUMBERS (seed, max_faces,
+    flatten_max_iter, the ribbon size, the lengths) is range-checked by design_file before the
+    target is read (a seed of -1 reached numpy's generator after the ~10 s flattening: exit 3)."""
+    from inverse.design import design_file
+    from shellfem.errors import SelfshapeError
+    value = data.draw(bad_values(spec), label="value")
+    assume(not (key == "stretch" and value == "auto"))
+    out = tmp_path_factory.mktemp("d") / "out"
+    t0 = time.perf_counter()
+    with pytest.raises(SelfshapeError) as e:
+        design_file(os.path.join(tmp_path_factory.getbasetemp(), "never-read.obj"), out, **{key: value})
+    assert time.perf_counter() - t0 < 1.0
+    line = str(e.value)
+    assert f"design: {key}" in line and "\n" not in line, line
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("over, word", [
+    ({"bounds": (0.9, 1.1, 0.8)}, "bounds must be 4 numbers"),
+    ({"bounds": "0.9,1,0.8,1"}, "bounds must be 4 numbers"),
+    ({"bounds": (0.9, math.nan, 0.8, 1.0)}, "bounds[1] must be a finite number"),
+    ({"bounds": (0.9, 1.1, 0.0, 1.0)}, "bounds[2] must be in (0, 10]"),
+    ({"bounds": (1.2, 1.1, 0.8, 1.0)}, "bounds[0] = 1.2 is above bounds[1] = 1.1"),
+    ({"stop": "median"}, "stop must be one of 'mean', 'norm'"),
+    ({"ribbon_width": 20.0}, "ribbon_width (20 mm) must be at most ribbon_length (15 mm)"),
+    ({"seed": -1}, "design: seed must be an integer in [0, 4294967295], got -1"),
+    ({"seed": 1.5}, "design: seed must be an integer"),
+])
+def test_design_options_that_are_not_numbers(tmp_path, over, word):
+    from inverse.design import design_file
+    from shellfem.errors import SelfshapeError
+    with pytest.raises(SelfshapeError) as e:
+        design_file(TARGET, tmp_path / "out", **over)
+    assert word in str(e.value), str(e.value)
+    assert not (tmp_path / "out").exists()
+
+
+def test_design_runs_on_one_blas_thread(monkeypatch):
+    """design() runs with one BLAS thread (the design is the same at every thread count): the
+    decorator once sat on check_design_numbers, inserted between it and design()."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+    import inverse.design as mod
+
+    def blas_threads():
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        if not blas_threads() or max(blas_threads()) < 2:
+            pytest.skip("this BLAS runs on one thread anyway")
+        seen = []
+
+        def record(o):
+            seen.append(blas_threads())
+            raise RuntimeError("stop")
+
+        monkeypatch.setattr(mod, "check_design_numbers", record)
+        with pytest.raises(RuntimeError, match="stop"):
+            mod.design(np.zeros((3, 3)), np.array([[0, 1, 2]]))
+    assert seen and max(seen[0]) == 1, seen
+
+
 # ---------------------------------------------------------------- resource bounds
 
 def test_mesh_budget_refuses_before_meshing():
