@@ -36,6 +36,18 @@ DETAIL_MM = 1.0e-4
 #: Most vertices one polygon (outline, region, printed piece) may keep after DETAIL_MM:
 #: Gmsh needs ~10 s to set up a boundary loop of 50,000 vertices (quadratic beyond).
 MAX_POLYGON_VERTICES = 50_000
+#: Most support points one pattern may hold ([[support]] points, all tables): each becomes a
+#: held mesh vertex; 200,000 points took 100 s to mesh and say nothing a few hundred do not.
+MAX_SUPPORT_POINTS = 10_000
+#: A support's stated position lies within this many fabric diagonals (its bounding box) of the
+#: held point's relaxed position (x/sx, y/sy, 0), and two held points are at most this many
+#: times their printed distance apart: a post 9 m above a 40 mm strip ran past 2 min (a rigid
+#: move the solver carries step by step), two posts 1 m apart tore it to non-finite numbers.
+SUPPORT_REACH = 3.0
+#: Most stars one [stars] table may place: each printed star needs at least ~10 triangles of
+#: the MAX_TRIANGLES mesh budget; 1.15 million stars (a 1 m sheet at 1 mm spacing) took minutes
+#: and 2.5 GB before any budget was checked.
+MAX_STARS = 200_000
 #: Smallest fabric "width" 2 area / perimeter (mm) (a disk's radius, ~ a strip's width).
 MIN_FABRIC_WIDTH_MM = 0.5
 #: Cap of the estimated triangle count of a mesh (geometry.meshing.estimate_triangles):

@@ -113,6 +113,9 @@ def load_printer(path: str) -> Printer:
 
     from geometry.tomlfile import read_toml
     raw = read_toml(path, f"printer file {path}")
+    if not raw:         # an empty or truncated file would print for the default machine
+        raise SelfshapeError(f"printer file {path}: no printer keys (an empty file); give at least bed_size, or "
+                             f"leave out --printer for the default printer")
     table = raw.get("printer", raw)
     if not isinstance(table, dict):
         raise SelfshapeError(f"printer file {path}: [printer] must be a table")

@@ -350,6 +350,108 @@ def test_cases_of_the_issue(text, word):
     assert word in line, line
 
 
+def _no_supports(raw):
+    raw.pop("support")
+
+
+def _set(**tables):
+    def f(raw):
+        for k, v in tables.items():
+            raw[k] = v
+    return f
+
+
+def _both(*fs):
+    def f(raw):
+        for g in fs:
+            g(raw)
+    return f
+
+
+_RODS = _both(_set(solver={"model": "rods"}), lambda r: [r.pop(k) for k in ("region", "print")])
+_POST = {"points": [[20.0, 15.0]], "fix": "xyz", "position": [[14.8, 11.1, 2.0]]}
+
+
+@pytest.mark.parametrize("mutate, word", [
+    # a ground with nothing holding the sheet on it: "not converged" (the gauge carries its push)
+    # at any height, without saying why
+    (_both(_no_supports, _set(ground={"enabled": True, "height_mm": 5.0})),
+     "[ground] enabled = true needs a [[support]]"),
+    (_both(_no_supports, _set(ground={"enabled": True, "height_mm": -20.0})),
+     "[ground] enabled = true needs a [[support]]"),
+    # gravity with no support: the solver's error named neither the file nor the key
+    (_both(_no_supports, lambda r: r["fabric"].update(areal_weight_n_per_mm2=1e-6)),
+     "[fabric] areal_weight_n_per_mm2 > 0 (gravity) needs a [[support]]"),
+    # a post under the ground: non-finite numbers blamed on "a modulus ... such as 1e300"
+    (_set(support=[{**_POST, "position": [[14.8, 11.1, -5.0]]}], ground={"enabled": True}),
+     "[[support]] #1 position 1 is at z = -5 mm, below the [ground] at height_mm = 0"),
+    # the rods model has no contact: [contact] and [ground] were silently ignored (exit 0)
+    (_both(_RODS, _set(contact={"enabled": True})), "[contact] enabled = true with [solver] model = \"rods\""),
+    (_both(_RODS, _set(ground={"height_mm": 0.0})), "[ground] with [solver] model = \"rods\""),
+    # supports: a huge count (100 s to mesh), a post 9 m away (> 2 min), two posts 1 m apart
+    (_set(support=[{"points": [[20.0 + 1e-5 * i, 15.0] for i in range(20_000)]}]),
+     "points bring the supports to 20,000 points, more than the 10,000"),
+    (_set(support=[{**_POST, "position": [[14.8, 11.1, 9000.0]]}]),
+     "[[support]] #1 position 1 is 9000 mm from its point's relaxed position"),
+    (_set(support=[{"points": [[2.0, 15.0], [38.0, 15.0]], "fix": "xyz",
+                    "position": [[1.5, 11.1, 0.0], [150.0, 11.1, 0.0]]}]),
+     "[[support]] positions 1.1 and 1.2 are 148.5 mm apart, more than 3 x their 36 mm"),
+    (_set(support=[{"points": [[2.0, 15.0], [2.0, 15.0]], "fix": "xyz",
+                    "position": [[1.5, 11.1, 0.0], [1.5, 11.1, 1.0]]}]),
+     "[[support]] positions 1.1 and 1.2 are 1 mm apart, more than 3 x their 0 mm"),
+])
+def test_contact_ground_rods_and_supports(mutate, word):
+    """The recently added tables ([contact], [ground], [solver] model = "rods", [[support]]
+    positions and counts) refused in one line naming the file and the key (each failed before:
+    exit 0 with the table ignored, exit 1 without a reason, a misleading error, or minutes)."""
+    raw = base_pattern()
+    mutate(raw)
+    t0 = time.perf_counter()
+    with folder() as d:
+        line = mesh_error(raw, d)
+    assert word in line, line
+    assert time.perf_counter() - t0 < 20.0
+
+
+@pytest.mark.parametrize("shape, spacing, word", [
+    ([1000.0, 1000.0], 1.0, "gives about 1e+06 stars on this fabric, more than the 200,000"),
+    ([300.0, 300.0], 1.0, "would need about 2.61e+07 triangles"),
+])
+def test_star_counts_are_bounded_before_the_work(shape, spacing, word):
+    """1.15 million stars (a 1 m sheet at 1 mm) ran for minutes and 2.5 GB; 104,273 small stars
+    met the mesh budget only after ~70 s of per-piece work. Both are refused in seconds."""
+    raw = base_pattern()
+    raw["fabric"]["rectangle"] = shape
+    raw["stars"].update(spacing_mm=spacing, arm_length=0.4, arm_width_mm=0.2)
+    for k in ("region", "ribbon", "print", "support"):
+        raw.pop(k)
+    t0 = time.perf_counter()
+    with folder() as d:
+        line = mesh_error(raw, d)
+    assert word in line, line
+    assert time.perf_counter() - t0 < 15.0
+
+
+def test_rods_mesh_counts_its_centre_lines():
+    """The rods model's mesh budget counts the centre lines' segments, before Gmsh (312,819
+    lines on a 300 mm sheet passed the fabric-only estimate and ran for minutes)."""
+    from geometry.centrelines import mesh_centrelines
+    from shapely.geometry import box
+    from shellfem.errors import SelfshapeError
+    lines = [(np.array([[x, 1.0], [x, 299.0]]), 0.3, 0.8, "front") for x in np.linspace(1.0, 299.0, 10_000)]
+    with pytest.raises(SelfshapeError, match=r"the rods model's mesh would need about 3\.0\de\+06 triangles "
+                                             r"\(10,000 centre lines at 2 mm segments\)"):
+        mesh_centrelines(box(0, 0, 300, 300), lines, 2.0, where="p.toml")
+
+
+def test_empty_printer_file_is_refused(tmp_path):
+    """An empty (truncated) --printer file printed for the default machine with exit 0."""
+    pr = tmp_path / "pr.toml"
+    pr.write_text("# nothing\n")
+    rc, _, stderr = run(["design", TARGET, "-o", str(tmp_path / "out"), "--printer", str(pr)])
+    assert rc == 2 and len(stderr.splitlines()) == 1 and "pr.toml: no printer keys" in stderr, stderr
+
+
 @pytest.mark.parametrize("shape", [{"disk": 1e-6}, {"rectangle": [1e300, 4.0]}, {"hexagon": 0.1},
                                    {"rectangle": [0.2, 40.0]}])
 def test_tiny_and_huge_fabrics(shape):
@@ -733,3 +835,10 @@ def test_examples_and_test_patterns_are_inside_the_ranges():
     assert len(files) >= 12
     for f in files:
         patterns.load_pattern(f)
+
+
+def test_unknown_contraction_names_the_option(tmp_path):
+    """`--contraction bogus` said only "bogus: file not found" (which option?)."""
+    rc, _, stderr = run(["design", TARGET, "-o", str(tmp_path / "out"), "--contraction", "bogus"])
+    assert rc == 2 and len(stderr.splitlines()) == 1, stderr
+    assert "--contraction 'bogus': not 'auto', 'seed', 'table', 'table-polygon' nor a contraction table" in stderr
