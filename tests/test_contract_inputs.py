@@ -842,3 +842,15 @@ def test_unknown_contraction_names_the_option(tmp_path):
     rc, _, stderr = run(["design", TARGET, "-o", str(tmp_path / "out"), "--contraction", "bogus"])
     assert rc == 2 and len(stderr.splitlines()) == 1, stderr
     assert "--contraction 'bogus': not 'auto', 'seed', 'table', 'table-polygon' nor a contraction table" in stderr
+
+
+def test_printer_origin_far_off_the_bed_is_refused_before_the_design(tmp_path):
+    """origin = [1900, 1900] on a 223 mm bed: every ribbon off the bed, said only after the
+    design (15 s), ribbon by ribbon, without naming the printer file."""
+    pr = tmp_path / "pr.toml"
+    pr.write_text("[printer]\norigin = [1900.0, 1900.0]\n")
+    t0 = time.perf_counter()
+    rc, _, stderr = run(["design", TARGET, "-o", str(tmp_path / "out"), "--printer", str(pr)])
+    assert rc == 2 and len(stderr.splitlines()) == 1, stderr
+    assert "pr.toml" in stderr and "printer.origin[0] (1900) must lie within one bed size of the bed" in stderr
+    assert time.perf_counter() - t0 < 5.0
