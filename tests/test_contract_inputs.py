@@ -854,3 +854,30 @@ def test_printer_origin_far_off_the_bed_is_refused_before_the_design(tmp_path):
     assert rc == 2 and len(stderr.splitlines()) == 1, stderr
     assert "pr.toml" in stderr and "printer.origin[0] (1900) must lie within one bed size of the bed" in stderr
     assert time.perf_counter() - t0 < 5.0
+
+
+_COORD = st.one_of(st.floats(-50.0, 80.0), st.sampled_from([math.nan, math.inf, -math.inf, 1e300, -1e300, 0.0]))
+
+
+@SETTINGS
+@given(n=st.integers(1, 4), data=st.data())
+def test_any_support_table_is_read_or_refused_naming_the_support(n, data):
+    """Generated [[support]] tables ("xyz" posts with drawn points and positions, non-finite and
+    huge values among them, a ground on or off): `selfshape mesh` either reads the pattern or
+    refuses it in one line naming [[support]] (or the [ground] it contradicts); never another
+    status, never a traceback."""
+    pts = [[data.draw(_COORD), data.draw(_COORD)] for _ in range(n)]
+    pos = [[data.draw(_COORD), data.draw(_COORD), data.draw(_COORD)] for _ in range(n)]
+    raw = base_pattern()
+    raw["support"] = [{"points": pts, "fix": "xyz", "position": pos}]
+    if data.draw(st.booleans(), label="ground"):
+        raw["ground"] = {"enabled": True, "height_mm": data.draw(st.floats(-5.0, 5.0))}
+    with folder() as d:
+        path = os.path.join(d, "pattern.toml")
+        with open(path, "wb") as f:
+            tomli_w.dump(raw, f)
+        rc, stdout, stderr = run(["mesh", path, "-o", os.path.join(d, "out.msh")])
+    assert rc in (0, 2), (rc, stderr)
+    if rc == 2:
+        lines = stderr.splitlines()
+        assert len(lines) == 1 and "pattern.toml" in lines[0] and "[[support]]" in lines[0], stderr
