@@ -190,11 +190,6 @@ def contact_options(raw: dict, src: str, fabric, supports) -> tuple[bool, float 
     gravity = fabric.areal_weight > 0
     on = _flag(g, "enabled", where, on_the_table(supports, gravity))
     height = _num(g, "height_mm", where, 0.0, "ground")
-    if gravity and not supports:
-        # what holds the sheet decides the problem: without a support it falls (the solver's
-        # gauge would carry the weight); said here, naming the file and the key
-        raise SelfshapeError(f"{src}: [fabric] areal_weight_n_per_mm2 > 0 (gravity) needs a [[support]] that "
-                             f"holds the sheet in z: without one the sheet falls")
     if on and g.get("enabled") is True and not supports:
         raise SelfshapeError(f"{src}: [ground] enabled = true needs a [[support]] that holds the sheet on it: "
                              f"without one nothing holds the sheet against the ground and the "

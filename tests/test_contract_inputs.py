@@ -379,9 +379,6 @@ _POST = {"points": [[20.0, 15.0]], "fix": "xyz", "position": [[14.8, 11.1, 2.0]]
      "[ground] enabled = true needs a [[support]]"),
     (_both(_no_supports, _set(ground={"enabled": True, "height_mm": -20.0})),
      "[ground] enabled = true needs a [[support]]"),
-    # gravity with no support: the solver's error named neither the file nor the key
-    (_both(_no_supports, lambda r: r["fabric"].update(areal_weight_n_per_mm2=1e-6)),
-     "[fabric] areal_weight_n_per_mm2 > 0 (gravity) needs a [[support]]"),
     # a post under the ground: non-finite numbers blamed on "a modulus ... such as 1e300"
     (_set(support=[{**_POST, "position": [[14.8, 11.1, -5.0]]}], ground={"enabled": True}),
      "[[support]] #1 position 1 is at z = -5 mm, below the [ground] at height_mm = 0"),
@@ -881,3 +878,19 @@ def test_any_support_table_is_read_or_refused_naming_the_support(n, data):
     if rc == 2:
         lines = stderr.splitlines()
         assert len(lines) == 1 and "pattern.toml" in lines[0] and "[[support]]" in lines[0], stderr
+
+
+def test_gravity_without_a_support_names_the_file_and_key(tmp_path):
+    """Gravity with no [[support]]: `simulate` said "gravity is on ... the sheet would fall"
+    without the file or key; now before meshing, naming both (`mesh` needs no support)."""
+    raw = base_pattern()
+    raw.pop("support")
+    raw["fabric"]["areal_weight_n_per_mm2"] = 1e-6
+    with folder() as d:
+        path = os.path.join(d, "pattern.toml")
+        with open(path, "wb") as f:
+            tomli_w.dump(raw, f)
+        rc, _, stderr = run(["simulate", path, "-o", os.path.join(d, "out"), "-q"])
+        assert rc == 2 and len(stderr.splitlines()) == 1, stderr
+        assert "pattern.toml: [fabric] areal_weight_n_per_mm2 > 0 (gravity) needs a [[support]]" in stderr
+        assert not os.path.exists(os.path.join(d, "out"))
