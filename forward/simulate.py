@@ -416,6 +416,11 @@ def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=F
     geometry.centrelines) on a bare fabric, with the effective monolayer's rest curvature
     (shellfem.rods); one mesh level."""
     from geometry.meshing import coarse_meshes, mesh_pattern
+    if pattern.fabric.areal_weight > 0 and not pattern.supports:
+        # before meshing, naming the file and the key (simulate_sheet's own check names neither);
+        # the reader accepts such a pattern: meshing, exporting or designing it needs no support
+        raise SelfshapeError(f"{pattern.source}: [fabric] areal_weight_n_per_mm2 > 0 (gravity) needs a [[support]] "
+                             f"that holds the sheet in z: without one the sheet falls")
     if progress is not None:
         progress({"stage": "mesh"})
     if getattr(pattern, "solver_model", "shell") == "rods":

@@ -62,6 +62,15 @@ def mesh_centrelines(outline, lines, size_mm: float, segment_mm: float | None = 
     if est > MAX_TRIANGLES:
         raise SelfshapeError(f"{where}: mesh size {size:g} mm would need about {est:.3g} triangles, more than the "
                              f"{MAX_TRIANGLES:,} selfshape meshes; use a larger [mesh] size_mm")
+    # each centre line is cut into segments of at most seg (and at least 4), each an edge of the
+    # mesh with a triangle on either side: counted before the per-line work and Gmsh
+    lengths = np.array([float(np.linalg.norm(np.diff(np.asarray(path, float), axis=0), axis=1).sum())
+                        for path, _, _, _ in lines])
+    est += 2.0 * float(np.maximum(np.ceil(lengths / seg), 4).sum())
+    if est > MAX_TRIANGLES:
+        raise SelfshapeError(f"{where}: the rods model's mesh would need about {est:.3g} triangles ({len(lines):,} "
+                             f"centre lines at {seg:g} mm segments), more than the {MAX_TRIANGLES:,} selfshape meshes; "
+                             f"use a larger [mesh] size_mm or fewer stars")
     inner = outline.buffer(-0.25 * seg)
     pieces = []                     # (polyline, line id, segment length)
     for i, (path, _, _, _) in enumerate(lines):

@@ -277,9 +277,16 @@ def _mesh_model(gmsh, pattern, size_mm, across, grading, algorithm, kernel):
         raise SelfshapeError(f"{pattern.source}: mesh across must be > 0, got {across!r}")
     if kernel not in ("geo", "occ"):
         raise ValueError(f"kernel must be 'geo' or 'occ', got {kernel!r}")
+    floor = size * 1e-3
+    # the budget on the elements as given, before the per-piece work (snapping, detail, union)
+    # that grows with their count: 100,000 stars took minutes there before the budget below
+    raw_geoms = np.array([e.geometry for e in pattern.elements], dtype=object)
+    if len(raw_geoms):
+        check_mesh_budget(pattern.source, estimate_triangles(
+            pattern.outline.area, shapely.area(raw_geoms), shapely.length(raw_geoms),
+            np.maximum(feature_width(raw_geoms) / across, floor), size, grading), size)
     geoms, thick, side, owner = printed_pieces(pattern.elements)
     check_polygon_vertices(pattern, geoms, owner)
-    floor = size * 1e-3
     piece_h = np.maximum(feature_width(geoms) / across, floor)
     check_mesh_budget(pattern.source, estimate_triangles(pattern.outline.area, shapely.area(geoms),
                                                          shapely.length(geoms), piece_h, size, grading), size)

@@ -33,8 +33,8 @@ from shapely.geometry import LineString, Polygon
 from geometry import outlines
 from geometry.elements import PrintedElement, Support
 from geometry.expressions import compile_field
-from geometry.schema import (MIN_FABRIC_WIDTH_MM, MIN_FEATURE_MM, PATTERN_NUMBERS, SOLVER_CHOICES, check_keys,
-                             model_parameter_spec, number)
+from geometry.schema import (MAX_SUPPORT_POINTS, MIN_FABRIC_WIDTH_MM, MIN_FEATURE_MM, PATTERN_NUMBERS, SOLVER_CHOICES,
+                             SUPPORT_REACH, check_keys, model_parameter_spec, number)
 from geometry.stars import star_elements
 from geometry.tomlfile import read_toml
 from shellfem.errors import SelfshapeError
@@ -183,13 +183,37 @@ def contact_options(raw: dict, src: str, fabric, supports) -> tuple[bool, float 
     """([contact] enabled, ground height or None) of a pattern: see :class:`Pattern`. The
     ground's default is :func:`on_the_table` (issue 20: on wherever a support holds the sheet
     on the ground, or gravity pulls it onto the table it is pinned to)."""
-    contact = _flag(_table(raw.get("contact", {}), f"{src}: [contact]", KEYS["contact"]), "enabled",
-                    f"{src}: [contact]", True)
+    c = _table(raw.get("contact", {}), f"{src}: [contact]", KEYS["contact"])
+    contact = _flag(c, "enabled", f"{src}: [contact]", True)
     where = f"{src}: [ground]"
     g = _table(raw.get("ground", {}), where, KEYS["ground"])
-    on = _flag(g, "enabled", where, on_the_table(supports, fabric.areal_weight > 0))
+    gravity = fabric.areal_weight > 0
+    on = _flag(g, "enabled", where, on_the_table(supports, gravity))
     height = _num(g, "height_mm", where, 0.0, "ground")
+    if on and g.get("enabled") is True and not supports:
+        raise SelfshapeError(f"{src}: [ground] enabled = true needs a [[support]] that holds the sheet on it: "
+                             f"without one nothing holds the sheet against the ground and the "
+                             f"solve cannot converge (the rigid-motion gauge carries its push)")
+    if on:
+        for s in supports:
+            if s.position is not None and np.any(s.position[:, 2] < height):
+                k = int(np.argmin(s.position[:, 2]))
+                raise SelfshapeError(f"{src}: [[support]] #{s.label.split('#')[-1]} position {k + 1} is at "
+                                     f"z = {s.position[k, 2]:.4g} mm, below the [ground] at height_mm = {height:g}: "
+                                     f"a post cannot hold the sheet under the ground")
     return contact, (height if on else None)
+
+
+def check_rods_contact(raw: dict, src: str) -> None:
+    """[solver] model = "rods" has no contact (shellfem.rods: the seed's chapter-3 model): a
+    [contact] or [ground] that turns one on is a one-line error, not ignored."""
+    c, g = raw.get("contact", {}), raw.get("ground", {})
+    if isinstance(c, dict) and c.get("enabled", False) is True:
+        raise SelfshapeError(f"{src}: [contact] enabled = true with [solver] model = \"rods\": the rods model has "
+                             f"no contact; set enabled = false or use model = \"shell\"")
+    if isinstance(g, dict) and g and g.get("enabled", True) is not False:
+        raise SelfshapeError(f"{src}: [ground] with [solver] model = \"rods\": the rods model has no ground; "
+                             f"remove [ground] (or set enabled = false) or use model = \"shell\"")
 
 
 def _choice(table: dict, key: str, where: str, options: tuple, default: str):
@@ -469,7 +493,48 @@ def _supports(raw, src, outline) -> list[Support]:
             if len(pos) != len(pts):
                 raise SelfshapeError(f"{where}: position has {len(pos)} entries but points has {len(pts)}")
         out.append(Support(points=pts, fix=fix, position=pos, label=f"support #{i + 1}"))
+        total = sum(len(s.points) for s in out)
+        if total > MAX_SUPPORT_POINTS:
+            raise SelfshapeError(f"{where}: points bring the supports to {total:,} points, more than the "
+                                 f"{MAX_SUPPORT_POINTS:,} a pattern may hold (each is a held mesh vertex; use "
+                                 f"boundary = true to hold the whole outline)")
     return out
+
+
+def check_support_positions(supports, fabric, outline, src: str) -> None:
+    """The stated positions of "xyz" supports within reach of the fabric (geometry.schema.
+    SUPPORT_REACH): each within SUPPORT_REACH fabric diagonals of its point's relaxed position
+    (x/sx, y/sy, 0), and any two held points at most SUPPORT_REACH times their printed
+    distance apart (the fabric is printed pre-stretched and breaks before 3x); one-line
+    SelfshapeError naming the support and the point otherwise."""
+    held = [(s, k) for s in supports if s.position is not None for k in range(len(s.points))]
+    if not held:
+        return
+    b = outline.bounds
+    diag = math.hypot(b[2] - b[0], b[3] - b[1])
+    sx, sy = fabric.stretch
+    p = np.array([s.points[k] for s, k in held], float)
+    P = np.array([s.position[k] for s, k in held], float)
+    relaxed = np.column_stack([p[:, 0] / sx, p[:, 1] / sy, np.zeros(len(p))])
+    off = np.linalg.norm(P - relaxed, axis=1)
+    if off.max() > SUPPORT_REACH * diag:
+        j = int(np.argmax(off))
+        s, k = held[j]
+        raise SelfshapeError(f"{src}: [[support]] #{s.label.split('#')[-1]} position {k + 1} is {off[j]:.4g} mm "
+                             f"from its point's relaxed position, more than {SUPPORT_REACH:g} x the fabric's "
+                             f"{diag:.4g} mm diagonal: a support holds the sheet where it deploys (move the whole "
+                             f"frame instead)")
+    for i0 in range(0, len(p), 1024):
+        dp = np.linalg.norm(p[i0:i0 + 1024, None] - p[None], axis=2)
+        dP = np.linalg.norm(P[i0:i0 + 1024, None] - P[None], axis=2)
+        bad = dP > SUPPORT_REACH * dp + 1e-9 * diag
+        if bad.any():
+            a, c = np.argwhere(bad)[0]
+            (s1, k1), (s2, k2) = held[i0 + a], held[c]
+            raise SelfshapeError(f"{src}: [[support]] positions {s1.label.split('#')[-1]}.{k1 + 1} and "
+                                 f"{s2.label.split('#')[-1]}.{k2 + 1} are {dP[a, c]:.4g} mm apart, more than "
+                                 f"{SUPPORT_REACH:g} x their {dp[a, c]:.4g} mm on the printed fabric: the fabric "
+                                 f"cannot stretch that far")
 
 
 # ---------------------------------------------------------------- entry points
@@ -497,9 +562,13 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".", from_file
     elements = (_regions(raw, src, outline) + _ribbons(raw, src, outline) + _stars(raw, src, outline)
                 + _print(raw, src, outline, base_dir, confine=from_file))
     supports = _supports(raw, src, outline)
+    check_support_positions(supports, fabric, outline, src)
     if model == "rods":
         check_rods_model(elements, src)
     contact, ground = contact_options(raw, src, fabric, supports)
+    if model == "rods":              # no contact in the rods model: say so, and record it
+        check_rods_contact(raw, src)
+        contact, ground = False, None
     if from_file:
         check_printed(elements, fabric, src)
     return Pattern(fabric=fabric, plastic=plastic, outline=outline, elements=elements, supports=supports,

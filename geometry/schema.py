@@ -36,6 +36,18 @@ DETAIL_MM = 1.0e-4
 #: Most vertices one polygon (outline, region, printed piece) may keep after DETAIL_MM:
 #: Gmsh needs ~10 s to set up a boundary loop of 50,000 vertices (quadratic beyond).
 MAX_POLYGON_VERTICES = 50_000
+#: Most support points one pattern may hold ([[support]] points, all tables): each becomes a
+#: held mesh vertex; 200,000 points took 100 s to mesh and say nothing a few hundred do not.
+MAX_SUPPORT_POINTS = 10_000
+#: A support's stated position lies within this many fabric diagonals (its bounding box) of the
+#: held point's relaxed position (x/sx, y/sy, 0), and two held points are at most this many
+#: times their printed distance apart: a post 9 m above a 40 mm strip ran past 2 min (a rigid
+#: move the solver carries step by step), two posts 1 m apart tore it to non-finite numbers.
+SUPPORT_REACH = 3.0
+#: Most stars one [stars] table may place: each printed star needs at least ~10 triangles of
+#: the MAX_TRIANGLES mesh budget; 1.15 million stars (a 1 m sheet at 1 mm spacing) took minutes
+#: and 2.5 GB before any budget was checked.
+MAX_STARS = 200_000
 #: Smallest fabric "width" 2 area / perimeter (mm) (a disk's radius, ~ a strip's width).
 MIN_FABRIC_WIDTH_MM = 0.5
 #: Cap of the estimated triangle count of a mesh (geometry.meshing.estimate_triangles):
@@ -197,7 +209,19 @@ DESIGN_NUMBERS: dict[str, Num] = {
     "gap_mm": Num(0.0, COORD_MAX_MM, _LEN, "a distance between ribbons on a target of at most 10 m"),
     "layout_edge_mm": Num(0.0, COORD_MAX_MM, _LEN, "the layout mesh's mean edge: a length on a target of at most "
                           "10 m", lo_open=True),
+    # the rest are Python-only (and sweep) options: -1 reached numpy's generator after the
+    # flattening (a raw ValueError, exit 3), 0 faces or iterations ran to nonsense
+    "seed": PATTERN_NUMBERS["solver"]["seed"],
+    "max_faces": Num(1, MAX_TRIANGLES, "", "the refined target's face cap: at most the mesh budget", integer=True),
+    "flatten_max_iter": Num(1, 100_000, "", "flattening iterations on the fine mesh", integer=True),
+    "ribbon_length": Num(1.0, 1000.0, _LEN, "a printed dash of 1 mm to 1 m"),
+    "ribbon_width": WIDTH,
 }
+#: The flattening's stretch bounds (s1min, s1max, s2min, s2max) of a design: each in this range
+#: and each minimum at most its maximum (DesignOptions.bounds; None: the contraction model's).
+DESIGN_BOUND = Num(0.0, 10.0, "", "a principal stretch of the flattening", lo_open=True)
+#: The flattening's stop rules (DesignOptions.stop).
+DESIGN_STOPS = ("mean", "norm")
 
 
 # ---------------------------------------------------------------- the printer

@@ -19,7 +19,7 @@ from shapely.geometry import Polygon
 
 from geometry.elements import PrintedElement
 from geometry.expressions import evaluate_field
-from geometry.schema import MIN_ARM_MM, PATTERN_NUMBERS
+from geometry.schema import MAX_STARS, MIN_ARM_MM, PATTERN_NUMBERS
 from shellfem.errors import SelfshapeError
 
 SQRT3 = math.sqrt(3.0)
@@ -93,9 +93,15 @@ def star_elements(outline: Polygon, spacing: float, arm_length, thickness, arm_w
         raise SelfshapeError(f"{where} spacing_mm must be > 0, got {spacing!r}")
     if side not in ("front", "back"):
         raise SelfshapeError(f"{where} side must be \"front\" or \"back\", got {side!r}")
-    if spacing < 1e-3 * math.sqrt(outline.area) and outline.area / (spacing * spacing) > 2e6:
-        raise SelfshapeError(f"{where} spacing_mm = {spacing:g} gives more than a million stars")
+    # the count is bounded before any lattice or polygon is built (geometry.schema.MAX_STARS)
+    if outline.area / (spacing * spacing) > 2 * MAX_STARS:
+        raise SelfshapeError(f"{where} spacing_mm = {spacing:g} gives about {outline.area / spacing ** 2:.3g} stars on "
+                             f"this fabric, more than the {MAX_STARS:,} a pattern may hold (the mesh budget); use a "
+                             f"larger spacing_mm")
     centres, idx = lattice_points(outline, spacing, origin, angle_deg)
+    if len(centres) > MAX_STARS:
+        raise SelfshapeError(f"{where} spacing_mm = {spacing:g} gives {len(centres):,} stars on this fabric, more than "
+                             f"the {MAX_STARS:,} a pattern may hold (the mesh budget); use a larger spacing_mm")
     if len(centres) == 0:          # never a silent empty print
         raise SelfshapeError(f"{where} no lattice node lies inside the fabric (spacing_mm = {spacing:g}); "
                              f"use a smaller spacing or move origin")

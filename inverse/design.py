@@ -223,6 +223,53 @@ def _check_fits_bed(uv, printer, ribbon_length, diagonal_mm, where):
                              f"bed_size")
 
 
+#: The bed check before the flattening refuses a target only when its flat pattern's lower
+#: bounds exceed what the bed takes by more than this factor: the bounds hold where the flattening
+#: keeps its stretch bounds, and it can leave them on part of the area (on the shipped targets at
+#: 110 mm the flat diameter is 1.08-1.64 x the target's times the smallest stretch bound, the
+#: flat area 1.05-1.32 x the target's times the product of the lowest bounds; docs/notes.md
+#: session 23).
+BED_PRECHECK_SLACK = 1.1
+
+
+def _fibonacci_directions(n: int = 200) -> np.ndarray:
+    """n unit vectors spread over the sphere (a Fibonacci lattice), for diameter lower bounds."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(1.0 - z * z)
+    phi = np.pi * (1.0 + 5 ** 0.5) * i
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+
+
+def _check_fits_bed_before_flattening(V, F, bounds, printer, ribbon_length, diagonal_mm, where):
+    """One-line error before the refinement and flattening when the target (mm) cannot fit the
+    printer's bed at any flattening within the stretch ``bounds``: every flat distance is at
+    least the smallest stretch bound times the target's (geodesic >= straight), and the flat
+    area at least the product of the two lowest bounds times the target's area, while
+    `_check_fits_bed` admits an outline of at most (bed + 2 ribbon lengths) per side, so a
+    diameter beyond that box's diagonal or an area beyond its area cannot print. Both bounds
+    are divided by BED_PRECHECK_SLACK; the marginal cases go on to `_check_fits_bed` after the
+    flattening. A 5000 mm target on the default bed was refused only after flattening (2 min
+    with --stretch auto's three candidates)."""
+    b = np.asarray(bounds, float)
+    smin1, smin2 = (b[0], b[2]) if b.ndim == 1 else (b[:, 0].min(), b[:, 1].min())
+    box = np.asarray(printer.bed_size, float) + 2.0 * ribbon_length
+    d3 = float(np.ptp(V @ _fibonacci_directions().T, axis=0).max())        # <= the target's diameter
+    a3 = float(face_areas(V, F).sum())
+    d_flat, a_flat = min(smin1, smin2) * d3, smin1 * smin2 * a3
+    d_box, a_box = float(np.hypot(*box)), float(np.prod(box))
+    excess = max(d_flat / d_box, (a_flat / a_box) ** 0.5) / BED_PRECHECK_SLACK
+    if excess <= 1.0:
+        return
+    bed = np.asarray(printer.bed_size, float)
+    hint = (f"lower --diagonal (now {diagonal_mm:g} mm; above {diagonal_mm / excess:.0f} mm this target cannot fit)"
+            if diagonal_mm is not None else "scale the target down")
+    raise SelfshapeError(f"{where}: the flat pattern needs at least {d_flat:.0f} mm across and {a_flat:.4g} mm^2 "
+                         f"(the target's {d3:.0f} mm and {a3:.4g} mm^2 times the stretch bounds), more than the "
+                         f"printer's {bed[0]:g} x {bed[1]:g} mm bed takes ({box[0]:g} x {box[1]:g} mm with a ribbon "
+                         f"length over each side); {hint} or give a printer with a larger bed_size")
+
+
 #: A target whose vertices all lie within this fraction of its bounding-box diagonal of one
 #: plane is flat: there is no curvature to design for (0.11 mm at the default 110 mm).
 FLAT_REL = 1e-3
@@ -250,11 +297,25 @@ def check_design_numbers(o: DesignOptions) -> None:
     """The numbers of ``o`` in their geometry.schema.DESIGN_NUMBERS ranges (None turns an
     option off; stretch may be "auto"), before anything runs: a one-line SelfshapeError naming
     the option otherwise (a NaN gap or a stretch of 5 would run and write nonsense)."""
-    from geometry.schema import DESIGN_NUMBERS, number
+    from geometry.schema import DESIGN_BOUND, DESIGN_NUMBERS, DESIGN_STOPS, number
     for key, spec in DESIGN_NUMBERS.items():
         v = getattr(o, key)
         if v is not None and not (key == "stretch" and v == "auto"):
             number(v, f"design: {key}", spec)
+    if o.ribbon_width > o.ribbon_length:
+        raise SelfshapeError(f"design: ribbon_width ({o.ribbon_width:g} mm) must be at most ribbon_length "
+                             f"({o.ribbon_length:g} mm): a ribbon is longer than wide")
+    if o.stop not in DESIGN_STOPS:
+        raise SelfshapeError(f"design: stop must be one of {', '.join(map(repr, DESIGN_STOPS))}, got {o.stop!r:.40}")
+    if o.bounds is not None:
+        b = o.bounds
+        if isinstance(b, (str, bytes)) or not hasattr(b, "__len__") or len(b) != 4:
+            raise SelfshapeError(f"design: bounds must be 4 numbers (s1min, s1max, s2min, s2max), got {b!r:.60}")
+        b = [number(v, f"design: bounds[{i}]", DESIGN_BOUND) for i, v in enumerate(b)]
+        for i in (0, 2):
+            if b[i] > b[i + 1]:
+                raise SelfshapeError(f"design: bounds[{i}] = {b[i]:g} is above bounds[{i + 1}] = {b[i + 1]:g} "
+                                     f"(s1min, s1max, s2min, s2max)")
 
 
 # The design is the same at every thread count: multithreaded OpenBLAS (CHOLMOD's supernodal
@@ -322,6 +383,7 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     if not total_area > 0:
         raise SelfshapeError(f"{where}: zero total area")
     _check_curved(V0, where)
+    _check_fits_bed_before_flattening(V0, F0, bounds, printer, ribbon_length, o.diagonal_mm, where)
     levels = 0 if o.edge_mm is None else refine_levels_for_edge(V0, F0, o.edge_mm, o.max_faces)
     Vf, Ff = refine(V0, F0, levels) if levels else (V0, F0)
     Ff = np.ascontiguousarray(Ff, dtype=np.int64)

@@ -67,7 +67,9 @@ class Printer:
     def __post_init__(self):
         """Every field against its range in geometry.schema.PRINTER_NUMBERS (bools and strings
         are never numbers), then the relations: layer height <= nozzle (the bead model needs
-        h <= w and a bead is at least a nozzle wide), mirror axis on the bed."""
+        h <= w and a bead is at least a nozzle wide), mirror axis on the bed, origin within one
+        bed size of the bed (an origin of 1900 mm on a 223 mm bed was refused only after the
+        design, ribbon by ribbon)."""
         self.bed_size = _pair("bed_size", self.bed_size)
         if self.origin is not None:
             self.origin = _pair("origin", self.origin)
@@ -84,6 +86,12 @@ class Printer:
             if self.mirror_axis_x > self.bed_size[0]:
                 raise SelfshapeError(f"printer.mirror_axis_x ({self.mirror_axis_x:g}) must lie on the bed, "
                                      f"0..{self.bed_size[0]:g} mm (bed_size[0])")
+        if self.origin is not None:
+            for i, (o, b) in enumerate(zip(self.origin, self.bed_size)):
+                if not -b <= o <= 2.0 * b:       # no pattern at (0, 0) +- one bed can then be printed
+                    raise SelfshapeError(f"printer.origin[{i}] ({o:g}) must lie within one bed size of the bed, "
+                                         f"{-b:g}..{2 * b:g} mm (bed_size[{i}] = {b:g}): the pattern's (0, 0) goes "
+                                         f"there")
         if not isinstance(self.relative_e, bool):
             raise SelfshapeError(f"printer.relative_e must be true or false, got {self.relative_e!r:.40}")
 
@@ -113,6 +121,9 @@ def load_printer(path: str) -> Printer:
 
     from geometry.tomlfile import read_toml
     raw = read_toml(path, f"printer file {path}")
+    if not raw:         # an empty or truncated file would print for the default machine
+        raise SelfshapeError(f"printer file {path}: no printer keys (an empty file); give at least bed_size, or "
+                             f"leave out --printer for the default printer")
     table = raw.get("printer", raw)
     if not isinstance(table, dict):
         raise SelfshapeError(f"printer file {path}: [printer] must be a table")

@@ -162,6 +162,11 @@ def _cmd_design(a):
     from inverse.design import design_file
     from inverse.printer import load_printer
     printer = load_printer(a.printer) if a.printer else None
+    table = a.contraction.removesuffix(":polygon")
+    if a.contraction not in ("auto", "seed", "table", "table-polygon") and not os.path.exists(table):
+        from shellfem.errors import SelfshapeError
+        raise SelfshapeError(f"--contraction {a.contraction!r:.80}: not 'auto', 'seed', 'table', 'table-polygon' nor "
+                             f"a contraction table file (no such file)")
     r = design_file(a.target, a.output, verify=a.verify, diagonal_mm=a.diagonal, stretch=a.stretch,
                     thickness_law=a.law, lam=a.lam, printer=printer, verify_iterations=a.verify_iterations,
                     refine=a.refine, mesh_size_mm=a.mesh_size, mesh_across=a.mesh_across, verbose=a.verbose,

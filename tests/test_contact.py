@@ -443,7 +443,13 @@ def test_support_below_the_ground_is_a_reason_not_a_converged_state():
            "region": [{"polygon": [[0, 0], [20, 0], [20, 8], [0, 8]], "thickness_mm": 0.3, "side": "front"}],
            "support": [{"points": [[10.0, 4.0]], "fix": "xyz", "position": [[7.4, 3.0, 0.0]]}],
            "mesh": {"size_mm": 2.0}, "solver": {"coarse_levels": 0}, "ground": {"enabled": True, "height_mm": 1.0}}
-    sim = simulate(parse_pattern(raw))
+    # a stated position below the ground is the pattern's contradiction: the reader says so
+    # (issue 19; with coarse levels the solve ended in non-finite numbers instead of the reason)
+    with pytest.raises(SelfshapeError, match=r"\[\[support\]\] #1 position 1 is at z = 0 mm, below the \[ground\]"):
+        parse_pattern(raw)
+    pattern = parse_pattern({**raw, "ground": {"enabled": True, "height_mm": 0.0}})
+    pattern.ground = 1.0                    # a Python caller's pattern: the solver's own check
+    sim = simulate(pattern)
     assert not sim.result.converged and "forces penetration" in sim.result.reason
     raw["support"] = [{"points": [[10.0, 4.0], [9.0, 4.0], [11.0, 4.0]], "fix": "z"}]
     sim = simulate(parse_pattern(raw))
@@ -528,8 +534,10 @@ def test_contact_key_defaults():
     p = parse_pattern({**base, "support": [{"points": [[10.0, 4.0]], "fix": "z"}],
                        "ground": {"enabled": False}, "contact": {"enabled": False}})
     assert p.ground is None and p.contact is False
-    p = parse_pattern({**base, "ground": {"enabled": True, "height_mm": -2.5}})
+    p = parse_pattern({**base, "support": [post], "ground": {"enabled": True, "height_mm": -2.5}})
     assert p.ground == -2.5
+    with pytest.raises(SelfshapeError, match=r"\[ground\] enabled = true needs a \[\[support\]\]"):
+        parse_pattern({**base, "ground": {"enabled": True, "height_mm": -2.5}})   # nothing holds it there
 
 
 def test_outputs_report_contact(tmp_path):

@@ -350,6 +350,105 @@ def test_cases_of_the_issue(text, word):
     assert word in line, line
 
 
+def _no_supports(raw):
+    raw.pop("support")
+
+
+def _set(**tables):
+    def f(raw):
+        for k, v in tables.items():
+            raw[k] = v
+    return f
+
+
+def _both(*fs):
+    def f(raw):
+        for g in fs:
+            g(raw)
+    return f
+
+
+_RODS = _both(_set(solver={"model": "rods"}), lambda r: [r.pop(k) for k in ("region", "print")])
+_POST = {"points": [[20.0, 15.0]], "fix": "xyz", "position": [[14.8, 11.1, 2.0]]}
+
+
+@pytest.mark.parametrize("mutate, word", [
+    # a ground with nothing holding the sheet on it: "not converged" (the gauge carries its push)
+    # at any height, without saying why
+    (_both(_no_supports, _set(ground={"enabled": True, "height_mm": 5.0})),
+     "[ground] enabled = true needs a [[support]]"),
+    (_both(_no_supports, _set(ground={"enabled": True, "height_mm": -20.0})),
+     "[ground] enabled = true needs a [[support]]"),
+    # a post under the ground: non-finite numbers blamed on "a modulus ... such as 1e300"
+    (_set(support=[{**_POST, "position": [[14.8, 11.1, -5.0]]}], ground={"enabled": True}),
+     "[[support]] #1 position 1 is at z = -5 mm, below the [ground] at height_mm = 0"),
+    # the rods model has no contact: [contact] and [ground] were silently ignored (exit 0)
+    (_both(_RODS, _set(contact={"enabled": True})), "[contact] enabled = true with [solver] model = \"rods\""),
+    (_both(_RODS, _set(ground={"height_mm": 0.0})), "[ground] with [solver] model = \"rods\""),
+    # supports: a huge count (100 s to mesh), a post 9 m away (> 2 min), two posts 1 m apart
+    (_set(support=[{"points": [[20.0 + 1e-5 * i, 15.0] for i in range(20_000)]}]),
+     "points bring the supports to 20,000 points, more than the 10,000"),
+    (_set(support=[{**_POST, "position": [[14.8, 11.1, 9000.0]]}]),
+     "[[support]] #1 position 1 is 9000 mm from its point's relaxed position"),
+    (_set(support=[{"points": [[2.0, 15.0], [38.0, 15.0]], "fix": "xyz",
+                    "position": [[1.5, 11.1, 0.0], [150.0, 11.1, 0.0]]}]),
+     "[[support]] positions 1.1 and 1.2 are 148.5 mm apart, more than 3 x their 36 mm"),
+    (_set(support=[{"points": [[2.0, 15.0], [2.0, 15.0]], "fix": "xyz",
+                    "position": [[1.5, 11.1, 0.0], [1.5, 11.1, 1.0]]}]),
+     "[[support]] positions 1.1 and 1.2 are 1 mm apart, more than 3 x their 0 mm"),
+])
+def test_contact_ground_rods_and_supports(mutate, word):
+    """The recently added tables ([contact], [ground], [solver] model = "rods", [[support]]
+    positions and counts) refused in one line naming the file and the key (each failed before:
+    exit 0 with the table ignored, exit 1 without a reason, a misleading error, or minutes)."""
+    raw = base_pattern()
+    mutate(raw)
+    t0 = time.perf_counter()
+    with folder() as d:
+        line = mesh_error(raw, d)
+    assert word in line, line
+    assert time.perf_counter() - t0 < 20.0
+
+
+@pytest.mark.parametrize("shape, spacing, word", [
+    ([1000.0, 1000.0], 1.0, "gives about 1e+06 stars on this fabric, more than the 200,000"),
+    ([300.0, 300.0], 1.0, "would need about 2.61e+07 triangles"),
+])
+def test_star_counts_are_bounded_before_the_work(shape, spacing, word):
+    """1.15 million stars (a 1 m sheet at 1 mm) ran for minutes and 2.5 GB; 104,273 small stars
+    met the mesh budget only after ~70 s of per-piece work. Both are refused in seconds."""
+    raw = base_pattern()
+    raw["fabric"]["rectangle"] = shape
+    raw["stars"].update(spacing_mm=spacing, arm_length=0.4, arm_width_mm=0.2)
+    for k in ("region", "ribbon", "print", "support"):
+        raw.pop(k)
+    t0 = time.perf_counter()
+    with folder() as d:
+        line = mesh_error(raw, d)
+    assert word in line, line
+    assert time.perf_counter() - t0 < 15.0
+
+
+def test_rods_mesh_counts_its_centre_lines():
+    """The rods model's mesh budget counts the centre lines' segments, before Gmsh (312,819
+    lines on a 300 mm sheet passed the fabric-only estimate and ran for minutes)."""
+    from geometry.centrelines import mesh_centrelines
+    from shapely.geometry import box
+    from shellfem.errors import SelfshapeError
+    lines = [(np.array([[x, 1.0], [x, 299.0]]), 0.3, 0.8, "front") for x in np.linspace(1.0, 299.0, 10_000)]
+    with pytest.raises(SelfshapeError, match=r"the rods model's mesh would need about 3\.0\de\+06 triangles "
+                                             r"\(10,000 centre lines at 2 mm segments\)"):
+        mesh_centrelines(box(0, 0, 300, 300), lines, 2.0, where="p.toml")
+
+
+def test_empty_printer_file_is_refused(tmp_path):
+    """An empty (truncated) --printer file printed for the default machine with exit 0."""
+    pr = tmp_path / "pr.toml"
+    pr.write_text("# nothing\n")
+    rc, _, stderr = run(["design", TARGET, "-o", str(tmp_path / "out"), "--printer", str(pr)])
+    assert rc == 2 and len(stderr.splitlines()) == 1 and "pr.toml: no printer keys" in stderr, stderr
+
+
 @pytest.mark.parametrize("shape", [{"disk": 1e-6}, {"rectangle": [1e300, 4.0]}, {"hexagon": 0.1},
                                    {"rectangle": [0.2, 40.0]}])
 def test_tiny_and_huge_fabrics(shape):
@@ -415,6 +514,78 @@ def test_flat_target_has_nothing_to_design(tmp_path, obj, word):
     rc, _, stderr = run(["design", str(t), "-o", str(tmp_path / "out")])
     assert rc == 2 and "flat.obj" in stderr and word in stderr and len(stderr.splitlines()) == 1, stderr
     assert not (tmp_path / "out").exists()
+
+
+# ---------------------------------------------------------------- design options (Python and sweeps)
+
+def design_keys():
+    from geometry.schema import DESIGN_NUMBERS
+    return [(k, s) for k, s in DESIGN_NUMBERS.items()]
+
+
+@pytest.mark.parametrize("key,spec", design_keys(), ids=lambda v: v if isinstance(v, str) else "")
+@SETTINGS
+@given(data=st.data())
+def test_design_option_out_of_range_is_refused_before_the_target_is_read(key, spec, data, tmp_path_factory):
+    """Every number of DesignOptions in geometry.schema.DESIGN_NUMBERS (seed, max_faces,
+    flatten_max_iter, the ribbon size, the lengths) is range-checked by design_file before the
+    target is read (a seed of -1 reached numpy's generator after the ~10 s flattening: exit 3)."""
+    from inverse.design import design_file
+    from shellfem.errors import SelfshapeError
+    value = data.draw(bad_values(spec), label="value")
+    assume(not (key == "stretch" and value == "auto"))
+    out = tmp_path_factory.mktemp("d") / "out"
+    t0 = time.perf_counter()
+    with pytest.raises(SelfshapeError) as e:
+        design_file(os.path.join(tmp_path_factory.getbasetemp(), "never-read.obj"), out, **{key: value})
+    assert time.perf_counter() - t0 < 1.0
+    line = str(e.value)
+    assert f"design: {key}" in line and "\n" not in line, line
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("over, word", [
+    ({"bounds": (0.9, 1.1, 0.8)}, "bounds must be 4 numbers"),
+    ({"bounds": "0.9,1,0.8,1"}, "bounds must be 4 numbers"),
+    ({"bounds": (0.9, math.nan, 0.8, 1.0)}, "bounds[1] must be a finite number"),
+    ({"bounds": (0.9, 1.1, 0.0, 1.0)}, "bounds[2] must be in (0, 10]"),
+    ({"bounds": (1.2, 1.1, 0.8, 1.0)}, "bounds[0] = 1.2 is above bounds[1] = 1.1"),
+    ({"stop": "median"}, "stop must be one of 'mean', 'norm'"),
+    ({"ribbon_width": 20.0}, "ribbon_width (20 mm) must be at most ribbon_length (15 mm)"),
+    ({"seed": -1}, "design: seed must be an integer in [0, 4294967295], got -1"),
+    ({"seed": 1.5}, "design: seed must be an integer"),
+])
+def test_design_options_that_are_not_numbers(tmp_path, over, word):
+    from inverse.design import design_file
+    from shellfem.errors import SelfshapeError
+    with pytest.raises(SelfshapeError) as e:
+        design_file(TARGET, tmp_path / "out", **over)
+    assert word in str(e.value), str(e.value)
+    assert not (tmp_path / "out").exists()
+
+
+def test_design_runs_on_one_blas_thread(monkeypatch):
+    """design() runs with one BLAS thread (the design is the same at every thread count): the
+    decorator once sat on check_design_numbers, inserted between it and design()."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+    import inverse.design as mod
+
+    def blas_threads():
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        if not blas_threads() or max(blas_threads()) < 2:
+            pytest.skip("this BLAS runs on one thread anyway")
+        seen = []
+
+        def record(o):
+            seen.append(blas_threads())
+            raise RuntimeError("stop")
+
+        monkeypatch.setattr(mod, "check_design_numbers", record)
+        with pytest.raises(RuntimeError, match="stop"):
+            mod.design(np.zeros((3, 3)), np.array([[0, 1, 2]]))
+    assert seen and max(seen[0]) == 1, seen
 
 
 # ---------------------------------------------------------------- resource bounds
@@ -661,3 +832,65 @@ def test_examples_and_test_patterns_are_inside_the_ranges():
     assert len(files) >= 12
     for f in files:
         patterns.load_pattern(f)
+
+
+def test_unknown_contraction_names_the_option(tmp_path):
+    """`--contraction bogus` said only "bogus: file not found" (which option?)."""
+    rc, _, stderr = run(["design", TARGET, "-o", str(tmp_path / "out"), "--contraction", "bogus"])
+    assert rc == 2 and len(stderr.splitlines()) == 1, stderr
+    assert "--contraction 'bogus': not 'auto', 'seed', 'table', 'table-polygon' nor a contraction table" in stderr
+
+
+def test_printer_origin_far_off_the_bed_is_refused_before_the_design(tmp_path):
+    """origin = [1900, 1900] on a 223 mm bed: every ribbon off the bed, said only after the
+    design (15 s), ribbon by ribbon, without naming the printer file."""
+    pr = tmp_path / "pr.toml"
+    pr.write_text("[printer]\norigin = [1900.0, 1900.0]\n")
+    t0 = time.perf_counter()
+    rc, _, stderr = run(["design", TARGET, "-o", str(tmp_path / "out"), "--printer", str(pr)])
+    assert rc == 2 and len(stderr.splitlines()) == 1, stderr
+    assert "pr.toml" in stderr and "printer.origin[0] (1900) must lie within one bed size of the bed" in stderr
+    assert time.perf_counter() - t0 < 5.0
+
+
+_COORD = st.one_of(st.floats(-50.0, 80.0), st.sampled_from([math.nan, math.inf, -math.inf, 1e300, -1e300, 0.0]))
+
+
+@SETTINGS
+@given(n=st.integers(1, 4), data=st.data())
+def test_any_support_table_is_read_or_refused_naming_the_support(n, data):
+    """Generated [[support]] tables ("xyz" posts with drawn points and positions, non-finite and
+    huge values among them, a ground on or off): `selfshape mesh` either reads the pattern or
+    refuses it in one line naming [[support]] (or the [ground] it contradicts); never another
+    status, never a traceback."""
+    pts = [[data.draw(_COORD), data.draw(_COORD)] for _ in range(n)]
+    pos = [[data.draw(_COORD), data.draw(_COORD), data.draw(_COORD)] for _ in range(n)]
+    raw = base_pattern()
+    raw["support"] = [{"points": pts, "fix": "xyz", "position": pos}]
+    if data.draw(st.booleans(), label="ground"):
+        raw["ground"] = {"enabled": True, "height_mm": data.draw(st.floats(-5.0, 5.0))}
+    with folder() as d:
+        path = os.path.join(d, "pattern.toml")
+        with open(path, "wb") as f:
+            tomli_w.dump(raw, f)
+        rc, stdout, stderr = run(["mesh", path, "-o", os.path.join(d, "out.msh")])
+    assert rc in (0, 2), (rc, stderr)
+    if rc == 2:
+        lines = stderr.splitlines()
+        assert len(lines) == 1 and "pattern.toml" in lines[0] and "[[support]]" in lines[0], stderr
+
+
+def test_gravity_without_a_support_names_the_file_and_key(tmp_path):
+    """Gravity with no [[support]]: `simulate` said "gravity is on ... the sheet would fall"
+    without the file or key; now before meshing, naming both (`mesh` needs no support)."""
+    raw = base_pattern()
+    raw.pop("support")
+    raw["fabric"]["areal_weight_n_per_mm2"] = 1e-6
+    with folder() as d:
+        path = os.path.join(d, "pattern.toml")
+        with open(path, "wb") as f:
+            tomli_w.dump(raw, f)
+        rc, _, stderr = run(["simulate", path, "-o", os.path.join(d, "out"), "-q"])
+        assert rc == 2 and len(stderr.splitlines()) == 1, stderr
+        assert "pattern.toml: [fabric] areal_weight_n_per_mm2 > 0 (gravity) needs a [[support]]" in stderr
+        assert not os.path.exists(os.path.join(d, "out"))

@@ -1,5 +1,8 @@
+import contextlib
+import io
 import json
 import os
+import re
 
 import numpy as np
 import pytest
@@ -13,6 +16,8 @@ from inverse import design as design_module
 from inverse.design import design, design_file
 from inverse.registration import kabsch, register
 from shellfem.errors import SelfshapeError
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 REPORT_KEYS = ("time_s", "n_faces", "k1_deviation_deg", "sigma_bound_violation", "sigma_out_of_bounds_pct",
                "residual_energy", "stages_s", "ribbons_per_side", "thickness_histogram")
@@ -538,25 +543,74 @@ def test_layout_moves_to_a_finer_level_where_the_coarsest_cannot_resolve_the_str
 def test_pattern_larger_than_the_bed_is_refused_before_the_layout():
     from inverse.printer import Printer
     V, F = cylinder_patch(n_arc=8, n_len=6)
+    # a 30 mm bed passes the check before the flattening (the 71 mm target could fit a 41 mm
+    # bed, 71 mm across its diagonal with a ribbon length over each side) and fails after it
+    with pytest.raises(SelfshapeError) as e:
+        design(V, F, diagonal_mm=None, edge_mm=None, printer=Printer(bed_size=(30.0, 30.0)))
+    msg = str(e.value)
+    assert re.search(r"the flattened pattern is 8\d x 8\d mm, larger than the printer's 30 x 30 mm bed", msg), msg
+    assert "\n" not in msg
     with pytest.raises(SelfshapeError) as e:
         design(V, F, diagonal_mm=None, edge_mm=None, printer=Printer(bed_size=(10.0, 10.0)))
     msg = str(e.value)
-    assert "larger than the printer's 10 x 10 mm bed" in msg and "\n" not in msg
+    assert "the flat pattern needs at least 71 mm across" in msg and "10 x 10 mm bed" in msg and "\n" not in msg
 
 
-def test_the_design_runs_on_one_blas_thread():
-    """design() holds BLAS to one thread while it runs (the flattening's round-off, and so the
-    pattern, would otherwise depend on the thread count), checked from inside its progress
-    callback; the caller's setting is back afterwards."""
-    from threadpoolctl import threadpool_info, threadpool_limits
-    seen = []
+def test_huge_target_is_refused_before_the_flattening(monkeypatch, tmp_path):
+    """A 5000 mm saddle on the default 223 mm bed: one line naming the numbers, before any
+    refinement or flattening (it was refused only after flattening each of --stretch auto's
+    three candidates, 2 min on the 2-core machine)."""
+    import inverse.design as mod
+    from selfshape.cli import main
 
-    def progress(event):
-        seen.extend(p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas")
+    def never(*a, **k):
+        raise AssertionError("flattened")
+    monkeypatch.setattr(mod, "flatten_multilevel", never)
+    monkeypatch.setattr("geometry.target.refine", never)
+    target = os.path.join(ROOT, "meshes", "targets", "saddle.obj")
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        rc = main(["design", target, "--diagonal", "5000", "-o", str(tmp_path / "out"), "-q"])
+    line = err.getvalue()
+    assert rc == 2 and len(line.splitlines()) == 1, line
+    assert re.search(r"saddle\.obj: the flat pattern needs at least 40\d\d mm across", line), line
+    assert "223 x 223 mm bed" in line and "now 5000 mm; above 3" in line, line
+    assert not (tmp_path / "out").exists()
 
-    V, F = cylinder_patch()
-    with threadpool_limits(limits=2, user_api="blas"):
-        design(V, F, diagonal_mm=None, edge_mm=None, stretch=1.6, progress=progress)
-        after = {p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}
-    assert seen and set(seen) == {1}
-    assert after == {2}
+
+@pytest.mark.parametrize("stretch", [1.2, 1.6])
+def test_bed_precheck_never_refuses_a_target_that_fits(stretch, monkeypatch):
+    """The shipped targets at 110 mm and at the largest diagonal whose flat pattern still fits
+    the default bed (the 110 mm flattening scaled, the post-flattening check's rule) pass the
+    check before the flattening, with room (its bounds hold where the flattening keeps the
+    stretch bounds; measured 1.28-1.84x above the largest fitting size)."""
+    import inverse.design as mod
+    from geometry.target import check_disk, normalize, read_mesh
+    from inverse.contraction import contraction_for
+    from inverse.printer import Printer
+
+    class Stop(Exception):
+        pass
+    seen = {}
+
+    def grab(uv, F, simplify_mm=0.02):
+        seen["ext"] = np.ptp(uv, axis=0)
+        raise Stop
+    monkeypatch.setattr(mod, "boundary_polygon", grab)
+    box = np.asarray(Printer().bed_size, float) + 2 * mod.RIBBON_LENGTH_MM
+    bounds = contraction_for(stretch, mod.RIBBON_LENGTH_MM, mod.RIBBON_WIDTH_MM, "auto").bounds()
+    for name in ("saddle", "hat", "hemisphere", "beetle"):
+        V, F = read_mesh(os.path.join(ROOT, "meshes", "targets", f"{name}.obj"))
+        with pytest.raises(Stop):
+            design(V, F, stretch=stretch, diagonal_mm=110.0)
+        fit = 110.0 * float(np.min(box / seen["ext"]))
+        assert 150.0 < fit < 400.0, (name, fit)
+        V0, F0 = check_disk(V, F, where=name)
+        for diag in (110.0, fit, 1.2 * fit):
+            mod._check_fits_bed_before_flattening(normalize(V0, diag), F0, bounds, Printer(), mod.RIBBON_LENGTH_MM,
+                                                  diag, name)
+        with pytest.raises(SelfshapeError, match="the flat pattern needs at least"):
+            mod._check_fits_bed_before_flattening(normalize(V0, 2.5 * fit), F0, bounds, Printer(),
+                                                  mod.RIBBON_LENGTH_MM, 2.5 * fit, name)
+
+
