@@ -102,11 +102,8 @@ def page_html(deployed=None, target=None, shapes=None, title: str = "selfshape",
 
 
 def _read_vtu(path):
-    import meshio
-    try:
-        m = meshio.read(path)
-    except Exception as e:  # meshio raises many kinds on a broken file
-        raise SelfshapeError(f"{path}: cannot read it as VTU ({' '.join(str(e).split()) or type(e).__name__})") from None
+    from shellfem.infiles import read_meshio
+    m = read_meshio(path, "VTU file", path)
     blocks = [c.data for c in m.cells if c.type == "triangle"]
     if not blocks:
         raise SelfshapeError(f"{path}: holds no triangles to draw")

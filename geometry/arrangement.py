@@ -13,6 +13,8 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon
 
+from geometry.outlines import without_detail
+
 GRID = 1e-5           # mm: geometry is snap-rounded to this grid (merges round-off slivers)
 
 
@@ -20,12 +22,14 @@ def printed_pieces(elements, tol: float = None):
     """Split elements into simple polygon pieces (arrays in, arrays out).
 
     Returns (geoms, thickness, side, element): shapely Polygons snapped to a ``tol`` mm
-    grid (default GRID), their plastic thickness (mm), side (+1 front, -1 back) and source element index.
+    grid (default GRID) without detail below geometry.schema.DETAIL_MM, their plastic
+    thickness (mm), side (+1 front, -1 back) and source element index.
     """
     tol = GRID if tol is None else tol
     geoms, thick, side, owner = [], [], [], []
     for i, e in enumerate(elements):
-        g = shapely.set_precision(e.geometry, tol)
+        # snapped, then detail below DETAIL_MM dropped (G-code beads, stars, ribbons alike)
+        g = without_detail(shapely.set_precision(e.geometry, tol))
         for p in shapely.get_parts(g):
             if p.geom_type == "Polygon" and p.area > 0:
                 geoms.append(p)

@@ -20,6 +20,10 @@ import shapely
 from geometry.elements import PrintedElement
 from shellfem.errors import SelfshapeError
 
+#: Widest (and highest) bead a G-code move may make, mm: the ;WIDTH: / ;HEIGHT: hints and the
+#: width the deposited volume implies. No FDM nozzle lays a bead near 100 mm.
+MAX_BEAD_MM = 100.0
+
 
 def bead_area(width_mm, height_mm):
     """Cross-section (mm^2) of an extruded bead: a rectangle with semicircular sides
@@ -104,6 +108,14 @@ def printed_elements(seg, p0, p1, heights, filament_diameter_mm, min_width_mm, c
     if not keep.any():
         raise SelfshapeError(f"{name}: line {seg['line'][0]}: every extruded path is thinner than "
                              f"min_width_mm = {min_width_mm:g} mm")
+    # E1e12 on a 30 mm move made a 1e11 mm bead and a fabric to match (exit 0); under a ;WIDTH:
+    # hint the hint was drawn and the absurd E ignored: the file contradicts itself either way
+    wide = np.flatnonzero(~(np.maximum(widths, w_volume) <= MAX_BEAD_MM))
+    if len(wide):
+        k = int(wide[0])
+        raise SelfshapeError(f"{name}: line {int(seg['line'][k])}: the extrusion deposits a bead {w_volume[k]:.4g} mm "
+                             f"wide (more than {MAX_BEAD_MM:g} mm): E is not filament mm of diameter "
+                             f"{filament_diameter_mm:g} mm (volumetric E, or a wrong filament_diameter)")
     beads = shapely.buffer(lines[keep], run_w[keep] / 2.0, cap_style=cap, join_style="round", quad_segs=8) \
         if shapely.is_simple(lines[keep]).all() else _beads(lines[keep], run_w[keep], cap)
     r_layer, r_h, r_line, r_path = run_layer[keep], run_h[keep], run_line[keep], run_path[keep]

@@ -180,13 +180,20 @@ def _mm(text: str) -> float:
 
 def read_svg(path) -> tuple[list[Shape], dict]:
     """(shapes, {"width_mm", "height_mm", "viewbox"}) of an SVG written by :func:`write_svg`:
-    each <polygon>/<polyline> with the id of its enclosing <g> as the layer, y up again."""
+    each <polygon>/<polyline> with the id of its enclosing <g> as the layer, y up again.
+    A file that is not such an SVG (a regular file, sizes in mm, finite x,y points) is a
+    one-line SelfshapeError naming it: `view` reads the pattern.svg of any folder."""
+    from shellfem.infiles import check_input_file
+    check_input_file(path, "SVG file")
     try:
         root = ET.parse(path).getroot()
     except (OSError, ET.ParseError) as e:
         raise SelfshapeError(f"{path}: not a readable SVG file ({e})") from None
-    info = {"width_mm": _mm(root.get("width")), "height_mm": _mm(root.get("height")),
-            "viewbox": [float(v) for v in root.get("viewBox", "").split()]}
+    try:
+        info = {"width_mm": _mm(root.get("width")), "height_mm": _mm(root.get("height")),
+                "viewbox": [float(v) for v in root.get("viewBox", "").split()]}
+    except (SelfshapeError, ValueError) as e:
+        raise SelfshapeError(f"{path}: not an SVG of selfshape ({e})") from None
     shapes = []
     for g in root.iter(f"{{{SVG_NS}}}g"):
         for el in g:
@@ -197,6 +204,8 @@ def read_svg(path) -> tuple[list[Shape], dict]:
                     xy = xy.reshape(-1, 2)
                 except ValueError:
                     raise SelfshapeError(f"{path}: a <{tag}> has points that are not x,y pairs") from None
+                if not np.isfinite(xy).all():
+                    raise SelfshapeError(f"{path}: a <{tag}> has points that are not finite numbers")
                 xy[:, 1] *= -1.0
                 shapes.append(Shape(xy, g.get("id"), tag == "polygon"))
     return shapes, info
@@ -260,8 +269,7 @@ def write_surface(path, points, triangles) -> None:
 def read_surface(path) -> tuple[np.ndarray, np.ndarray]:
     """(points (n, 3) mm, triangles (m, 3)) of an OBJ, STL or PLY surface (meshio). STL stores
     each triangle's corners on their own; meshio merges the repeated points."""
-    import meshio
-
-    m = meshio.read(path)
+    from shellfem.infiles import read_meshio
+    m = read_meshio(path, "surface mesh")
     tri = np.vstack([c.data for c in m.cells if c.type == "triangle"])
     return np.asarray(m.points, float), tri

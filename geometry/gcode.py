@@ -39,9 +39,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geometry.beads import printed_elements
+from geometry.beads import MAX_BEAD_MM, printed_elements
 from geometry.schema import COORD_MAX_MM, PRINTER_NUMBERS
 from shellfem.errors import SelfshapeError
+from shellfem.infiles import read_input_bytes
 
 SEGMENT_DTYPE = np.dtype([
     ("x0", "f8"), ("y0", "f8"), ("x1", "f8"), ("y1", "f8"), ("z", "f8"),
@@ -226,16 +227,13 @@ def _fail(name, lineno, msg):
 
 def _read_lines(path):
     name = os.path.basename(os.fspath(path))
-    try:
-        with open(path, "rb") as f:
-            data = f.read()
-    except OSError as e:
-        raise SelfshapeError(f"{path}: cannot read G-code ({e.strerror})") from None
+    data = read_input_bytes(path, "G-code file", name)
     if data[:4] == b"GCDE":
         raise SelfshapeError(f"{name}: line 1: binary G-code (.bgcode) is not supported; export plain text G-code")
     if b"\x00" in data[:65536]:
         raise SelfshapeError(f"{name}: line 1: not a text G-code file (binary data)")
-    return name, data.decode("utf-8", errors="replace").splitlines()
+    # utf-8-sig: a byte-order mark (Windows editors) is not a command
+    return name, data.decode("utf-8-sig", errors="replace").splitlines()
 
 
 class _State:
@@ -305,8 +303,8 @@ class _State:
             v = float(text)
         except ValueError:
             _fail(self.name, lineno, f";{what}: hint is not a number")
-        if not (math.isfinite(v) and 0 < v <= 100.0):
-            _fail(self.name, lineno, f";{what}: hint must be in (0, 100] mm, got {v:.4g}")
+        if not (math.isfinite(v) and 0 < v <= MAX_BEAD_MM):
+            _fail(self.name, lineno, f";{what}: hint must be in (0, {MAX_BEAD_MM:g}] mm, got {v:.4g}")
         return v
 
     def move(self, nx, ny, nz, de, lineno):
@@ -638,7 +636,9 @@ def read_gcode(path, *, side=None, mirror_axis_x=None, filament_diameter_mm=None
     levels = np.asarray(meta["layer_z_mm"])
     steps = np.diff(np.r_[bed_z, levels])
     heights = np.where(np.isfinite(seg["height_hint"]), seg["height_hint"], steps[seg["layer"]])
-    bad = np.flatnonzero(heights <= 1e-6)
+    # the nozzle must be above the fabric whatever the ;HEIGHT: hint says (Z-5 with a hint was
+    # read as a 0.4 mm bead printed 5 mm under the bed, issue 19)
+    bad = np.flatnonzero((heights <= 1e-6) | (seg["z"] <= bed_z + 1e-6))
     if len(bad):
         k = bad[0]
         raise SelfshapeError(f"{name}: line {seg['line'][k]}: extrusion at z = {seg['z'][k]:g} mm is not above "

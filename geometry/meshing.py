@@ -32,7 +32,7 @@ from shapely.geometry import Polygon
 from geometry.arrangement import GRID, arrangement, feature_width, piece_regions, printed_pieces
 from geometry.mesh_quality import mesh_quality
 from geometry.msh import add_physical_groups, write_msh
-from geometry.schema import MAX_TRIANGLES
+from geometry.schema import DETAIL_MM, MAX_POLYGON_VERTICES, MAX_TRIANGLES
 from shellfem.errors import SelfshapeError
 from shellfem.sheet import Sheet
 
@@ -100,6 +100,23 @@ def check_mesh_budget(where: str, n_estimate: float, size_mm: float) -> None:
         raise SelfshapeError(f"{where}: mesh size {size_mm:g} mm would need about {n_estimate:.3g} triangles, "
                              f"more than the {MAX_TRIANGLES:,} selfshape meshes; use a larger [mesh] size_mm "
                              f"(or --size) or a smaller [mesh] across")
+
+
+def check_polygon_vertices(pattern, geoms, owner) -> None:
+    """Refuse, before Gmsh, a fabric outline or printed piece with more than
+    MAX_POLYGON_VERTICES vertices (after the DETAIL_MM simplification): Gmsh's set-up of a
+    boundary loop grows with the square of its vertices (40,000 took 6.5 s, 100,000 > 60 s)."""
+    counts = shapely.get_num_coordinates(np.asarray(geoms, dtype=object)) if len(geoms) else np.zeros(0, int)
+    n_outline = shapely.get_num_coordinates(pattern.outline)
+    if n_outline > MAX_POLYGON_VERTICES:
+        raise SelfshapeError(f"{pattern.source}: the fabric outline has {n_outline:,} vertices, more than the "
+                             f"{MAX_POLYGON_VERTICES:,} selfshape meshes; simplify it")
+    if len(counts) and counts.max() > MAX_POLYGON_VERTICES:
+        k = int(np.argmax(counts))
+        e = pattern.elements[int(owner[k])]
+        raise SelfshapeError(f"{pattern.source}: {getattr(e, 'label', None) or 'a printed element'} has "
+                             f"{int(counts[k]):,} boundary vertices (detail above {DETAIL_MM:g} mm), more than the "
+                             f"{MAX_POLYGON_VERTICES:,} selfshape meshes; simplify it")
 
 
 # ---------------------------------------------------------------- gmsh model
@@ -260,7 +277,8 @@ def _mesh_model(gmsh, pattern, size_mm, across, grading, algorithm, kernel):
         raise SelfshapeError(f"{pattern.source}: mesh across must be > 0, got {across!r}")
     if kernel not in ("geo", "occ"):
         raise ValueError(f"kernel must be 'geo' or 'occ', got {kernel!r}")
-    geoms, thick, side, _ = printed_pieces(pattern.elements)
+    geoms, thick, side, owner = printed_pieces(pattern.elements)
+    check_polygon_vertices(pattern, geoms, owner)
     floor = size * 1e-3
     piece_h = np.maximum(feature_width(geoms) / across, floor)
     check_mesh_budget(pattern.source, estimate_triangles(pattern.outline.area, shapely.area(geoms),

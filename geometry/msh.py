@@ -12,6 +12,7 @@ import re
 import numpy as np
 
 from shellfem.errors import SelfshapeError
+from shellfem.infiles import check_input_file, read_meshio
 from shellfem.sheet import Sheet
 
 ELEMENT_DATA = ("region", "thickness_front", "thickness_back")
@@ -51,17 +52,12 @@ def read_msh(path) -> Sheet:
     physical names every triangle is region 0. Thickness comes from the element data
     "thickness_front"/"thickness_back" when present, else 0.
     """
-    import meshio
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise SelfshapeError(f"{path}: file not found")
+    check_input_file(path, "Gmsh mesh", path)
     with open(path, "rb") as f:
         if b"$MeshFormat" not in f.read(4096):
-            raise SelfshapeError(f"{path}: cannot read Gmsh mesh (no $MeshFormat header)")
-    try:
-        m = meshio.read(path, file_format="gmsh")
-    except (Exception, SystemExit) as e:       # meshio exits on some malformed files
-        raise SelfshapeError(f"{path}: cannot read Gmsh mesh ({' '.join(str(e).split()) or type(e).__name__})") from None
+            raise SelfshapeError(f"{path}: cannot read the Gmsh mesh (no $MeshFormat header)")
+    m = read_meshio(path, "Gmsh mesh", path, file_format="gmsh")
     for k in [k for k in m.cell_sets if k.startswith("gmsh:")]:
         del m.cell_sets[k]
     blocks = [i for i, c in enumerate(m.cells) if c.type == "triangle"]

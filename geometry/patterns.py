@@ -36,8 +36,9 @@ from geometry.expressions import compile_field
 from geometry.schema import (MIN_FABRIC_WIDTH_MM, MIN_FEATURE_MM, PATTERN_NUMBERS, SOLVER_CHOICES, check_keys,
                              model_parameter_spec, number)
 from geometry.stars import star_elements
-from shellfem.errors import SelfshapeError
 from geometry.tomlfile import read_toml
+from shellfem.errors import SelfshapeError
+from shellfem.infiles import check_input_file
 from shellfem.materials import MEMBRANE_MODELS, Fabric, Plastic
 
 GCODE_MARGIN_MM = 10.0
@@ -373,8 +374,7 @@ def _read_gcode(path: str, where: str, **options) -> list[PrintedElement]:
         from geometry.gcode import read_gcode
     except ImportError as e:
         raise SelfshapeError(f"{where}: G-code import is not available ({e})") from None
-    if not os.path.isfile(path):
-        raise SelfshapeError(f"{where}: G-code file {path!r} not found")
+    check_input_file(path, "G-code file", f"{where}: G-code file {path!r:.200}")   # a folder, pipe or device too
     return list(read_gcode(path, **options))
 
 

@@ -27,6 +27,15 @@ from shellfem.errors import SelfshapeError
 COORD_MAX_MM = 1.0e4
 #: Narrowest printable feature (mm): below a 0.1 mm nozzle's bead no FDM print exists.
 MIN_FEATURE_MM = 0.1
+#: Finest geometric detail kept (mm): polygon vertices that deviate less than this from the
+#: line through their neighbours are dropped (Douglas-Peucker, topology kept) from fabric
+#: outlines, regions and every printed piece. 0.1 um is 1/1000 of the narrowest printable
+#: feature; detail below it only costs: a 100,000-point circle of 1.9 mm meshed into 0.0 deg
+#: slivers and hung in Gmsh (its boundary setup grows with the square of a loop's vertices).
+DETAIL_MM = 1.0e-4
+#: Most vertices one polygon (outline, region, printed piece) may keep after DETAIL_MM:
+#: Gmsh needs ~10 s to set up a boundary loop of 50,000 vertices (quadratic beyond).
+MAX_POLYGON_VERTICES = 50_000
 #: Smallest fabric "width" 2 area / perimeter (mm) (a disk's radius, ~ a strip's width).
 MIN_FABRIC_WIDTH_MM = 0.5
 #: Cap of the estimated triangle count of a mesh (geometry.meshing.estimate_triangles):
@@ -169,6 +178,26 @@ PATTERN_NUMBERS: dict[str, dict[str, Num]] = {
 SOLVER_CHOICES: dict[str, tuple] = {"model": ("shell", "rods")}
 #: Arm length of a star that is printed (fraction > 0): at least this, mm.
 MIN_ARM_MM = MIN_FEATURE_MM
+
+#: Numbers of `selfshape design` that are not pattern keys (inverse.design.DesignOptions
+#: field -> Num), checked by design() before it runs, by the CLI's options and by design
+#: sweeps (validation.sweep) before any case runs. The diagonal scales the target before
+#: anything else runs, so its range is checked first: a 1e300 mm target overflowed to "zero
+#: total area", 1e5 mm flattened for minutes before the bed check. The lengths below had no
+#: range before sweeps could set them: a NaN gap or edge reached the layout unchecked.
+DESIGN_NUMBERS: dict[str, Num] = {
+    "diagonal_mm": Num(10.0, 5000.0, _LEN, "no 15 mm ribbon fits a smaller target; a larger one flattens to more "
+                       "than the largest (2 m) printer bed"),
+    # the designed pattern's [fabric] stretch, and a pre-stretch (> 1: the seed's contraction)
+    "stretch": Num(1.0, PATTERN_NUMBERS["fabric"]["stretch"].hi, "", PATTERN_NUMBERS["fabric"]["stretch"].reason,
+                   lo_open=True),
+    "lam": Num(None, 0.0, "1/mm^2", "the seed's line-field lambda is <= 0"),
+    "edge_mm": Num(0.0, COORD_MAX_MM, _LEN, "the target's mean edge after refinement: a length on a target of at "
+                   "most 10 m", lo_open=True),
+    "gap_mm": Num(0.0, COORD_MAX_MM, _LEN, "a distance between ribbons on a target of at most 10 m"),
+    "layout_edge_mm": Num(0.0, COORD_MAX_MM, _LEN, "the layout mesh's mean edge: a length on a target of at most "
+                          "10 m", lo_open=True),
+}
 
 
 # ---------------------------------------------------------------- the printer

@@ -12,7 +12,9 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from geometry.meshops import boundary_loop_count, face_areas, halfedges, remove_unreferenced, unique_edges
+from geometry.schema import DESIGN_NUMBERS, number
 from shellfem.errors import SelfshapeError
+from shellfem.infiles import read_input_bytes, read_meshio
 
 #: A face whose area is below this fraction of the squared bounding-box diagonal is "zero area".
 ZERO_AREA_REL = 1e-12
@@ -29,21 +31,24 @@ def read_obj(path) -> tuple[np.ndarray, np.ndarray]:
     negative indices resolved, polygons fan-triangulated)."""
     name = os.path.basename(str(path))
     verts, polys = [], []
-    with open(path, "r", errors="replace") as fh:
-        for lineno, line in enumerate(fh, 1):
-            if line.startswith("v "):
-                verts.append(line.split()[1:4])
-            elif line.startswith("f "):
-                try:
-                    idx = [int(tok.split("/")[0]) for tok in line.split()[1:]]
-                except ValueError:
-                    raise SelfshapeError(f"{name}: line {lineno}: malformed face record") from None
-                if any(abs(i) > MAX_INDEX for i in idx):
-                    raise SelfshapeError(f"{name}: line {lineno}: a face index is beyond the int64 range")
-                if len(idx) < 3:
-                    raise SelfshapeError(f"{name}: line {lineno}: face with fewer than 3 vertices")
-                nv = len(verts)  # OBJ negative indices count back from the current vertex
-                polys.append([i - 1 if i > 0 else nv + i for i in idx])
+    text = read_input_bytes(path, "target mesh (.obj)", name).decode("utf-8-sig", errors="replace")
+    for lineno, line in enumerate(text.split("\n"), 1):
+        tok = line.split()
+        if not tok:
+            continue
+        if tok[0] == "v":
+            verts.append(tok[1:4])
+        elif tok[0] == "f":
+            try:
+                idx = [int(t.split("/")[0]) for t in tok[1:]]
+            except ValueError:
+                raise SelfshapeError(f"{name}: line {lineno}: malformed face record") from None
+            if any(abs(i) > MAX_INDEX for i in idx):
+                raise SelfshapeError(f"{name}: line {lineno}: a face index is beyond the int64 range")
+            if len(idx) < 3:
+                raise SelfshapeError(f"{name}: line {lineno}: face with fewer than 3 vertices")
+            nv = len(verts)  # OBJ negative indices count back from the current vertex
+            polys.append([i - 1 if i > 0 else nv + i for i in idx])
     try:
         V = np.asarray(verts, dtype=float).reshape(-1, 3)
     except ValueError:
@@ -73,17 +78,9 @@ def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
     """Read a surface mesh (OBJ with the own reader, anything else through meshio;
     quads and polygons are triangulated, STL vertices are merged)."""
     name = os.path.basename(str(path))
-    if not os.path.isfile(path):
-        raise SelfshapeError(f"{name}: file not found")
     if str(path).lower().endswith(".obj"):
         return read_obj(path)
-    import meshio
-
-    try:
-        mesh = meshio.read(path)
-    except Exception as exc:  # meshio raises many types; the user needs one line
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise SelfshapeError(f"{name}: cannot read mesh ({msg})") from None
+    mesh = read_meshio(path, "mesh", name)
     V = np.asarray(mesh.points, dtype=float)
     if V.ndim != 2 or V.shape[1] not in (2, 3):
         raise SelfshapeError(f"{name}: vertices are not 2D or 3D points")
@@ -192,13 +189,14 @@ def _vertex_manifold(F: np.ndarray, n: int) -> np.ndarray:
 # ----------------------------------------------------------------------------- scaling
 def normalize(V: np.ndarray, diagonal_mm: float | None = 110.0) -> np.ndarray:
     """Centre the bounding box at the origin and scale uniformly to a bounding-box
-    diagonal of ``diagonal_mm`` (None keeps the units)."""
+    diagonal of ``diagonal_mm`` (None keeps the units), which must be in the range of
+    geometry.schema.DESIGN_NUMBERS["diagonal_mm"] (10-5000 mm; one-line error otherwise)."""
+    if diagonal_mm is not None:
+        diagonal_mm = number(diagonal_mm, "target diagonal (--diagonal, diagonal_mm)", DESIGN_NUMBERS["diagonal_mm"])
     lo, hi = V.min(axis=0), V.max(axis=0)
     V = V - 0.5 * (lo + hi)
     if diagonal_mm is None:
         return V
-    if not (np.isfinite(diagonal_mm) and diagonal_mm > 0):
-        raise SelfshapeError(f"diagonal_mm: must be a positive number, got {diagonal_mm}")
     return V * (float(diagonal_mm) / float(np.linalg.norm(hi - lo)))
 
 

@@ -1,9 +1,14 @@
-"""Read a TOML file with one-line errors (pattern files, printer files)."""
+"""Read a TOML file with one-line errors (pattern files, printer files, sweep files)."""
 from __future__ import annotations
 
 import tomllib
 
 from shellfem.errors import SelfshapeError
+from shellfem.infiles import read_input_bytes
+
+#: Largest TOML file read (bytes): a pattern is kilobytes (a 100,000-point polygon ~3 MB);
+#: tomllib builds Python objects of ~10x the text, so 64 MB bounds its memory below 1 GB.
+MAX_TOML_BYTES = 64 * 1024 * 1024
 
 
 #: Deepest nesting of arrays and tables a selfshape TOML file may have: patterns need 4
@@ -26,24 +31,20 @@ def nesting_depth(value) -> int:
 
 def read_toml(path: str, label: str | None = None) -> dict:
     """Parsed TOML of ``path``; any failure is a SelfshapeError of one line starting with
-    ``label`` (default: the path): file not found, a directory, unreadable, not UTF-8,
-    malformed, nested deeper than MAX_DEPTH (tomllib itself recurses: thousands of ``[``
-    raise RecursionError)."""
+    ``label`` (default: the path): file not found, a folder, a device or pipe, larger than
+    MAX_TOML_BYTES, unreadable (shellfem.infiles), not UTF-8, malformed, nested deeper than
+    MAX_DEPTH (tomllib itself recurses: thousands of ``[`` raise RecursionError). A leading
+    UTF-8 byte-order mark (Windows editors write one) is dropped: TOML forbids it, but it is
+    not the user's content."""
     label = label or str(path)
+    raw = read_input_bytes(path, "TOML file", label, MAX_TOML_BYTES)
     try:
-        with open(path, "rb") as f:
-            data = tomllib.load(f)
+        data = tomllib.loads(raw.decode("utf-8-sig"))
         if nesting_depth(data) > MAX_DEPTH:
             raise RecursionError
         return data
     except RecursionError:
         raise SelfshapeError(f"{label}: arrays or tables nested deeper than {MAX_DEPTH} levels") from None
-    except FileNotFoundError:
-        raise SelfshapeError(f"{label}: file not found") from None
-    except IsADirectoryError:
-        raise SelfshapeError(f"{label}: is a directory, not a TOML file") from None
-    except OSError as e:
-        raise SelfshapeError(f"{label}: cannot read ({e.strerror})") from None
     except UnicodeDecodeError as e:
         raise SelfshapeError(f"{label}: not a UTF-8 text file ({e.reason} at byte {e.start})") from None
     except tomllib.TOMLDecodeError as e:

@@ -43,13 +43,25 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from geometry.schema import PATTERN_NUMBERS, Num, number
 from shellfem.errors import SelfshapeError
+from shellfem.infiles import csv_error_text, read_input_text
 
 DATA_DIR = os.path.join(os.path.dirname(__file__), "data")
 COLUMNS = ("mu1_mm", "mu2_mm", "sigma1", "sigma2")
 _SHIPPED = re.compile(r"^contraction_s(\d+(?:\.\d+)?)\.csv$")
 _KEYS = {"fabric_stretch": "stretch", "ribbon_length_mm": "ribbon_length", "ribbon_width_mm": "ribbon_width",
          "thickness_mm": "thickness"}
+#: Ranges of the table's '# key = value' lines (geometry.schema): a table is data from anyone.
+_META_NUMBERS = {
+    "fabric_stretch": Num(1.0, PATTERN_NUMBERS["fabric"]["stretch"].hi, "", "a pre-stretch > 1 (the fabric's range)",
+                          lo_open=True),
+    "ribbon_length_mm": Num(1.0, 1000.0, "mm", "a dash of 1 mm to 1 m"),
+    "ribbon_width_mm": PATTERN_NUMBERS["ribbon"]["width_mm"],
+    "thickness_mm": PATTERN_NUMBERS["ribbon"]["thickness_mm"],
+}
+#: Largest dash period or row spacing of a table row (mm): 1 m.
+MAX_SPACING_MM = 1000.0
 
 
 def _basis(x, y):
@@ -214,9 +226,10 @@ def parse_contraction(text: str, source: str = "<table>") -> TableContraction:
             m = re.match(r"^(\w+)\s*=\s*(\S+)\s*$", c)
             if m and m.group(1) in _KEYS:
                 try:
-                    meta[_KEYS[m.group(1)]] = float(m.group(2))
+                    v = float(m.group(2))
                 except ValueError:
                     raise SelfshapeError(f"{source}: '# {c}' is not a number") from None
+                meta[_KEYS[m.group(1)]] = number(v, f"{source}: {m.group(1)}", _META_NUMBERS[m.group(1)])
         elif line.strip():
             body.append(line)
     for key in ("fabric_stretch", "ribbon_length_mm", "ribbon_width_mm"):
@@ -225,19 +238,25 @@ def parse_contraction(text: str, source: str = "<table>") -> TableContraction:
     if not meta["stretch"] > 1 or not np.isfinite(meta["stretch"]):
         raise SelfshapeError(f"{source}: fabric_stretch = {meta['stretch']} must be a finite number > 1")
     reader = csv.DictReader(io.StringIO("\n".join(body)))
-    missing = [c for c in COLUMNS if c not in (reader.fieldnames or [])]
-    if missing:
-        raise SelfshapeError(f"{source}: missing column(s) {', '.join(missing)} (need {', '.join(COLUMNS)})")
+    try:
+        fieldnames = reader.fieldnames or []
+        missing = [c for c in COLUMNS if c not in fieldnames]
+        if missing:
+            raise SelfshapeError(f"{source}: missing column(s) {', '.join(missing)} (need {', '.join(COLUMNS)})")
+        records = list(reader)
+    except csv.Error as e:               # a field over the csv module's limit, a NUL byte
+        raise SelfshapeError(f"{source}: data row {reader.line_num}: {csv_error_text(e)}") from None
     rows = []
-    for i, r in enumerate(reader, start=2):
+    for i, r in enumerate(records, start=2):
         try:
             v = [float(r[c]) for c in COLUMNS]
         except (TypeError, ValueError):
             raise SelfshapeError(f"{source}: data row {i}: {', '.join(COLUMNS)} must be numbers") from None
-        if not all(np.isfinite(v)) or v[0] < meta["ribbon_length"] or v[1] < meta["ribbon_width"] \
+        if not all(np.isfinite(v)) or not meta["ribbon_length"] <= v[0] <= MAX_SPACING_MM \
+                or not meta["ribbon_width"] <= v[1] <= MAX_SPACING_MM \
                 or not (1.0 <= v[2] < meta["stretch"] * 1.1 and 1.0 <= v[3] < meta["stretch"] * 1.1):
             raise SelfshapeError(f"{source}: data row {i}: spacings must be >= the ribbon length / width and "
-                                 f"stretches in [1, ~s), got {v}")
+                                 f"<= {MAX_SPACING_MM:g} mm and stretches in [1, ~s), got {v}")
         rows.append(v)
     a = np.array(rows) if rows else np.zeros((0, 4))
     if len(a) < 8 or len(np.unique(a[:, 0])) < 2 or len(np.unique(a[:, 1])) < 2:
@@ -271,12 +290,7 @@ def parse_contraction(text: str, source: str = "<table>") -> TableContraction:
 
 def load_contraction(path) -> TableContraction:
     """Read a contraction table CSV (one-line error naming the file)."""
-    try:
-        with open(path, encoding="utf-8") as f:
-            text = f.read()
-    except (OSError, UnicodeDecodeError) as e:
-        raise SelfshapeError(f"{path}: cannot read the contraction table ({type(e).__name__})") from None
-    return parse_contraction(text, str(path))
+    return parse_contraction(read_input_text(path, "contraction table (CSV)", str(path)), str(path))
 
 
 def shipped_contractions() -> dict:

@@ -35,7 +35,6 @@ Units: mm, 1/mm; the flat pattern is in printed (pre-stretched) mm.
 """
 from __future__ import annotations
 
-import math
 import os
 import time
 from dataclasses import dataclass, field, replace
@@ -253,6 +252,17 @@ DESIGN_STAGES = ("load and refine", "curvature", "line field", "flattening", "ri
 # coordinates a median 0.001 mm and up to 0.45 mm apart, one ribbon point fewer), which a
 # multistable sheet can turn into another equilibrium. One BLAS thread here (restored on return).
 @threadpool_limits.wrap(limits=1, user_api="blas")
+def check_design_numbers(o: DesignOptions) -> None:
+    """The numbers of ``o`` in their geometry.schema.DESIGN_NUMBERS ranges (None turns an
+    option off; stretch may be "auto"), before anything runs: a one-line SelfshapeError naming
+    the option otherwise (a NaN gap or a stretch of 5 would run and write nonsense)."""
+    from geometry.schema import DESIGN_NUMBERS, number
+    for key, spec in DESIGN_NUMBERS.items():
+        v = getattr(o, key)
+        if v is not None and not (key == "stretch" and v == "auto"):
+            number(v, f"design: {key}", spec)
+
+
 def design(V, F, options: DesignOptions | None = None, *, where: str = "target", progress=None,
            **overrides) -> Design:
     """Inverse design of a disk-topology target (V (n, 3), F (m, 3)); see the module doc.
@@ -273,6 +283,7 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
                                        load_thickness_law, reach_warning)
 
     o = replace(options or DesignOptions(), **overrides)
+    check_design_numbers(o)
     if o.stretch == "auto":
         return choose_stretch(V, F, o, where=where, progress=progress)[0]
     stretch, printer, thickness_law, bounds = o.stretch, o.printer, o.thickness_law, o.bounds
@@ -296,8 +307,6 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
 
     stage(0)
 
-    if not (isinstance(stretch, (int, float)) and math.isfinite(stretch) and stretch > 1.0):
-        raise SelfshapeError(f"design: fabric stretch must be a number > 1, got {stretch!r}")
     printer = Printer() if printer is None else printer
     if isinstance(thickness_law, ThicknessLaw):
         law = thickness_law
@@ -422,6 +431,7 @@ def choose_stretch(V, F, options: DesignOptions | None = None, *, where: str = "
     from inverse.thickness_law import ThicknessLaw, load_thickness_law, shipped_laws
 
     o = replace(options or DesignOptions(), **overrides)
+    check_design_numbers(o)
     if o.thickness_law is None:
         candidates = sorted(shipped_laws(), reverse=True)
     else:
@@ -675,8 +685,9 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
     if mesh_across is not None:
         number(mesh_across, "design: rows across a ribbon (--mesh-across, mesh_across)", PATTERN_NUMBERS["mesh"]["across"])
     name = os.path.basename(str(target_path))
-    V, F = read_mesh(target_path)
     o = replace(options or DesignOptions(), **overrides)
+    check_design_numbers(o)
+    V, F = read_mesh(target_path)
     law = o.thickness_law if isinstance(o.thickness_law, (str, os.PathLike)) else None
     # checked before the design runs; an earlier run's files are removed first (shellfem.outfiles)
     out = OutputDir(out_dir, OUTPUTS, inputs=[target_path, law, *inputs])

@@ -6,10 +6,8 @@ parameter (the design keeps ribbons apart, so a region is a ribbon); target posi
 mesh vertices through the flattening's correspondence (inverse.registration.flat_to_target).
 The equilibrium is sought nearest the target: the first solve starts from the target itself
 (edge angles 0), falling back to the verification's released state if that does not converge.
-The refined thicknesses are rounded to layer multiples of the printer a batch at a time, the
-ribbons not yet rounded re-optimised at each stage (inverse.refine.round_progressively), then
-moved by single layers where the objective linearised at the rounded design says so
-(inverse.refine.refine_layers),
+The refined thicknesses are rounded to layer multiples of the printer, then moved by single
+layers where the objective linearised at the rounded design says so (inverse.refine.refine_layers),
 and the rounded design is what is written and reported; whether release from flat reaches the same state is checked
 by the verification of the rounded pattern.
 """
@@ -67,7 +65,8 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     ``progress``: called with {"stage": "outer", "iteration", "rms_mm"} at each accepted outer
     iterate (the CLI's status line). ``layer_rounds_max``: rounds of one-layer moves after the
     rounding (inverse.refine.refine_layers; 0: none), recorded as "layer_rounds"."""
-    from inverse.refine import RefineOptions, ThicknessProblem, refine_layers, refine_thickness, round_progressively
+    from inverse.refine import (RefineOptions, ThicknessProblem, finite_or_none, follow_thickness, linear_rounding,
+                                refine_layers, refine_thickness)
     from inverse.registration import flat_to_target
     from shellfem.boundary import gauge_dofs
 
@@ -105,14 +104,23 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
         q_rel[:x.size] = (x @ R.T + c).ravel()
         res = refine_thickness(prob, p0, q_rel, opts, callback=measure)
     h = printer.layer_height_mm
+    p_round = rounded(res.thickness, h, opts.bounds)
     first, top = rounded(list(opts.bounds), h, opts.bounds)       # the thinnest / thickest printable layer counts
-    # to layers a batch at a time, the ribbons not yet rounded re-optimised at each stage
-    p_round, q_round, _, rounding = round_progressively(
-        prob, res.thickness, res.q, h, (first, top), newton_iterations=2 * opts.trial_iterations,
-        leave_factor=opts.leave_factor, shifted_run=opts.shifted_run, shifted_grace=opts.shifted_grace,
-        verbose=verbose)
+    if res.model is not None:         # floor or ceil per ribbon, as the Gauss-Newton model prefers
+        lo = np.minimum(rounded(res.thickness - 0.5 * h, h, opts.bounds), p_round)
+        p_round = np.clip(linear_rounding(res.model, res.thickness, lo, h), lo, top)
     model_r = prob.model_at(p_round)
-    rr = prob.solve(model_r, q_round, opts.newton_iterations)      # at once when the last stage converged
+    rr = prob.solve(model_r, res.q, opts.newton_iterations)
+    rounding_path = None
+    J_r = prob.objective(model_r.split(rr.q)[0], p_round)[0] if rr.converged else np.inf
+    if J_r > 2.0 * res.objective:
+        # the rounded design's solve left the refined branch: follow the thicknesses from the
+        # continuous to the rounded values in steps, each solve warm-started from the last
+        q_path, ok = follow_thickness(prob, res.thickness, res.q, p_round, 4, opts.newton_iterations)
+        J_path = prob.objective(model_r.split(q_path)[0], p_round)[0] if ok else np.inf
+        rounding_path = {"direct_objective": finite_or_none(J_r), "continuation_objective": finite_or_none(J_path)}
+        if J_path < J_r:
+            rr.q, rr.converged, J_r = q_path, True, J_path
     layer_rounds = []
     if rr.converged and layer_rounds_max > 0:
         # one-layer moves linearised at the rounded design (the rounding's model was the continuous point's);
@@ -128,7 +136,7 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
         "n_parameters": len(groups), "iterations": res.history,
         "thickness_start_mm": p0.round(4).tolist(), "thickness_continuous_mm": res.thickness.round(4).tolist(),
         "thickness_rounded_mm": p_round.round(4).tolist(), "layer_rounds": layer_rounds,
-        "rounding": rounding,
+        **({"rounding_continuation": rounding_path} if rounding_path else {}),
         "continuous": {"rms_mm": res.rms_mm, **res.history[-1]},
     }
     near = None

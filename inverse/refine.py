@@ -83,6 +83,7 @@ class RefineResult:
     history: list = field(default_factory=list)
     reason: str = ""
     converged: bool = True
+    model: tuple | None = None     # (p_lin, M, b): the last Gauss-Newton model |M (p - p_lin) - b|^2 of J
 
 
 def _coordinate_descent(M, res, offsets, choice, sweeps: int = 20) -> np.ndarray:
@@ -109,6 +110,18 @@ def _coordinate_descent(M, res, offsets, choice, sweeps: int = 20) -> np.ndarray
         if not changed:
             break
     return offsets[np.arange(len(choice)), choice]
+
+
+def linear_rounding(model, p, candidates_lo, step, sweeps: int = 20) -> np.ndarray:
+    """Round thicknesses p (P,) to the grid candidates_lo + {0, step} choosing, per parameter,
+    the side that the Gauss-Newton model (p_lin, M, b) of J predicts lower: coordinate descent
+    from the nearest rounding (a few sweeps of P one-column updates; mm)."""
+    p_lin, M, b = model
+    lo = np.asarray(candidates_lo, float)
+    choice = (np.asarray(p) - lo > 0.5 * step).astype(np.int64)
+    offsets = np.tile([0.0, step], (len(lo), 1))
+    res = M @ (lo + offsets[np.arange(len(lo)), choice] - p_lin) - b
+    return lo + _coordinate_descent(M, res, offsets, choice, sweeps)
 
 
 def vertex_areas(sheet) -> np.ndarray:
@@ -364,103 +377,19 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
     return p, q, J, history
 
 
-def round_progressively(problem: ThicknessProblem, p, q, step: float, bounds, *, newton_iterations: int = 200,
-                        leave_factor: float = RefineOptions.leave_factor, shifted_run: int = RefineOptions.shifted_run,
-                        shifted_grace: int = RefineOptions.shifted_grace, radius: float | None = None,
-                        verbose: bool = False):
-    """Thicknesses p (P,) mm, continuous, at their equilibrium q rounded to the layer grid
-    lo + k step inside ``bounds`` = (lo, hi) a batch at a time, the ribbons not yet rounded
-    re-optimised at each stage to make up for the ones rounded.
-
-    Rounding every ribbon at once moves them all by up to half a layer (20 % of a 0.5 mm ribbon
-    at 0.1 mm layers); on these multistable sheets the equilibrium of the rounded design is then
-    often another state (a fold between), and the Gauss-Newton model of the continuous point
-    cannot foresee it. Each stage here linearises J at the current state (gauss_newton_model),
-    takes the half of the unrounded ribbons whose rounding moves them least, picks floor or
-    ceiling for each in the model with the other unrounded ribbons eliminated by least squares
-    (their step inside ``radius``, default half a layer: they make up for the batch's moves of
-    at most half a layer, not for what the refinement left; the model promises more than the
-    branch gives beyond that), and re-solves warm-started from the linear prediction. A stage
-    whose solve leaves the branch (objective past ``leave_factor`` times J, or the shifted run
-    of RefineOptions) is retried with half the batch and half the radius; a single ribbon
-    that cannot be rounded without leaving is rounded to its nearer side and the stage
-    accepted as it comes. Returns (p, q, converged, history: per stage dict(rounded, remaining,
-    objective (None when the solve did not converge, with ``reason``), predicted, accepted,
-    seconds))."""
-    from shellfem.linalg import NotPositiveDefinite
-
-    lo, hi = (float(b) for b in bounds)
-    p = np.clip(np.asarray(p, float), lo, hi)
-    model = problem.model_at(p)
-    J = problem.objective(model.split(q)[0], p)[0]
-    k_of = (p - lo) / step
-    on_grid = np.abs(k_of - np.round(k_of)) < 1e-9
-    p[on_grid] = lo + np.round(k_of[on_grid]) * step
-    todo = np.flatnonzero(~on_grid)
-    history = []
-    converged = True
-    while len(todo):
-        try:
-            M, b, dq, _ = gauss_newton_model(problem, model, q, p)
-        except NotPositiveDefinite:
-            M = None
-        floor = lo + np.floor((p - lo) / step + 1e-9) * step
-        ceil = np.minimum(floor + step, hi)
-        move = np.minimum(p - floor, ceil - p)[todo]
-        order = todo[np.argsort(move, kind="stable")]
-        size = max(1, (len(todo) + 1) // 2)
-        reach = 0.5 * step if radius is None else float(radius)
-        while True:
-            t0 = time.perf_counter()
-            batch, rest = np.sort(order[:size]), np.setdiff1d(todo, order[:size])
-            s = np.zeros_like(p)
-            if M is None:
-                s[batch] = np.where(p[batch] - floor[batch] <= ceil[batch] - p[batch], floor[batch], ceil[batch]) - p[batch]
-                predicted = np.nan
-            else:
-                # eliminate the rest: r(s_B) = P_R (M_B s_B - b), P_R the projector off the rest's columns
-                MR = M[:, rest]
-                proj = (lambda v: v - MR @ np.linalg.lstsq(MR, v, rcond=None)[0]) if len(rest) else (lambda v: v)
-                MB, bB = proj(M[:, batch]), proj(b)
-                offsets = np.column_stack([floor[batch] - p[batch], ceil[batch] - p[batch]])
-                choice = (p[batch] - floor[batch] > 0.5 * step).astype(np.int64)
-                res0 = MB @ offsets[np.arange(len(batch)), choice] - bB
-                s[batch] = _coordinate_descent(MB, res0, offsets, choice)
-                if len(rest):
-                    from scipy.optimize import lsq_linear
-                    sol = lsq_linear(MR, b - M[:, batch] @ s[batch], bounds=(np.maximum(lo - p[rest], -reach),
-                                     np.minimum(hi - p[rest], reach)), method="bvls")
-                    s[rest] = sol.x
-                r = M @ s - b
-                predicted = float(r @ r)
-            p_new = p + s
-            model_new = problem.model_at(p_new)
-            q_guess = q + dq @ s if M is not None else q
-            res = problem.trial_solve(model_new, q_guess, q, newton_iterations, p_new, leave_factor * J,
-                                      (shifted_run, shifted_grace, J))
-            J_new = problem.objective(model_new.split(res.q)[0], p_new)[0] if res.converged else np.inf
-            ok = bool(res.converged) or size == 1
-            history.append(dict(rounded=int(len(batch)), remaining=int(len(todo) - len(batch)),
-                                objective=finite_or_none(J_new), predicted=finite_or_none(predicted), accepted=ok,
-                                seconds=round(time.perf_counter() - t0, 2),
-                                **({} if res.converged else {"reason": res.reason})))
-            if verbose:
-                print(f"rounding: {len(batch)} ribbons to layers, {len(rest)} left, J {J:.4e} -> {J_new:.4e} "
-                      f"(predicted {predicted:.4e}){'' if ok else ', retried with fewer'}", flush=True)
-            if ok:
-                break
-            size //= 2
-            reach *= 0.5
-        if not res.converged:
-            # a lone ribbon that cannot be rounded without leaving the branch: solve there plainly
-            res = problem.solve(model_new, q_guess, newton_iterations)
-            converged = converged and res.converged
-            J_new = problem.objective(model_new.split(res.q)[0], p_new)[0] if res.converged else np.inf
-        p, model = p_new, model_new
-        p[batch] = lo + np.round((p[batch] - lo) / step) * step
-        q, J = (res.q, J_new) if res.converged else (q, J)
-        todo = np.setdiff1d(todo, batch)
-    return p, q, converged, history
+def follow_thickness(problem: ThicknessProblem, p_from, q_from, p_to, steps: int = 4, newton_iterations: int = 400):
+    """The equilibrium at thicknesses p_to (P,) mm followed from the equilibrium q_from at p_from
+    in ``steps`` equal thickness steps, each solve warm-started from the last: the same branch
+    where one solve from q_from would jump to another state. Returns (q, converged)."""
+    q = q_from
+    p_from, p_to = np.asarray(p_from, float), np.asarray(p_to, float)
+    for k in range(1, steps + 1):
+        p_k = p_from + (k / steps) * (p_to - p_from)
+        r = problem.solve(problem.model_at(p_k), q, newton_iterations)
+        if not r.converged:
+            return q, False
+        q = r.q
+    return q, True
 
 
 def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions = RefineOptions(),
@@ -492,6 +421,7 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
     mu = None
     radius = options.max_step
     reason = f"reached max_outer = {options.max_outer}"
+    last_model = None
     it = 0
     while it < options.max_outer:
         it += 1
@@ -503,6 +433,7 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
             break
         t_sens = time.perf_counter() - t_it
         t_solves, trials = 0.0, 0
+        last_model = (p.copy(), M, b)
         g_scale = float(np.mean(np.sum(A ** 2, 0))) + 1e-300
         if mu is None:
             mu = options.damping * g_scale
@@ -574,4 +505,5 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
         if decrease < options.ftol:
             reason = f"relative decrease {decrease:.2e} < ftol {options.ftol:g}"
             break
-    return RefineResult(thickness=p, q=q, objective=J, rms_mm=float(np.sqrt(msd)), history=history, reason=reason)
+    return RefineResult(thickness=p, q=q, objective=J, rms_mm=float(np.sqrt(msd)), history=history, reason=reason,
+                        model=last_model)

@@ -36,7 +36,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from geometry.schema import MIN_FEATURE_MM, PATTERN_NUMBERS, Num, number
 from shellfem.errors import SelfshapeError, check_number
+from shellfem.infiles import csv_error_text, read_input_text
 
 COLUMNS = ("thickness_mm", "spacing_mm", "side", "kappa_per_mm")
 SIDES = ("front", "back")
@@ -75,8 +77,25 @@ class ThicknessLaw:
 
 
 # ----------------------------------------------------------------------------- reading
+#: The law's numbers and their physical ranges (geometry.schema): a law is data from anyone,
+#: and a kappa_per_mm of 1e300 1/mm was accepted and designed with (exit 0).
+LAW_NUMBERS = {
+    "thickness_mm": PATTERN_NUMBERS["ribbon"]["thickness_mm"],
+    "spacing_mm": Num(MIN_FEATURE_MM, 1000.0, "mm", "a row spacing of a bead's width to 1 m"),
+    "kappa_per_mm": Num(0.0, 10.0, "1/mm", "a magnitude; a curl radius below 0.1 mm is no ribbon"),
+    PLASTIC_KEY: PATTERN_NUMBERS["plastic"]["young_modulus_mpa"],
+    STRETCH_KEY: Num(1.0, PATTERN_NUMBERS["fabric"]["stretch"].hi, "", "a pre-stretch > 1 (the fabric's range)",
+                     lo_open=True),
+}
+
+
 def _float(value, where):
     return check_number(where, value)
+
+
+def _law_number(text, where, spec):
+    """A number of the law CSV (text) inside its LAW_NUMBERS range, else one line naming it."""
+    return number(_float(text, where), where, spec)
 
 
 def parse_thickness_law(text: str, source: str = "<table>") -> ThicknessLaw:
@@ -87,7 +106,11 @@ def parse_thickness_law(text: str, source: str = "<table>") -> ThicknessLaw:
     if not body:
         raise SelfshapeError(f"{source}: no header line (expected columns {', '.join(COLUMNS)})")
     reader = csv.reader(io.StringIO("\n".join(ln for _, ln in body)))
-    rows = list(reader)
+    try:
+        rows = list(reader)
+    except csv.Error as e:              # a field over the csv module's limit, a NUL byte
+        raise SelfshapeError(f"{source}: line {body[min(reader.line_num, len(body)) - 1][0]}: "
+                             f"{csv_error_text(e)}") from None
     header = [h.strip() for h in rows[0]]
     missing = [c for c in COLUMNS if c not in header]
     if missing:
@@ -102,13 +125,8 @@ def parse_thickness_law(text: str, source: str = "<table>") -> ThicknessLaw:
         side = row[col["side"]].strip()
         if side not in SIDES:
             raise SelfshapeError(f"{where}: side must be \"front\" or \"back\", got {side!r}")
-        t = _float(row[col["thickness_mm"]], f"{where}: thickness_mm")
-        mu = _float(row[col["spacing_mm"]], f"{where}: spacing_mm")
-        k = _float(row[col["kappa_per_mm"]], f"{where}: kappa_per_mm")
-        if t <= 0 or mu <= 0:
-            raise SelfshapeError(f"{where}: thickness_mm and spacing_mm must be > 0, got {t:g}, {mu:g}")
-        if k < 0:
-            raise SelfshapeError(f"{where}: kappa_per_mm is a magnitude and must be >= 0, got {k:g}")
+        t, mu, k = (_law_number(row[col[c]], f"{where}: {c}", LAW_NUMBERS[c])
+                    for c in ("thickness_mm", "spacing_mm", "kappa_per_mm"))
         data[side].append((t, mu, k, lineno))
     sides = {s: _grid(rows_, s, source) for s, rows_ in data.items() if rows_}
     if not sides:
@@ -117,13 +135,9 @@ def parse_thickness_law(text: str, source: str = "<table>") -> ThicknessLaw:
     for ln in provenance:
         key, eq, value = ln.partition("=")
         if eq and key.strip() == PLASTIC_KEY:
-            modulus = _float(value.strip(), f"{source}: {PLASTIC_KEY}")
-            if not modulus > 0:
-                raise SelfshapeError(f"{source}: {PLASTIC_KEY} must be > 0, got {modulus:g}")
+            modulus = _law_number(value.strip(), f"{source}: {PLASTIC_KEY}", LAW_NUMBERS[PLASTIC_KEY])
         if eq and key.strip() == STRETCH_KEY:
-            stretch = _float(value.strip(), f"{source}: {STRETCH_KEY}")
-            if not 1.0 < stretch < 10.0:
-                raise SelfshapeError(f"{source}: {STRETCH_KEY} must be in (1, 10), got {stretch:g}")
+            stretch = _law_number(value.strip(), f"{source}: {STRETCH_KEY}", LAW_NUMBERS[STRETCH_KEY])
     return ThicknessLaw(sides, provenance, source, modulus, stretch)
 
 
@@ -162,14 +176,7 @@ def _grid(rows, side, source) -> SideTable:
 def load_thickness_law(path=None) -> ThicknessLaw:
     """Read a law CSV (default: the shipped ``inverse/data/thickness_law_s1.6.csv``)."""
     path = DEFAULT_LAW if path is None else os.fspath(path)
-    try:
-        with open(path, "r") as f:
-            text = f.read()
-    except FileNotFoundError:
-        raise SelfshapeError(f"{path}: thickness law file not found") from None
-    except UnicodeDecodeError:
-        raise SelfshapeError(f"{path}: not a UTF-8 text file") from None
-    return parse_thickness_law(text, path)
+    return parse_thickness_law(read_input_text(path, "curvature-law CSV", path), path)
 
 
 def files_by_stretch(folder: str, pattern) -> dict:

@@ -17,6 +17,7 @@ import contextlib
 import io
 import math
 import os
+import re
 import sys
 import tempfile
 import warnings
@@ -37,6 +38,17 @@ class _Parser(argparse.ArgumentParser):
         return super()._get_values(action, arg_strings)
 
 
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+
+
+def _printable(text) -> str:
+    """``text`` as one printable line: whitespace runs become one space and the other control
+    characters (ESC, BEL, C1 codes) their \\x escape, so that a file name or key from the
+    input can neither break the one-line contract nor send terminal escape sequences."""
+    one = " ".join(str(text).split())
+    return _CONTROL.sub(lambda m: f"\\x{ord(m.group(0)):02x}", one)
+
+
 def _number(lo=None, lo_open=False, hi=None, integer=False):
     """An argparse type: a finite number (an integer if ``integer``) within the bounds."""
     what = "an integer" if integer else "a finite number"
@@ -53,6 +65,14 @@ def _number(lo=None, lo_open=False, hi=None, integer=False):
             raise argparse.ArgumentTypeError(f"must be {what}{rng}, got {text!r}")
         return v
     return parse
+
+
+def _schema_number(table: str, key: str):
+    """An argparse type for an option that is a number of geometry.schema (``table`` names a
+    dict of Num there): the option's range is the schema's, as for the same value in a file."""
+    from geometry import schema
+    spec = getattr(schema, table)[key]
+    return _number(spec.lo, lo_open=spec.lo_open, hi=spec.hi, integer=spec.integer)
 
 
 _POSITIVE = _number(0.0, lo_open=True)
@@ -110,13 +130,13 @@ def _levels(text):
 
 
 def _stretch(text):
-    """--stretch: 'auto' or a finite number > 1."""
+    """--stretch of design: 'auto' or a number in geometry.schema.DESIGN_NUMBERS["stretch"]."""
     if text == "auto":
         return text
     try:
-        return _number(1.0, lo_open=True)(text)
-    except argparse.ArgumentTypeError:
-        raise argparse.ArgumentTypeError(f"must be a finite number > 1 or 'auto', got {text!r}") from None
+        return _schema_number("DESIGN_NUMBERS", "stretch")(text)
+    except argparse.ArgumentTypeError as e:
+        raise argparse.ArgumentTypeError(str(e).replace("must be ", "must be 'auto' or ", 1)) from None
 
 
 def _cmd_simulate(a):
@@ -125,7 +145,8 @@ def _cmd_simulate(a):
                               max_iterations=a.max_iterations, verbose=a.verbose, coarse_levels=a.coarse_levels,
                               progress=a.progress)
     a.progress.close()
-    state = "converged" if s["converged"] else "NOT converged"
+    # a run that did not converge says why on its one line (status 1 with its reason)
+    state = "converged" if s["converged"] else f"NOT converged ({_printable(s.get('reason') or 'no reason given')})"
     levels = s.get("timings_s", {}).get("levels") or []
     via = ""
     if len(levels) > 1:      # nested iteration: say where the iterations went
@@ -387,7 +408,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pattern.toml [mesh] across: triangle rows across a ribbon (default 2)")
     d.add_argument("-v", "--verbose", action="store_true")
     d.add_argument("-q", "--quiet", action="store_true", help="no progress line on a terminal")
-    d.add_argument("--diagonal", type=_POSITIVE, default=110.0, help="scale the target to this bounding-box diagonal, mm")
+    d.add_argument("--diagonal", type=_schema_number("DESIGN_NUMBERS", "diagonal_mm"), default=110.0,
+                   help="scale the target to this bounding-box diagonal, mm (10-5000)")
     d.add_argument("--stretch", type=_stretch, default="auto",
                    help="fabric pre-stretch s, or 'auto' (default): the shipped law's stretch that fits the target best")
     d.add_argument("--law", default=None, help="curvature-law CSV (default: the shipped inverse/data table)")
@@ -395,7 +417,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="how stretch maps to ribbon spacing: 'auto' (default: the shipped table of simulated patches "
                         "at the stretch where there is one, else the seed's Eq. 5.15), 'seed', 'table', "
                         "'table-polygon' (its admissible stretches bound the flattening too) or a table CSV")
-    d.add_argument("--lam", type=_number(hi=0.0), default=0.0, help="line-field lambda of the seed (<= 0, 1/mm^2)")
+    d.add_argument("--lam", type=_schema_number("DESIGN_NUMBERS", "lam"), default=0.0, help="line-field lambda of the seed (<= 0, 1/mm^2)")
     d.add_argument("--printer", default=None,
                    help="printer TOML (inverse.printer.Printer fields: bed_size, nozzle_mm, print_speed_mm_s, ...)")
     d.set_defaults(fn=_cmd_design)
@@ -455,13 +477,14 @@ def main(argv=None) -> int:
         finally:
             args.progress.close()
     except SelfshapeError as e:
-        print(f"selfshape {args.verb}: error: {e}", file=sys.stderr)
+        print(f"selfshape {args.verb}: error: {_printable(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"selfshape {args.verb}: interrupted", file=sys.stderr)
         return 130
-    except Exception as e:  # never a traceback: one line, and a distinct status
-        msg = " ".join(str(e).split()) or type(e).__name__
+    except (Exception, SystemExit) as e:  # never a traceback: one line, and a distinct status
+        # (SystemExit: a library that calls exit() inside a verb is an internal error, not status 1)
+        msg = _printable(e.code if isinstance(e, SystemExit) else e) or type(e).__name__
         print(f"selfshape {args.verb}: internal error ({type(e).__name__}): {msg}", file=sys.stderr)
         return 3
     return int(rc or 0)

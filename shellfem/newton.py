@@ -121,6 +121,11 @@ class NewtonOptions:
     step_tolerance: the Newton step's largest position change must be below this times the
         sheet's size; energy_tolerance: the energy the Newton step still promises (half the
         Newton decrement, -g.d/2) must be below this times max(|E|, 1e-6 |E_start|).
+    energy_reference: the problem's energy scale (N mm) when the solve is warm-started near
+        an equilibrium (the exact-metric solve after the truncated one): E_start in the floor
+        above is then at least this. A sheet with nothing to release (stretch 1) starts that
+        solve at E ~ 1e-19 and ends at round-off (1e-28), so without it the floor was 1e-25
+        and the solve stopped "not converged" at |g| 8e-14 (issue 19).
     rotation_path: steps whose triangles rotate by more than 1e-3 rad follow the
         rotation-corrected curve of :mod:`shellfem.corotational` (tangent to the step, each
         triangle rotated rigidly) instead of the straight line, which stretches rotating
@@ -150,6 +155,7 @@ class NewtonOptions:
     callback: object = None
     monitor: object = None
     gradient_reference: float | None = None
+    energy_reference: float | None = None
     stability_shift: float = 1e-6
     step_tolerance: float = 1e-7
     energy_tolerance: float = 1e-11
@@ -274,8 +280,9 @@ class _Newton:
         return out
 
     def _energy_scale(self, E):
-        """|E|, floored at 1e-6 of the start's energy so that an equilibrium with E = 0 can converge."""
-        return max(abs(E), 1e-6 * self.E_ref)
+        """|E|, floored at 1e-6 of the start's energy (or of the energy_reference, if larger) so
+        that an equilibrium with E = 0 can converge."""
+        return max(abs(E), 1e-6 * max(self.E_ref, self.opts.energy_reference or 0.0))
 
     def _step_size(self, d_free):
         """Largest position change of a step and the energy it promises, -g.d/2."""

@@ -17,6 +17,10 @@ import numpy as np
 
 from shellfem.layers import QuadraticForm, layer_form
 
+#: Strips solved at once: the layer forms hold a few (n, 6, 6) arrays, so 65,536 strips take
+#: ~20 MB each; a calibration of 100,000 rows (71 ratios each) asked for 1.9 GB at once.
+CHUNK = 65_536
+
 
 def strip_state(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, plastic_poisson=0.5,
                 fabric_poisson=0.3, rest_curvature=0.0, mode="narrow", exact_metric=True):
@@ -27,11 +31,22 @@ def strip_state(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, 
     freedom); "plate": transverse curvature b22 = 0 (a wide sheet rolling into a cylinder
     about y). The layers carry the exact Kirchhoff-Love metric (shellfem.layers); exact_metric=False:
     the truncated metric a - 2 z b, O(kappa h) off."""
-    hp, hf, s, ratio, nup, nuf, kap = np.broadcast_arrays(*(np.asarray(v, float) for v in (
+    if mode not in ("narrow", "plate"):
+        raise ValueError(f"mode must be 'narrow' or 'plate', got {mode!r}")
+    arrays = np.broadcast_arrays(*(np.asarray(v, float) for v in (
         plastic_thickness, fabric_thickness, stretch, modulus_ratio, plastic_poisson, fabric_poisson,
         rest_curvature)))
-    shape = hp.shape
-    hp, hf, s, ratio, nup, nuf, kap = (v.ravel() for v in (hp, hf, s, ratio, nup, nuf, kap))
+    shape = arrays[0].shape
+    flat = [v.ravel() for v in arrays]
+    n = flat[0].size
+    z = np.empty((n, 6))
+    for a in range(0, n, CHUNK):     # bounded memory: the layer forms hold (n, 6, 6) arrays
+        z[a:a + CHUNK] = _uniform_states(*(v[a:a + CHUNK] for v in flat), mode, exact_metric)
+    return z.reshape(shape + (6,))
+
+
+def _uniform_states(hp, hf, s, ratio, nup, nuf, kap, mode, exact_metric):
+    """strip_state of 1-D arrays of one length: (n, 6)."""
     n = hp.size
     eye = np.tile([1.0, 0.0, 1.0], (n, 1))
     quad = QuadraticForm(n)
@@ -41,13 +56,7 @@ def strip_state(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, 
                          exact_metric=exact_metric))
     quad.add(*layer_form(eye, -kap[:, None] * eye, ratio, nup, hf / 2, hf / 2 + hp, area=np.ones(n),
                          exact_metric=exact_metric))
-    if mode == "narrow":
-        z = quad.minimiser()
-    elif mode == "plate":
-        z = quad.minimiser(keep=[0, 1, 2, 3, 4])
-    else:
-        raise ValueError(f"mode must be 'narrow' or 'plate', got {mode!r}")
-    return z.reshape(shape + (6,))
+    return quad.minimiser() if mode == "narrow" else quad.minimiser(keep=[0, 1, 2, 3, 4])
 
 
 def strip_curvature(plastic_thickness, fabric_thickness, stretch, modulus_ratio, *, plastic_poisson=0.5,

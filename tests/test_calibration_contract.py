@@ -135,6 +135,37 @@ def test_strips_values_outside_physical_ranges(tmp_path, capsys, col, value):
         assert_bad_input(rc, err, "r.csv", "row 2", col)
 
 
+def test_duplicate_columns_and_too_many_rows(tmp_path, capsys):
+    """A header naming a column twice is ambiguous (which curvature?): the error names it. More
+    rows than a lab's strip set (validation.strips.MAX_ROWS) are refused before any fit:
+    100,000 rows ran out of memory in the calibration (issue 19)."""
+    from validation.strips import MAX_ROWS
+    p = tmp_path / "dup.csv"
+    p.write_text(HEADER + ",curvature_per_mm\n" + ROW.format(i=1, h=0.3, k=0.05) + ",0.06\n")
+    rc, err = run(["calibrate", "strips", p, "-o", tmp_path / "o"], capsys)
+    assert_bad_input(rc, err, "dup.csv", "duplicate", "'curvature_per_mm'")
+    many = strips_file(tmp_path / "many.csv", (ROW.format(i=i, h=0.3, k=0.05) for i in range(MAX_ROWS + 1)))
+    for argv in (["calibrate", "strips", many, "-o", tmp_path / "o"], ["validate", many, "-o", tmp_path / "v"],
+                 ["predict", os.path.join(REPO, "tests", "data", "model_S1.json"), many, "-o", tmp_path / "p.csv"]):
+        rc, err = run(argv, capsys)
+        assert_bad_input(rc, err, "many.csv", f"{MAX_ROWS + 1} data rows")
+    assert not {"o", "v", "p.csv"} & set(os.listdir(tmp_path))
+
+
+def test_a_fabric_test_file_with_too_many_rows(tmp_path, capsys):
+    """A tensile file of more rows than a test logs (fabric_files.MAX_TABLE_ROWS) is refused
+    before the fits, which took minutes on 1.9 million rows (issue 19)."""
+    from validation.fabric_files import MAX_TABLE_ROWS
+    folder = G.write_folder(G.random_spec(14), tmp_path / "fab")
+    t = os.path.join(folder, "tensile_00deg_80pct.csv")
+    rows = open(t).read().splitlines()
+    with open(t, "w") as f:
+        f.write("\n".join(rows + rows[1:] * (MAX_TABLE_ROWS // (len(rows) - 1) + 1)) + "\n")
+    rc, err = run(["calibrate", "fabric", folder, "-o", tmp_path / "o"], capsys)
+    assert_bad_input(rc, err, "tensile_00deg_80pct.csv", "data rows, more than the 200,000")
+    assert not os.path.exists(tmp_path / "o")
+
+
 def test_csv_field_over_the_csv_limit(tmp_path, capsys):
     import csv
     big = "x" * (csv.field_size_limit() + 10)
@@ -237,6 +268,22 @@ def _edits(m):
     out.append(("aux nan", dict(m, aux=aux), "aux"))
     out.append(("measured_column", dict(m, measured_column=["x"]), "measured_column"))
     out.append(("not an object", [1, 2, 3], "JSON object"))
+    # keys predict used to ignore, so a model fitted for something else or edited predicted
+    # as if it said the defaults (issue 19)
+    out.append(("other mode", dict(m, mode="plate"), "'mode'"))
+    out.append(("other base model", dict(m, model="os.system"), "'model'"))
+    out.append(("other column", dict(m, measured_column="specimen"), "'measured_column'"))
+    out.append(("other reference stretch", dict(m, reference_stretch=1.6), "'reference_stretch'"))
+    out.append(("names disagree", dict(m, parameter_names=list(reversed(m["parameter_names"]))), "parameter_names"))
+    out.append(("standard errors short", dict(m, standard_errors=m["standard_errors"][:-1]), "standard_errors"))
+    out.append(("standard error negative", dict(m, standard_errors=[-1.0] * len(m["theta"])), "standard_errors[0]"))
+    out.append(("unknown key", dict(m, thetta=m["theta"]), "unknown key 'thetta'"))
+    named = [i for i, e in enumerate(m["effects"]) if e.get("parameters")]
+    if named:
+        eff = json.loads(json.dumps(m["effects"]))
+        q = next(iter(eff[named[0]]["parameters"]))
+        eff[named[0]]["parameters"][q] *= 2.0
+        out.append(("effect parameter disagrees with theta", dict(m, effects=eff), f"effects[{named[0]}].parameters"))
     return out
 
 
@@ -265,6 +312,14 @@ def test_model_json_with_any_non_finite_or_wrong_typed_parameter(fitted_model, t
     p.write_text(json.dumps(dict(m, theta=theta)))
     rc, err = run(["predict", p, S1, "-o", tmp_path / "p.csv"], capsys)
     assert_bad_input(rc, err, "model.json", f"theta[{i}]")
+
+
+def test_a_number_too_long_to_read(tmp_path, capsys):
+    """A 5,000-digit integer parses as JSON but int() refuses it: a raw ValueError, exit 3 (issue 19)."""
+    p = tmp_path / "model.json"
+    p.write_text('{"format": "selfshape-strip-model/1", "theta": [1' + "0" * 5000 + "]}")
+    rc, err = run(["predict", p, S1, "-o", tmp_path / "p.csv"], capsys)
+    assert_bad_input(rc, err, "model.json", "too long")
 
 
 def test_binary_model_json(tmp_path, capsys):

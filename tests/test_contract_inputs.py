@@ -553,6 +553,64 @@ def test_gcode_errors_never_echo_the_file(tmp_path, content):
     assert "SECRET" not in line and "root:" not in line, line
 
 
+STRIPS = os.path.join(ROOT, "validation", "data", "strips_S1.csv")
+#: every input file of every verb: name -> argv, with {IN} the input under test, {OUT} the output
+INPUT_SLOTS = {
+    "mesh pattern": ["mesh", "{IN}.toml", "-o", "{OUT}.msh"],
+    "export gcode": ["export", "{IN}.gcode", "-o", "{OUT}.svg"],
+    "simulate pattern": ["simulate", "{IN}.toml", "-o", "{OUT}"],
+    "design target obj": ["design", "{IN}.obj", "-o", "{OUT}"],
+    "design target ply": ["design", "{IN}.ply", "-o", "{OUT}"],
+    "design --printer": ["design", TARGET, "-o", "{OUT}", "--stretch", "1.3", "--printer", "{IN}.toml"],
+    "design --law": ["design", TARGET, "-o", "{OUT}", "--stretch", "1.3", "--law", "{IN}.csv"],
+    "design --contraction": ["design", TARGET, "-o", "{OUT}", "--stretch", "1.3", "--contraction", "{IN}.csv"],
+    "calibrate strips": ["calibrate", "strips", "{IN}.csv", "-o", "{OUT}"],
+    "validate": ["validate", "{IN}.csv", "-o", "{OUT}"],
+    "predict model": ["predict", "{IN}.json", STRIPS, "-o", "{OUT}.csv"],
+    "predict data": ["predict", os.path.join(ROOT, "tests", "data", "model_S1.json"), "{IN}.csv", "-o", "{OUT}.csv"],
+    "law build": ["law", "build", "{IN}.csv", "-o", "{OUT}.csv"],
+    "sweep": ["sweep", "{IN}.toml", "-o", "{OUT}", "--workers", "0"],
+    "calibration-print --printer": ["calibration-print", "strips", "-o", "{OUT}", "--printer", "{IN}.toml"],
+}
+
+
+def _not_a_file(kind, path):
+    if kind == "named pipe":
+        os.mkfifo(path)
+    elif kind == "device":
+        os.symlink("/dev/zero", path)
+    else:
+        os.mkdir(path)
+
+
+@pytest.mark.parametrize("kind, word", [("named pipe", "is a named pipe (FIFO)"), ("device", "is a device"),
+                                        ("directory", "is a directory")])
+@pytest.mark.parametrize("slot", sorted(INPUT_SLOTS))
+def test_an_input_that_is_not_a_regular_file_is_refused_before_reading(tmp_path, slot, kind, word):
+    """Every input file of every verb given a named pipe, a device (/dev/zero behind a link)
+    or a directory: one line naming it and what it is, status 2, nothing written, and no
+    read (issue 19: a FIFO blocked forever, /dev/zero ran into a MemoryError, exit 3)."""
+    import signal
+    argv = [a.replace("{OUT}", str(tmp_path / "out")) for a in INPUT_SLOTS[slot]]
+    i = next(k for k, a in enumerate(argv) if a.startswith("{IN}"))
+    argv[i] = str(tmp_path / ("in" + argv[i][len("{IN}"):]))
+    _not_a_file(kind, argv[i])
+
+    def hung(*_):
+        raise TimeoutError(f"{slot}: the verb blocked reading a {kind}")
+    old = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(20)
+    try:
+        rc, stdout, stderr = run(argv)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+    lines = stderr.splitlines()
+    assert rc == 2 and len(lines) == 1 and stdout == "", (rc, stderr)
+    assert os.path.basename(argv[i]) in lines[0] and word in lines[0], lines[0]
+    assert not any(n.startswith("out") for n in os.listdir(tmp_path)), os.listdir(tmp_path)
+
+
 def test_gcode_entirely_outside_the_fabric(tmp_path):
     shutil.copy(GCODE, tmp_path / "two_lines.gcode")
     raw = base_pattern()

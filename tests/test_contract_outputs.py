@@ -573,7 +573,8 @@ NUMERIC = {("simulate", "--size"): _GARBAGE | _NEGATIVE | st.just("0"),
            ("simulate", "--max-iterations"): _GARBAGE | _NEGATIVE | st.sampled_from(["0", "2.5"]),
            ("mesh", "--size"): _GARBAGE | _NEGATIVE,
            ("design", "--mesh-size"): _GARBAGE | _NEGATIVE,
-           ("design", "--diagonal"): _GARBAGE | _NEGATIVE | st.just("0"),
+           ("design", "--diagonal"): _GARBAGE | _NEGATIVE | st.just("0") | st.floats(0, 9.999).map(repr)
+           | st.floats(5000.001, 1e308).map(repr),          # the schema's 10-5000 mm (issue 19: 1e300 ran)
            ("design", "--stretch"): _GARBAGE | st.floats(-1e6, 1.0).map(repr),
            ("design", "--lam"): _GARBAGE | st.floats(1e-9, 1e6).map(repr),
            ("design", "--verify-iterations"): _GARBAGE | st.just("0"),
@@ -637,3 +638,25 @@ def test_failed_prediction_removes_the_folders_it_created(inputs, tmp_path, caps
     monkeypatch.undo()
     rc, _, _ = run(["predict", inputs["model"], inputs["csv"], "-o", str(out)], capsys)
     assert rc == 0 and out.is_file()
+
+
+@pytest.mark.parametrize("name", ["\x1b]0;pwned\x07p.toml", "\x1b[2J\x1b[31mp.toml", "p\x9b31m.toml"])
+def test_error_lines_never_carry_control_characters(tmp_path, capsys, name):
+    """A file name (or key) from the input is echoed in the error line: its terminal escape
+    sequences (ESC, BEL, CSI) are shown as \\x escapes, never sent to the terminal (issue 19)."""
+    rc, so, err = run(["mesh", str(tmp_path / name), "-o", str(tmp_path / "o.msh")], capsys)
+    assert rc == 2 and len(err) == 1 and so == "", err
+    assert not any(c in err[0] for c in "\x1b\x07\x9b") and "\\x" in err[0], err
+
+
+def test_a_library_calling_exit_inside_a_verb_is_one_line_status_3(monkeypatch, capsys):
+    """meshio's readers call exit() on some malformed files; such a SystemExit escaped the
+    verb as status 1 (the non-converged status) with a stray line. Whatever still raises it is
+    an internal error: status 3, one line."""
+    import geometry.meshing
+
+    def exits(*a, **k):
+        raise SystemExit("Expected ply")
+    monkeypatch.setattr(geometry.meshing, "mesh_pattern_file", exits)
+    rc, so, err = run(["mesh", EXAMPLE, "-o", "x.msh"], capsys)
+    assert rc == 3 and so == "" and len(err) == 1 and "internal error (SystemExit): Expected ply" in err[0], err

@@ -107,7 +107,12 @@ def test_seed_model_is_eq_5_15_with_its_bounds():
     ("\n".join(_table().splitlines()[:8]), "at least 8 rows"),
     (_table().replace("17.5,2.5,", "17.5,abc,"), "must be numbers"),
     (_table(fn=lambda a, b: (1.3 - 0.05 * np.log(a / 15), 1.2 + 0.01 * np.log(b))), "decreases"),
-    (_table(head=["fabric_stretch = 0.9"] + HEAD[1:]), "> 1"),
+    (_table(head=["fabric_stretch = 0.9"] + HEAD[1:]), r"fabric_stretch must be in \(1, 3\]"),
+    # physical ranges of the header lines and rows, and the csv module's field limit (issue 19)
+    (_table(head=["fabric_stretch = 1e300"] + HEAD[1:]), r"fabric_stretch must be in \(1, 3\]"),
+    (_table(head=HEAD[:1] + ["ribbon_length_mm = 1e300"] + HEAD[2:]), "ribbon_length_mm must be in"),
+    (_table().replace("17.5,2.5,", "1e300,2.5,"), "<= 1000 mm"),
+    (_table() + "x" * 200_000 + ",1,1,1\n", "csv module's limit"),
 ])
 def test_bad_tables_get_one_line_errors_naming_the_file(text, message):
     with pytest.raises(SelfshapeError, match=message) as e:
@@ -131,7 +136,7 @@ def test_model_choice(tmp_path):
         contraction_for(1.6, model=str(p))
     with pytest.raises(SelfshapeError, match="10 x 1.5 mm ribbons|15 x 1.5 mm ribbons"):
         contraction_for(1.3, ribbon_length=10.0, model=str(p))
-    with pytest.raises(SelfshapeError, match="cannot read"):
+    with pytest.raises(SelfshapeError, match="missing.csv: file not found"):
         load_contraction(tmp_path / "missing.csv")
 
 

@@ -215,6 +215,10 @@ def test_stack_beads_overlay():
     ("M83\nX10 Y10 E1\n", "line 2", "without a command word"),
     ("M83\n;WIDTH:wide\nG1 X10 E1\n", "line 2", "WIDTH"),
     ("M83\nG1 X10 E1\n", "line 2", "not above the fabric"),
+    ("M83\n;HEIGHT:0.4\nG1 Z-5\nG0 X1 Y1\nG1 X10 E1\n", "line 5", "z = -5 mm is not above the fabric"),
+    # E1e12 on a 30 mm move: a 1e11 mm bead on a fabric to match, exit 0 (issue 19)
+    ("M83\nG1 Z0.4\nG0 X10 Y10\nG1 X40 Y10 E1e12\n", "line 4", "deposits a bead 2.004e+11 mm wide"),
+    ("M83\n;WIDTH:1.5\nG1 Z0.4\nG0 X10 Y10\nG1 X40 Y10 E1e12\n", "line 5", "deposits a bead 2.004e+11 mm wide"),
 ])
 def test_errors_are_one_line_with_file_and_line(tmp_path, text, where, word):
     f = write(tmp_path, text, "bad.gcode")
@@ -225,8 +229,11 @@ def test_errors_are_one_line_with_file_and_line(tmp_path, text, where, word):
 
 
 def test_unreadable_files(tmp_path):
-    with pytest.raises(SelfshapeError, match="cannot read"):
+    with pytest.raises(SelfshapeError, match="missing.gcode: file not found"):
         read_gcode(tmp_path / "missing.gcode")
+    os.mkfifo(tmp_path / "pipe.gcode")
+    with pytest.raises(SelfshapeError, match="pipe.gcode: is a named pipe"):
+        read_gcode(tmp_path / "pipe.gcode")
     (tmp_path / "b.bgcode").write_bytes(b"GCDE\x01\x00\x00\x00" + bytes(50))
     with pytest.raises(SelfshapeError, match=r"b.bgcode: line 1: binary G-code"):
         read_gcode(tmp_path / "b.bgcode")
@@ -237,6 +244,15 @@ def test_unreadable_files(tmp_path):
         read_gcode(data("s3d_plain.gcode"), cap="butt")
     with pytest.raises(SelfshapeError, match="mirror_axis_x must be a finite number"):
         read_gcode(data("s3d_plain.gcode"), side="back", mirror_axis_x="middle")
+
+
+def test_a_byte_order_mark_is_not_a_command(tmp_path):
+    """G-code saved by a Windows editor starts with a BOM: "line 1: not a G-code command"
+    before (issue 19); it reads as the same file without it."""
+    text = open(data("plain_marlin.gcode"), "rb").read()
+    (tmp_path / "bom.gcode").write_bytes(b"\xef\xbb\xbf" + text)
+    a, b = read_gcode(data("plain_marlin.gcode")), read_gcode(tmp_path / "bom.gcode")
+    assert len(a) == len(b) and all(x.geometry.equals(y.geometry) for x, y in zip(a, b))
 
 
 def test_thin_paths_are_dropped_and_caps_follow_the_option(tmp_path):

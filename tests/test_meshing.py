@@ -13,6 +13,7 @@ from geometry.meshing import mesh_pattern, mesh_pattern_file, quantise_size
 from geometry.meshops import triangle_angles
 from geometry.msh import read_msh
 from geometry.patterns import load_pattern
+from geometry.schema import DETAIL_MM
 from geometry.stars import star_polygons
 from shellfem.errors import SelfshapeError
 from shellfem.sheet import Sheet
@@ -233,10 +234,10 @@ def test_mesh_file_errors(tmp_path):
     with pytest.raises(SelfshapeError, match="file not found"):
         read_msh(tmp_path / "none.msh")
     (tmp_path / "junk.msh").write_text("not a mesh\n")
-    with pytest.raises(SelfshapeError, match="junk.msh: cannot read Gmsh mesh"):
+    with pytest.raises(SelfshapeError, match="junk.msh: cannot read the Gmsh mesh"):
         read_msh(tmp_path / "junk.msh")
     (tmp_path / "cut.msh").write_text("$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\n1 3 1 3\n")
-    with pytest.raises(SelfshapeError, match="cut.msh: cannot read Gmsh mesh"):
+    with pytest.raises(SelfshapeError, match="cut.msh: cannot read the Gmsh mesh"):
         read_msh(tmp_path / "cut.msh")
 
 
@@ -263,6 +264,34 @@ def test_gcode_input(tmp_path):
     assert a.sum() == pytest.approx((31.5 + 20) * (11.5 + 20), rel=1e-9)    # bbox + 10 mm margin
     assert a[s.region > 0].sum() == pytest.approx(2 * 31.5 * 1.5, rel=1e-9)
     assert np.allclose(s.thickness_front[s.region > 0], 0.4)
+
+
+def _region_pattern(points):
+    return load_pattern({"fabric": {"rectangle": [80.0, 12.0], "stretch": 1.35}, "mesh": {"size_mm": 2.0},
+                         "region": [{"polygon": np.asarray(points).tolist(), "thickness_mm": 0.3}]})
+
+
+def test_detail_below_a_tenth_of_a_micron_is_dropped_before_meshing():
+    """A region given as a 100,000-point circle (a CAD export) is simplified to the detail
+    that matters (geometry.schema.DETAIL_MM): issue 19 found it > 60 s in Gmsh's boundary
+    set-up (quadratic in a loop's vertices) and meshed into 0.0 deg slivers."""
+    t = 2 * np.pi * np.arange(100_000) / 100_000
+    pattern = _region_pattern(np.column_stack([40 + 3 * np.cos(t), 6 + 3 * np.sin(t)]))
+    geom = pattern.elements[0].geometry
+    assert shapely.get_num_coordinates(geom) < 1000
+    assert abs(geom.area - math.pi * 9) <= DETAIL_MM * 2 * math.pi * 3      # each vertex moves < DETAIL_MM
+    q = mesh_quality(mesh_pattern(pattern))       # the points Gmsh must keep are ~0.02 mm apart
+    assert q["min_angle_deg"] > 2.0 and q["n_vertices"] < 5000, q
+
+
+def test_a_polygon_with_too_many_vertices_is_refused_before_gmsh():
+    """Detail above DETAIL_MM is kept, so an outline of 60,000 teeth 1 um high stays: it is
+    refused in one line naming the element before Gmsh would take minutes on it."""
+    x = np.linspace(10, 70, 60_001)
+    teeth = np.column_stack([x, 2 + 1e-3 * (np.arange(len(x)) % 2)])
+    pattern = _region_pattern(np.vstack([teeth, [[70, 10], [10, 10]]]))
+    with pytest.raises(SelfshapeError, match=r"region #1 has 60,00\d boundary vertices .* more than the 50,000"):
+        mesh_pattern(pattern)
 
 
 def test_helpers_on_known_values():

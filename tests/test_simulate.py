@@ -286,3 +286,21 @@ def test_a_folded_result_is_not_converged(monkeypatch):
     sim = simulate_sheet(_printed(Sheet.rectangle(30.0, 3.0, 30, 3), 0.3), Fabric(stretch=(1.35, 1.0)), Plastic(), [],
                          max_iterations=200)
     assert not sim.result.converged and "folded" in sim.result.reason and "1.20" in sim.result.reason
+
+
+def test_nothing_to_release_converges_and_a_stop_says_why(tmp_path, capsys):
+    """A print at stretch 1 (a valid pattern: nothing contracts, the sheet stays flat) ends at
+    E ~ 1e-28 N mm; it was reported "NOT converged" (the gauge's 1e-30 N mm round-off read as
+    load, then the exact-metric solve's energy floor at 1e-25), exit 1 (issue 19). A run that
+    does stop early says why on its one line."""
+    p = tmp_path / "flat.toml"
+    p.write_text("[fabric]\nrectangle = [20.0, 4.0]\nstretch = 1.0\n[[region]]\n"
+                 "polygon = [[0, 0], [20, 0], [20, 4], [0, 4]]\nthickness_mm = 0.3\n[mesh]\nsize_mm = 2.0\n")
+    assert main(["simulate", str(p), "-o", str(tmp_path / "s"), "--no-png"]) == 0
+    s = json.load(open(tmp_path / "s" / "summary.json"))
+    assert s["converged"] and s["energy"] < 1e-12
+    capsys.readouterr()
+    assert main(["simulate", str(p), "-o", str(tmp_path / "t"), "--no-png", "--max-iterations", "1",
+                 "--coarse-levels", "0"]) == 1
+    out = capsys.readouterr().out.splitlines()
+    assert len(out) == 1 and out[0].startswith("NOT converged (maximum number of iterations reached)"), out

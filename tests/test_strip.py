@@ -77,3 +77,16 @@ def test_free_narrow_strip_matches_layered_model_at_large_misfit():
     assert -S[1, 1] == pytest.approx(ref, rel=0.01)
     assert abs(S[0, 1]) < 0.01 * ref
     assert np.median(a[inner][:, 0, 0]) == pytest.approx(z[0], rel=1e-3)
+
+
+def test_many_strips_are_solved_in_bounded_chunks(monkeypatch):
+    """strip_state solves at most CHUNK strips at once (a calibration of 100,000 rows asked for
+    1.9 GB in one (n, 6, 6) array, issue 19); the chunks give the one-batch answer."""
+    import shellfem.strip as strip
+    rng = np.random.default_rng(3)
+    hp, s, ratio = rng.uniform(0.1, 0.5, 37), rng.uniform(1.05, 1.6, 37), rng.uniform(200, 3000, 37)
+    whole = strip.strip_state(hp, 0.8, s, ratio, rest_curvature=0.01)
+    monkeypatch.setattr(strip, "CHUNK", 5)
+    chunked = strip.strip_state(hp, 0.8, s, ratio, rest_curvature=0.01)
+    np.testing.assert_allclose(chunked, whole, rtol=1e-12, atol=1e-15)
+    assert strip.strip_state(hp.reshape(37, 1), 0.8, s[:3], 1000.0).shape == (37, 3, 6)

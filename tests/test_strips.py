@@ -53,7 +53,7 @@ def test_reader_errors_name_file_row_column(tmp_path, edit, match):
 
 
 def test_reader_missing_and_empty_files(tmp_path):
-    with pytest.raises(SelfshapeError, match="nope.csv: cannot read"):
+    with pytest.raises(SelfshapeError, match="nope.csv: file not found"):
         strips.read_strips(tmp_path / "nope.csv")
     with pytest.raises(SelfshapeError, match="empty file"):
         strips.read_strips(write(tmp_path, [""]))

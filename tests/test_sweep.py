@@ -189,11 +189,60 @@ BAD = {
     "unknown table": ('pattern = "{strip}"', '"fabrik.stretch" = [1.2]', "unknown key 'fabrik'"),
     "not a list": ('pattern = "{strip}"', '"fabric.stretch" = 1.2', "[grid] fabric.stretch must be a list of values"),
     "design option": ('targets = ["{strip}"]', '"strech" = [1.3]', "unknown key 'strech' (did you mean 'stretch'?)"),
+    # values of the right type that the pattern reader refuses: before, each ran as a case and
+    # wrote NaN or 135 into results.csv and the case's pattern.toml (exit 1)
+    "NaN pattern value": ('pattern = "{strip}"', '"fabric.stretch" = [1.2, nan]',
+                          "[grid] fabric.stretch = nan (case #1): [fabric]: stretch must be a finite number in [1, 3]"),
+    "out-of-range pattern value": ('pattern = "{strip}"',
+                                   '"fabric.stretch" = [1.2]\n"region.0.thickness_mm" = [0.2, 135]',
+                                   "[grid] region.0.thickness_mm = 135 (case #1): [[region]] #1: thickness_mm must be "
+                                   "in [0.01, 10] mm, got 135"),
+    "wrong-type pattern value": ('pattern = "{strip}"', '"solver.seed" = [1.5]',
+                                 "[grid] solver.seed = 1.5 (case #0): [solver]: seed must be an integer"),
+    "out-of-range option": ('pattern = "{strip}"', '"fabric.stretch" = [1.2]\n[options]\n"mesh.size_mm" = inf',
+                            "[options] mesh.size_mm = inf: [mesh]: size_mm must be a finite number in [0.01, 1000] mm"),
+    "out-of-range [[case]]": ('pattern = "{strip}"', '"fabric.stretch" = [1.2]\n[[case]]\n"mesh.size_mm" = 0',
+                              "[[case]] #1 mesh.size_mm = 0 (case #0): [mesh]: size_mm must be in [0.01, 1000] mm"),
+    "NaN random range": ('pattern = "{strip}"\nsamples = 2', '"mesh.size_mm" = [2.0]\n[random]\n"fabric.stretch" = '
+                         '[1.2, nan]', "[random] fabric.stretch must be a range [lo, hi] of two finite numbers"),
+    "out-of-range random draw": ('pattern = "{strip}"\nsamples = 2', '"mesh.size_mm" = [2.0]\n[random]\n'
+                                '"fabric.stretch" = [4, 5.0]', "[random] fabric.stretch = 4"),
+    "NaN design option": ('targets = ["{strip}"]', 'diagonal = [40.0, nan]',
+                          "[grid] diagonal value #2 must be a finite number in [10, 5000] mm, got nan"),
+    "out-of-range design option": ('targets = ["{strip}"]', 'stretch = [1.6, 5]',
+                                   "[grid] stretch value #2 must be in (1, 3], got 5"),
+    "wrong-type design option": ('targets = ["{strip}"]', 'mesh_size = ["2"]',
+                                 "[grid] mesh_size value #1 must be a number in [0.01, 1000] mm, got the string '2'"),
+    "out-of-range design draw": ('targets = ["{strip}"]\nsamples = 2',
+                                 'diagonal = [40.0]\n[random]\ngap_mm = [0.5, 1e9]',
+                                 "[random] gap_mm hi must be in [0, 10000] mm, got 1e+09"),
+    "missing design law": ('targets = ["{strip}"]', 'law = ["nothere.csv"]', "[grid] law value #1: nothere.csv: file "
+                                                                             "not found"),
+    # more than MAX_CASES cases: before, 10^9 samples hung and a 10,000 x 10,000 grid ran out of memory
+    "grid over the case cap": ('pattern = "{strip}"', '"fabric.stretch" = [' + ", ".join(["1.2"] * 101) + ']\n'
+                               '"mesh.size_mm" = [' + ", ".join(["2.0"] * 100) + "]",
+                               "10,100 cases ([grid] fabric.stretch (101 values) x [grid] mesh.size_mm (100 values)), "
+                               "more than the 10,000 a sweep may have"),
+    "grid list over the case cap": ('pattern = "{strip}"', '"mesh.size_mm" = [' + ", ".join(["2.0"] * 10_001) + "]",
+                                    "[grid] mesh.size_mm has 10,001 values, more than the 10,000 cases"),
+    "samples over the case cap": ('pattern = "{strip}"\nsamples = 10001', '"mesh.size_mm" = [2.0]\n[random]\n'
+                                  '"fabric.stretch" = [1.2, 1.6]', "10,001 cases ([sweep] samples = 10,001), more than "
+                                                                   "the 10,000 a sweep may have"),
+    "design samples over the case cap": ('targets = ["{strip}", "{strip}"]\nsamples = 5001', 'diagonal = [40.0]\n'
+                                         '[random]\nstretch = [1.2, 1.6]',
+                                         "10,002 cases ([sweep] samples = 5,001 x 2 [sweep] targets)"),
 }
 
 
 @pytest.mark.parametrize("name", sorted(BAD))
-def test_bad_sweep_file_is_one_line_and_writes_nothing(name, tmp_path, capsys):
+def test_bad_sweep_file_is_one_line_and_writes_nothing(name, tmp_path, capsys, monkeypatch):
+    """exit 2, one line naming the sweep file and the key (and the value and case where one
+    is at fault), no output folder; no case runs (the old code ran the bad values as cases)."""
+    import shellfem.cluster
+
+    def refuse(*a, **k):
+        raise AssertionError("a case of a bad sweep file ran")
+    monkeypatch.setattr(shellfem.cluster, "map_tasks", refuse)
     head, grid, message = BAD[name]
     path = tmp_path / "bad.toml"
     typo = os.path.join(ROOT, "tests", "data", "patterns", "typo.toml")
@@ -207,15 +256,53 @@ def test_bad_sweep_file_is_one_line_and_writes_nothing(name, tmp_path, capsys):
     assert not out.exists()
 
 
-def test_a_case_with_a_bad_value_is_a_row(tmp_path, capsys):
+def test_a_case_that_fails_while_it_runs_is_a_row(tmp_path, capsys):
+    """A value the pattern reader accepts but the simulation refuses (a mesh above the
+    triangle cap) is the case's error row, not the sweep's."""
     path = tmp_path / "s.toml"
-    path.write_text(f'[sweep]\npattern = "{STRIP}"\n\n[[case]]\n"fabric.stretch" = 5.0\n')
+    path.write_text(f'[sweep]\npattern = "{STRIP}"\n\n[[case]]\n"mesh.size_mm" = 0.01\n')
     out = tmp_path / "out"
     rc = main(["sweep", str(path), "-o", str(out), "--workers", "0"])
     assert rc == 1
     (row,) = read_rows(str(out))
-    assert row["status"] == "error" and "stretch must be in [1, 3]" in row["reason"]
+    assert row["status"] == "error" and "more than the 2,000,000 selfshape meshes" in row["reason"]
     assert "1 cases: 1 run, 0 reused, 1 not ok (error 1)" in capsys.readouterr().out
+
+
+def test_a_combination_the_reader_refuses_names_the_case(tmp_path):
+    """Values each valid alone but refused together: the line names the case and its values
+    (with the reader's reason), since no single key is at fault."""
+    path = tmp_path / "s.toml"
+    path.write_text(f'[sweep]\npattern = "{STRIP}"\n\n[[case]]\n"fabric.rectangle" = [10, 3]\n'
+                    f'"region.0.polygon" = [[20, 0], [25, 0], [25, 3], [20, 3]]\n')
+    with pytest.raises(sweep_module.SelfshapeError) as e:
+        sweep_module.load_sweep(path)
+    assert str(e.value).startswith(f"{path}: case #0 (fabric.rectangle = [10, 3], region.0.polygon = [[20, 0], ")
+    assert "polygon is outside the fabric" in str(e.value)
+
+
+def test_the_table_holds_no_non_finite_number(tmp_path):
+    """A failed case's row, or a figure that is NaN or infinite, is written as empty cells:
+    results.csv and results.parquet never hold NaN/Infinity (before: the CSV wrote 'nan')."""
+    import math
+
+    import pyarrow.parquet as pq
+    from shellfem.outfiles import OutputDir
+    figures = sweep_module.flatten_figures({"energy": float("nan"), "bbox_mm": [1.0, float("inf")]}, "summary")
+    assert figures == {"summary.energy": None, "summary.bbox_mm.0": 1.0, "summary.bbox_mm.1": None}
+    rows = [{"index": 0, "case": "case-a", "status": "ok", "reason": "", "time_s": 1.0, "ran": True, "worker": "w",
+             "x": 1.5, "summary.energy": 2.0},
+            {"index": 1, "case": "case-b", "status": "failed", "reason": "boom", "time_s": None, "ran": True,
+             "worker": None, "x": float("nan"), "summary.energy": float("-inf")}]
+    out = OutputDir(str(tmp_path / "t"), sweep_module.OUTPUTS)
+    with out:
+        sweep_module.write_table(out, rows)
+    text = (tmp_path / "t" / "results.csv").read_text()
+    assert "nan" not in text.lower() and "inf" not in text.lower()
+    assert read_rows(str(tmp_path / "t"))[1]["x"] == "" and read_rows(str(tmp_path / "t"))[1]["reason"] == "boom"
+    table = pq.read_table(str(tmp_path / "t" / "results.parquet")).to_pydict()
+    assert table["x"] == [1.5, None] and table["summary.energy"] == [2.0, None]
+    assert all(not (isinstance(v, float) and not math.isfinite(v)) for col in table.values() for v in col)
 
 
 def test_random_draws_are_seeded(tmp_path):
@@ -225,9 +312,11 @@ def test_random_draws_are_seeded(tmp_path):
     a, b = sweep_module.load_sweep(path), sweep_module.load_sweep(path)
     assert a.cases == b.cases and len(a.cases) == 8
     assert all(1.2 <= c["fabric.stretch"] <= 1.6 and isinstance(c["solver.seed"], int) for c in a.cases)
+    base = repr(a.base)
     specs = sweep_module.case_specs(a, str(tmp_path / "o"))
     assert len({s["hash"] for s in specs}) == 8
     assert 'stretch = 1.' in specs[0]["pattern_text"]
+    assert repr(a.base) == base                       # the cases copy the base pattern's paths, never change it
 
 
 # ----------------------------------------------------------------------------- the law's patches

@@ -122,6 +122,31 @@ def test_missing_file_and_nan(tmp_path):
         check_disk(V, F, "x.obj")
 
 
+@pytest.mark.parametrize("diagonal", [1e300, 1e6, 5000.5, 9.99, 1e-6, 0.0, -1.0, float("nan"), float("inf")])
+def test_the_diagonal_is_in_its_range(diagonal):
+    """--diagonal / diagonal_mm scales the target before anything runs: 1e300 overflowed to
+    "zero total area", 1e-6 to "no ribbons", 1e5 flattened for minutes (issue 19)."""
+    with pytest.raises(SelfshapeError, match=r"target diagonal \(--diagonal, diagonal_mm\) must be"):
+        load_target(TARGETS[0], diagonal_mm=diagonal)
+    V, _ = load_target(TARGETS[0], diagonal_mm=5000.0)
+    assert np.linalg.norm(np.ptp(V, axis=0)) == pytest.approx(5000.0)
+
+
+def test_obj_byte_order_mark_tabs_and_devices(tmp_path):
+    """A BOM before the first record, tab-separated records (both valid OBJ from Windows
+    tools) read as without; a path that is a pipe is refused unread (issue 19)."""
+    V, F = plane_patch(4.0, 4.0, 2, 2)
+    V[:, 2] = 0.1 * V[:, 0] ** 2
+    plain = write_obj(tmp_path / "plain.obj", V, F)
+    text = open(plain).read()
+    (tmp_path / "bom.obj").write_bytes(b"\xef\xbb\xbf" + text.replace("v ", "v\t").encode())
+    for a, b in zip(read_mesh(plain), read_mesh(str(tmp_path / "bom.obj"))):
+        np.testing.assert_array_equal(a, b)
+    os.mkfifo(tmp_path / "pipe.obj")
+    with pytest.raises(SelfshapeError, match="pipe.obj: is a named pipe"):
+        read_mesh(str(tmp_path / "pipe.obj"))
+
+
 def test_refine_counts_and_midpoint_keeps_shape():
     V, F = cylinder_patch(n_arc=6, n_len=5)
     for method in ("loop", "midpoint"):

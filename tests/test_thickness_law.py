@@ -81,8 +81,14 @@ def test_clamping_is_counted():
     (lambda s: s.replace("0.2,4,front", "0.2,4,top"), "side must be"),
     (lambda s: s + "0.2,4,front,0.5\n", "duplicate row"),
     (lambda s: s.replace("0.2,4,front", "0.2,abc,front"), "spacing_mm must be a number"),
-    (lambda s: "# plastic_young_modulus_mpa = -3\n" + s, "plastic_young_modulus_mpa must be > 0"),
+    (lambda s: "# plastic_young_modulus_mpa = -3\n" + s, "plastic_young_modulus_mpa must be in [0.1, 100000]"),
     (lambda s: "# plastic_young_modulus_mpa = soft\n" + s, "plastic_young_modulus_mpa must be a number"),
+    # physical ranges (issue 19: a kappa of 1e300 1/mm designed with exit 0), the csv field limit
+    (lambda s: s.replace(f",{bilinear(0.4, 6.0, 'front'):.6g}", ",1e300", 1), "kappa_per_mm must be in [0, 10]"),
+    (lambda s: s.replace("0.2,4,front", "1e300,4,front"), "thickness_mm must be in [0.01, 10]"),
+    (lambda s: s.replace("0.2,4,front", "0.2,1e300,front"), "spacing_mm must be in [0.1, 1000]"),
+    (lambda s: "# fabric_stretch = 1e300\n" + s, "fabric_stretch must be in (1, 3]"),
+    (lambda s: s + "x" * 200_000 + ",4,front,0.1\n", "csv module's limit"),
 ])
 def test_bad_tables_one_line_errors(mutate, word):
     with pytest.raises(SelfshapeError) as e:
@@ -102,6 +108,17 @@ def test_shipped_law_loads_with_provenance():
 def test_missing_file(tmp_path):
     with pytest.raises(SelfshapeError, match="not found"):
         load_thickness_law(tmp_path / "nope.csv")
+    with pytest.raises(SelfshapeError, match="is a directory"):
+        load_thickness_law(tmp_path)
+
+
+def test_law_with_a_byte_order_mark_reads_as_without(tmp_path):
+    """Windows editors save UTF-8 with a BOM; it is not part of the header (issue 19: the law
+    was refused for a "missing column 'thickness_mm'")."""
+    (tmp_path / "bom.csv").write_bytes(b"\xef\xbb\xbf" + table_text().encode())
+    (tmp_path / "plain.csv").write_text(table_text())
+    a, b = load_thickness_law(tmp_path / "bom.csv"), load_thickness_law(tmp_path / "plain.csv")
+    np.testing.assert_array_equal(a.table("front").kappa, b.table("front").kappa)
 
 
 def test_simulation_patch_has_the_layout_stagger():

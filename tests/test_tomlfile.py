@@ -22,3 +22,11 @@ def test_failures_are_one_line_with_the_label(tmp_path, make, word):
         read_toml(str(make(tmp_path)), "my file")
     msg = str(e.value)
     assert msg.startswith("my file: ") and word in msg and "\n" not in msg
+
+
+def test_a_byte_order_mark_is_not_content(tmp_path):
+    """Windows editors save UTF-8 with a BOM, which TOML forbids; it was "malformed TOML:
+    Invalid statement (at line 1, column 1)" (issue 19)."""
+    p = tmp_path / "bom.toml"
+    p.write_bytes(b"\xef\xbb\xbf[mesh]\r\nsize_mm = 2.0\r\n")
+    assert read_toml(str(p)) == {"mesh": {"size_mm": 2.0}}

@@ -117,6 +117,26 @@ def test_view_verb_writes_index_html_and_refuses_a_folder_without_results(tmp_pa
         write_view(str(empty))
 
 
+@pytest.mark.parametrize("name, content", [
+    ("deployed.vtu", b"<VTKFile>"),                # meshio exit(): status 1 and no line (issue 19)
+    ("deployed.vtu", b"\x89PNG" + bytes(300)),
+    ("pattern.svg", b'<svg xmlns="http://www.w3.org/2000/svg" width="a" height="b"/>'),
+    ("pattern.svg", b'<svg xmlns="http://www.w3.org/2000/svg" width="1mm" height="1mm" viewBox="0 0 x 1"/>'),
+    ("pattern.svg", b'<svg xmlns="http://www.w3.org/2000/svg" width="1mm" height="1mm" viewBox="0 0 1 1">'
+                    b'<g id="fabric"><polygon points="0,0 nan,1 1,inf"/></g></svg>'),
+], ids=["vtu-exit", "vtu-binary", "svg-size", "svg-viewbox", "svg-nan"])
+def test_broken_result_files_are_one_line_naming_them(tmp_path, capsys, name, content):
+    """`view` reads whatever a folder holds: a result file replaced by something else is a
+    one-line error naming it, status 2, and no index.html."""
+    folder = _result_folder(str(tmp_path / "d"), design=False)
+    with open(os.path.join(folder, name), "wb") as f:
+        f.write(content)
+    assert main(["view", folder]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and name in err[0] and "internal error" not in err[0], err
+    assert not os.path.exists(os.path.join(folder, "index.html"))
+
+
 def _chromium(url, shot, netlog, size="1000,600"):
     with tempfile.TemporaryDirectory() as profile:
         subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",

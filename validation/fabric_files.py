@@ -24,6 +24,11 @@ META_KEYS = ("fabric_thickness_mm", "tensile_width_mm", "tensile_gauge_length_mm
 META_MAX = {"fabric_thickness_mm": 20.0, "tensile_width_mm": 1000.0, "tensile_gauge_length_mm": 1000.0,
             "shear_sample_side_mm": 1000.0}
 
+#: Most data rows of one test file: the shipped tensile curves have 720, a 1 kHz logger over
+#: 3 minutes 180,000; the fits evaluate every row per iteration, so 1.9 million rows (60 MB)
+#: ran for minutes (issue 19).
+MAX_TABLE_ROWS = 200_000
+
 _TENSILE_RE = re.compile(r"^tensile_(\d+(?:\.\d+)?)deg_(\d+(?:\.\d+)?)pct\.csv$")
 _SHEAR_RE = re.compile(r"^shear_(\d+(?:\.\d+)?)deg\.csv$")
 
@@ -60,6 +65,9 @@ def read_table(path: str, columns: dict) -> dict:
     body = rows[1:]
     if not body:
         raise SelfshapeError(f"{name}: no data rows after the header")
+    if len(body) > MAX_TABLE_ROWS:
+        raise SelfshapeError(f"{name}: {len(body)} data rows, more than the {MAX_TABLE_ROWS:,} a test file may hold "
+                             f"(resample it: the fits' time grows with the rows)")
     out = {}
     for j, col in enumerate(header):
         kind = columns[col]

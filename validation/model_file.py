@@ -1,7 +1,10 @@
 """model.json, the fitted strip model that ``selfshape validate`` writes and ``selfshape
 predict`` applies, checked key by key before it is used: readable UTF-8 JSON, the format tag,
 known effects, one finite number per parameter within the loop's search bounds, finite
-auxiliary data, and predictions that are finite for every row of the data. Every problem is
+auxiliary data, the other keys `validate` writes agreeing with what predict applies (base
+model, narrow mode, measured column, reference stretch and thickness, parameter names,
+per-effect parameters, standard errors), no unknown key, and predictions that are finite
+for every row of the data. Every problem is
 a one-line SelfshapeError naming the file and the key (or the data row), so a malformed or
 NaN-carrying model can never predict NaN. Units: curvatures 1/mm, thicknesses mm."""
 from __future__ import annotations
@@ -16,6 +19,9 @@ from shellfem.errors import SelfshapeError
 from validation.textfiles import read_json, refuse_overwrite
 
 _COLUMN = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,63}$")
+#: The top-level keys of a model.json (validation.loop.model_dict writes them all).
+MODEL_KEYS = ("format", "model", "mode", "measured_column", "effects", "parameter_names", "theta",
+              "standard_errors", "aux", "reference_stretch", "reference_thickness_mm")
 
 
 def _finite_tree(o, where, name):
@@ -87,7 +93,56 @@ def check_model(m, path) -> dict:
     if not isinstance(col, str) or not _COLUMN.match(col):
         raise SelfshapeError(f"{name}: key 'measured_column': expected a column name (letters, digits, _), "
                              f"got {str(col)[:40]!r}")
+    _check_written_keys(m, names, theta, name)
     return m
+
+
+def _same_number(a, b) -> bool:
+    return isinstance(a, (int, float)) and not isinstance(a, bool) and math.isfinite(a) and \
+        abs(a - b) <= 1e-9 * max(abs(a), abs(b), 1e-300)
+
+
+def _check_written_keys(m, names, theta, name) -> None:
+    """The keys ``validate`` writes besides format/effects/theta/aux (validation.loop.model_dict)
+    hold what predict assumes, and no other key is present: predict implements one base model
+    (``model``), the narrow strip (``mode``), the curvature column, the loop's reference stretch
+    and thickness; a file saying otherwise, or whose ``parameter_names``, per-effect
+    ``parameters`` or ``standard_errors`` disagree with ``theta``, was fitted for something else
+    or edited, and was silently applied as if it said the defaults (issue 19)."""
+    from geometry.schema import check_keys
+    from validation import effects as fx
+    from validation.strips import MEASURED, model_source
+    check_keys(m, MODEL_KEYS, name)
+    expected = {"model": model_source(), "mode": "narrow", "measured_column": MEASURED}
+    for key, want in expected.items():
+        if key in m and m[key] != want:
+            raise SelfshapeError(f"{name}: key {key!r}: predict applies {want!r}, the file says {str(m[key])[:60]!r}")
+    for key, want in (("reference_stretch", fx.REFERENCE_STRETCH), ("reference_thickness_mm", fx.REFERENCE_THICKNESS)):
+        if key in m and not _same_number(m[key], want):
+            raise SelfshapeError(f"{name}: key {key!r}: the effects are parametrised at {want:g}, "
+                                 f"the file says {str(m[key])[:40]!r}")
+    if "parameter_names" in m and m["parameter_names"] != names:
+        raise SelfshapeError(f"{name}: key 'parameter_names': {str(m['parameter_names'])[:80]} is not the effects' "
+                             f"{names} (theta follows the effects)")
+    if "standard_errors" in m:
+        se = m["standard_errors"]
+        if not isinstance(se, list) or len(se) != len(names):
+            raise SelfshapeError(f"{name}: key 'standard_errors': expected a list of {len(names)} numbers")
+        for i, v in enumerate(se):
+            if v is not None and not (isinstance(v, (int, float)) and not isinstance(v, bool)
+                                      and math.isfinite(v) and v >= 0):
+                raise SelfshapeError(f"{name}: standard_errors[{i}]: expected a finite number >= 0 or null, "
+                                     f"got {str(v)[:40]!r}")
+    value = dict(zip(names, theta))
+    for i, e in enumerate(m["effects"]):
+        check_keys(e, ("name", "parameters"), f"{name}: effects[{i}]")
+        params = e.get("parameters", {})
+        if not isinstance(params, dict):
+            raise SelfshapeError(f"{name}: effects[{i}].parameters: expected an object")
+        for q, v in params.items():
+            if q not in value or not q.startswith(e["name"] + ".") or not _same_number(v, value[q]):
+                raise SelfshapeError(f"{name}: effects[{i}].parameters.{str(q)[:60]}: does not match theta "
+                                     f"({str(v)[:30]} against {value.get(q)})")
 
 
 def load_checked_model(path) -> dict:

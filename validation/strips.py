@@ -31,6 +31,10 @@ NUMERIC = ("stretch", "orientation_deg", "plastic_thickness_mm", "fabric_thickne
            "width_mm", "length_mm")
 REQUIRED = ("specimen", "side") + NUMERIC
 SIDES = ("front", "back")
+#: Most data rows a strips CSV may hold: a lab measures tens to hundreds of strips; the
+#: calibration evaluates the strip model at ~70 ratios per row (20 us each) and the validation
+#: loop refits it per fold and effect, so 100,000 rows ran out of memory (1.9 GB) or minutes.
+MAX_ROWS = 10_000
 PLASTIC_POISSON = 0.5
 FABRIC_POISSON = 0.3
 
@@ -72,11 +76,15 @@ def read_strips(path, require_measured=True) -> dict:
         missing.append(MEASURED)
     if missing:
         raise SelfshapeError(f"{name}: missing column(s) {', '.join(missing)} in header")
-    if len(set(header)) != len(header):
-        raise SelfshapeError(f"{name}: duplicate column names in header")
+    dup = sorted({h for h in header if header.count(h) > 1})
+    if dup:
+        raise SelfshapeError(f"{name}: duplicate column name(s) in header: {', '.join(repr(h[:40]) for h in dup[:3])}")
     body = table[1:]
     if not body:
         raise SelfshapeError(f"{name}: no data rows")
+    if len(body) > MAX_ROWS:
+        raise SelfshapeError(f"{name}: {len(body)} data rows, more than the {MAX_ROWS:,} a strips CSV may hold "
+                             f"(a lab's strip set is tens to hundreds; the fits' time grows with the rows)")
     col = {h: i for i, h in enumerate(header)}
     n = len(body)
     out = {"specimen": np.empty(n, dtype=object), "side": np.empty(n, dtype=object)}

@@ -23,9 +23,9 @@ options) and the package version, so:
 
 A case that fails is a row, not a crash of the sweep: status ``ok``, ``not_converged`` (the
 verb's own result: the simulation or the design's verification did not converge),
-``error`` (a SelfshapeError for this case's values, e.g. a stretch outside the pattern
-ranges; its one-line reason) or ``failed`` (an unexpected exception or a task whose workers
-kept dying; no case.json, so a resume runs it again).
+``error`` (a SelfshapeError for this case's values found while it ran, e.g. a design
+stretch without a shipped law; its one-line reason) or ``failed`` (an unexpected exception
+or a task whose workers kept dying; no case.json, so a resume runs it again).
 
 Results, in DIR: ``results.csv`` and ``results.parquet`` (one row per case: index, folder,
 status, reason, time_s, ran (run by this invocation), worker, the case's inputs under their
@@ -35,15 +35,17 @@ keys, every scalar of summary.json / report.json flattened as ``summary.KEY`` /
 pattern.png for designs) and ``sweep.json`` (counts and times), all written after the cases
 (the table also every PARTIAL_TABLE_S while they run, with the cases finished so far).
 
-A bad sweep file (unknown key, empty list, a value of the wrong type, a missing base pattern
-or target) is a one-line SelfshapeError naming the file and the key, raised before anything
-is written. The module sits in validation, above inverse, because design sweeps call
-inverse.design (the layers: shellfem < geometry < forward < inverse < validation); it only
-imports forward and inverse inside the tasks.
+A bad sweep file (unknown key, empty list, a value of the wrong type, a missing base pattern,
+target or law, more than MAX_CASES cases, a case whose pattern the pattern reader refuses or
+a design option outside its range) is a one-line SelfshapeError naming the file and the key,
+raised before anything is written: the user's mistake is never a case that runs, and no
+output holds NaN or Infinity (a non-finite figure is an empty cell). The module sits in
+validation, above inverse, because design sweeps call inverse.design (the layers: shellfem <
+geometry < forward < inverse < validation); it only imports forward and inverse inside the
+tasks.
 """
 from __future__ import annotations
 
-import copy
 import difflib
 import hashlib
 import itertools
@@ -64,15 +66,26 @@ OUTPUTS = ("results.csv", "results.parquet", "contact_sheet.png", "sweep.json")
 CASE_PREFIX = "case-"
 TOP_KEYS = {"sweep", "options", "grid", "case", "random"}
 SWEEP_KEYS = {"pattern", "targets", "samples", "seed", "retries", "render"}
-#: Design options a sweep may set: sweep key -> (design_file keyword, kind). Kinds: "number",
-#: "count" (integer >= 1), "bool", "path" (relative to the sweep file), "stretch" (number or "auto").
+#: Design options a sweep may set: sweep key -> (design_file keyword, kind). Kinds: "number"
+#: (in the keyword's range, :func:`design_number_spec`), "bool", "path" (an existing file,
+#: relative to the sweep file), "stretch" (a number in the range, or "auto").
 DESIGN_OPTIONS = {
     "stretch": ("stretch", "stretch"), "diagonal": ("diagonal_mm", "number"), "law": ("thickness_law", "path"),
     "lam": ("lam", "number"), "mesh_size": ("mesh_size_mm", "number"), "mesh_across": ("mesh_across", "number"),
-    "verify": ("verify", "bool"), "verify_iterations": ("verify_iterations", "count"), "refine": ("refine", "bool"),
-    "seed": ("seed", "count0"), "edge_mm": ("edge_mm", "number"), "gap_mm": ("gap_mm", "number"),
+    "verify": ("verify", "bool"), "verify_iterations": ("verify_iterations", "number"), "refine": ("refine", "bool"),
+    "seed": ("seed", "number"), "edge_mm": ("edge_mm", "number"), "gap_mm": ("gap_mm", "number"),
     "layout_edge_mm": ("layout_edge_mm", "number"),
 }
+#: design_file keywords that become keys of the designed pattern.toml, so their range is that
+#: key's (geometry.schema.PATTERN_NUMBERS); the others are geometry.schema.DESIGN_NUMBERS.
+DESIGN_PATTERN_KEYS = {"mesh_size_mm": ("mesh", "size_mm"), "mesh_across": ("mesh", "across"),
+                       "verify_iterations": ("solver", "max_iterations"), "seed": ("solver", "seed")}
+#: Most cases one sweep may have ([[case]] x [grid] points x [random] samples x targets),
+#: counted before any case is built: every case is validated (its pattern read) before any
+#: runs and is a folder and a table row, so 10,000 cases are hours of a cluster's work and
+#: seconds of checking, while 10^8 (a 10,000 x 10,000 grid) exhausted memory building the
+#: list. A larger study is several sweep files.
+MAX_CASES = 10_000
 #: While a sweep runs, the table of the cases finished so far is rewritten at most this often, s.
 PARTIAL_TABLE_S = 60.0
 #: Statuses whose case.json makes a case finished (not rerun on resume).
@@ -125,6 +138,14 @@ def _what(v) -> str:
     if isinstance(v, dict):
         return "a table"
     return f"{v!r:.40}"
+
+
+def _is_finite_num(v) -> bool:
+    """A number that is a finite float (an integer beyond the float range is not)."""
+    try:
+        return _is_num(v) and math.isfinite(v)
+    except OverflowError:
+        return False
 
 
 def _is_num(v) -> bool:
@@ -196,48 +217,84 @@ def _allowed(top):
     return fabric_keys() if top == "fabric" else set(PATTERN_NUMBERS["solver"]) if top == "solver" else KEYS[top]
 
 
-def _check_value(v, kind: str, where: str):
-    """The value of a case, checked by type (the ranges are the case's: a value out of range is
-    that case's error row): a one-line SelfshapeError naming ``where`` otherwise."""
-    ok = {"number": _is_num(v), "count": isinstance(v, int) and not isinstance(v, bool) and v >= 1,
-          "count0": isinstance(v, int) and not isinstance(v, bool) and v >= 0,
+def design_number_spec(kw: str):
+    """The range (a geometry.schema.Num) of a numeric design_file keyword: the pattern key's
+    for the keywords that design_file writes into pattern.toml (DESIGN_PATTERN_KEYS), else
+    geometry.schema.DESIGN_NUMBERS, the ranges inverse.design and `selfshape design` apply."""
+    from geometry.schema import DESIGN_NUMBERS, PATTERN_NUMBERS
+    if kw in DESIGN_PATTERN_KEYS:
+        table, key = DESIGN_PATTERN_KEYS[kw]
+        return PATTERN_NUMBERS[table][key]
+    return DESIGN_NUMBERS[kw]
+
+
+def _check_value(v, kind: str, where: str, spec=None):
+    """The value of a case, checked by type and, given ``spec`` (a design option's
+    geometry.schema.Num), by range: a one-line SelfshapeError naming ``where`` otherwise. A
+    pattern key's range is checked on the whole case by the pattern reader
+    (Sweep._check_patterns), since its valid values can depend on the other keys."""
+    if spec is not None and not (kind == "stretch" and v == "auto"):
+        if kind == "stretch" and isinstance(v, str):
+            raise SelfshapeError(f'{where} must be "auto" or a number in {spec.describe()}, got {_what(v)}')
+        from geometry.schema import number
+        return number(v, where, spec)
+    ok = {"number": _is_num(v),
           "stretch": _is_num(v) or (isinstance(v, list) and len(v) == 2 and all(_is_num(x) for x in v)),
           "field": _is_num(v) or isinstance(v, str), "string": isinstance(v, str), "bool": isinstance(v, bool),
           "path": isinstance(v, str) and bool(v.strip()), "points": isinstance(v, list), "any": True}[kind]
     if kind == "stretch" and isinstance(v, str):
         ok = ok or v == "auto"
     if not ok:
-        need = {"number": "a number", "count": "an integer >= 1", "count0": "an integer >= 0",
-                "stretch": "a number or [sx, sy]", "field": "a number or an expression string",
+        need = {"number": "a number", "stretch": "a number or [sx, sy]", "field": "a number or an expression string",
                 "string": "a string", "bool": "true or false", "path": "a file name", "points": "a list"}[kind]
         raise SelfshapeError(f"{where} must be {need}, got {_what(v)}")
     return v
 
 
-def set_key(raw: dict, key: str, value) -> None:
-    """Set the dotted ``key`` of a pattern dict in place (arrays of tables by 0-based index; a
-    single table where an array is allowed counts as an array of one)."""
-    parts = key.split(".")
-    node = raw
-    for j, p in enumerate(parts[:-1]):
-        if isinstance(node, list):
-            node = node[int(p)]
-            continue
-        child = node.get(p)
-        if child is None:
-            child = node[p] = {}
-        elif isinstance(child, dict) and parts[j + 1].isdigit():
-            child = node[p] = [child]
-        node = child
-    if isinstance(node, list):
-        node[int(parts[-1])] = value
+def _show(v) -> str:
+    """A case's value as the sweep file spells it (``135``, ``nan``, ``[1.2, 1.3]``), cut to 60 characters."""
+    if isinstance(v, float):
+        text = repr(v) if math.isfinite(v) else ("nan" if v != v else ("inf" if v > 0 else "-inf"))
+    elif isinstance(v, bool):
+        text = "true" if v else "false"
+    elif isinstance(v, list):
+        text = "[" + ", ".join(_show(x) for x in v) + "]"
+    elif isinstance(v, str):
+        text = json.dumps(v)
     else:
-        node[parts[-1]] = value
+        text = str(v)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def resolve_case(base: dict, inputs: dict) -> dict:
+    """The base pattern dict with a case's ``inputs`` {dotted key: value} set (arrays of tables
+    by 0-based index; a single table where an array is allowed counts as an array of one).
+    Only the tables and arrays on the keys' paths are copied: the base is shared and never
+    changed, so a large base (a 100,000-point outline) is not deep-copied for each of
+    thousands of cases (each is validated before any runs, then resolved again for its task)."""
+    raw = dict(base)
+    for key, value in inputs.items():
+        parts = key.split(".")
+        node = raw
+        for j, p in enumerate(parts[:-1]):
+            at = int(p) if isinstance(node, list) else p
+            child = node[at] if isinstance(node, list) else node.get(p)
+            if child is None:
+                child = {}
+            elif isinstance(child, dict) and parts[j + 1].isdigit():
+                child = [child]
+            else:
+                child = list(child) if isinstance(child, list) else dict(child)
+            node[at] = child
+            node = child
+        node[int(parts[-1]) if isinstance(node, list) else parts[-1]] = value
+    return raw
 
 
 class Sweep:
     """A checked sweep file: ``verb`` ("simulate" or "design"), ``cases`` (list of {key:
-    value} in file order: [[case]] x grid x random draws), ``base`` (the base pattern dict) or
+    value} in file order: [[case]] x grid x random draws), ``origins`` (per case, {key: the
+    table that set it, e.g. "[grid]"}), ``base`` (the base pattern dict) or
     ``targets`` (absolute paths), ``keys`` (the varied keys, in order), ``render``, ``retries``."""
 
     def __init__(self, path: str):
@@ -297,18 +354,75 @@ class Sweep:
             listed = [listed]
         if not isinstance(listed, list):
             raise SelfshapeError(f"{src}: [[case]] must be an array of tables")
+        if len(listed) > MAX_CASES:
+            raise SelfshapeError(f"{src}: [[case]] has {len(listed):,} tables, more than the {MAX_CASES:,} cases a "
+                                 f"sweep may have; split it into several sweep files")
         cases = [self._values(c, f"{src}: [[case]] #{i + 1}", lists=False) if isinstance(c, dict) else
                  _raise(SelfshapeError(f"{src}: [[case]] #{i + 1} must be a table")) for i, c in enumerate(listed)]
-        draws = self._random(raw.get("random", {}), head, src)
-        if not (grid or cases or draws):
+        ranges, samples, seed = self._random(raw.get("random", {}), head, src)
+        if not (grid or cases or ranges):
             raise SelfshapeError(f"{src}: nothing to vary: give a [grid], [[case]] tables or [random] ranges")
+        self._check_count(src, cases, grid, samples)
+        draws = _draw(ranges, samples, seed)
         points = [dict(zip(grid, combo)) for combo in itertools.product(*grid.values())] if grid else [{}]
-        self.cases = []
-        for c, g, r in itertools.product(cases or [{}], points, draws or [{}]):
-            case = {**self.fixed, **c, **g, **r}
-            self.cases.append(case)
+        self.cases, self.origins = [], []
+        for (i, c), g, r in itertools.product(enumerate(cases or [{}]), points, draws or [{}]):
+            self.cases.append({**self.fixed, **c, **g, **r})
+            self.origins.append({**{k: "[options]" for k in self.fixed}, **{k: f"[[case]] #{i + 1}" for k in c},
+                                 **{k: "[grid]" for k in g}, **{k: "[random]" for k in r}})
         self.keys = list(dict.fromkeys(k for case in self.cases for k in case if k not in self.fixed)) or \
             list(self.fixed)
+        if self.verb == "simulate":
+            self._check_patterns(src)
+
+    def _check_count(self, src, cases, grid, samples):
+        """Refuse more than MAX_CASES cases in one line naming the keys that multiply, from
+        the counts alone (before any case, grid point or draw is built)."""
+        factors = ([(f"{len(cases):,} [[case]] tables", len(cases))] if cases else []) + \
+            [(f"[grid] {k} ({len(v):,} values)", len(v)) for k, v in grid.items()] + \
+            ([(f"[sweep] samples = {samples:,}", samples)] if samples else []) + \
+            ([(f"{len(self.targets):,} [sweep] targets", len(self.targets))] if len(self.targets) > 1 else [])
+        total = math.prod(n for _, n in factors)
+        if total > MAX_CASES:
+            names = [name for name, n in factors if n > 1]           # a factor of 1 does not multiply
+            raise SelfshapeError(f"{src}: {total:,} cases ({' x '.join(names)}), more than "
+                                 f"the {MAX_CASES:,} a sweep may have; split it into several sweep files")
+
+    def _check_patterns(self, src):
+        """Every case's pattern (the base with the case's values) through the reader of a
+        pattern file, geometry.patterns.parse_pattern, before any case runs: a value that the
+        reader refuses (out of range, NaN, a ribbon off the fabric) is the sweep file's error,
+        not a case that runs and writes it. The message names the sweep file, the key that
+        alone gives the reader's reason (or the case's varied values when only their
+        combination is refused), the value, the case (0-based, as the table's index) and the
+        reader's one-line reason. Identical cases are read once."""
+        from geometry.patterns import _plain, parse_pattern
+        base_dir = os.path.dirname(os.path.abspath(self.pattern_path))
+        name = "<case>"
+
+        def reason(inputs):
+            try:
+                parse_pattern(_plain(resolve_case(self.base, inputs)), name, base_dir, from_file=True)
+            except SelfshapeError as e:
+                text = str(e)
+                return text[len(name) + 2:] if text.startswith(name + ": ") else text.replace(name, "the case")
+            return None
+
+        seen = set()
+        for i, (case, origin) in enumerate(zip(self.cases, self.origins)):
+            ident = json.dumps(case, sort_keys=True)
+            if ident in seen:
+                continue
+            seen.add(ident)
+            why = reason(case)
+            if why is None:
+                continue
+            key = next((k for k in case if reason({k: case[k]}) == why), None)
+            if key is None:
+                values = ", ".join(f"{k} = {_show(v)}" for k, v in case.items() if k not in self.fixed)
+                raise SelfshapeError(f"{src}: case #{i} ({values}): {why}")
+            at = "" if origin[key] == "[options]" else f" (case #{i})"
+            raise SelfshapeError(f"{src}: {origin[key]} {key} = {_show(case[key])}{at}: {why}")
 
     def _load_base(self, src):
         from geometry.patterns import load_pattern
@@ -341,55 +455,88 @@ class Sweep:
         out = {}
         for key, v in _flatten_keys(table).items():
             kind = self._kind(key, f"{where}")
+            spec = self._spec(key, kind)
             if lists:
                 if not isinstance(v, list):
                     raise SelfshapeError(f"{where} {key} must be a list of values, got {_what(v)}")
                 if not v:
                     raise SelfshapeError(f"{where} {key}: the list of values is empty")
+                if len(v) > MAX_CASES:
+                    raise SelfshapeError(f"{where} {key} has {len(v):,} values, more than the {MAX_CASES:,} cases a "
+                                         f"sweep may have; split it into several sweep files")
                 for i, x in enumerate(v):
-                    _check_value(x, kind, f"{where} {key} value #{i + 1}")
+                    self._check_one(x, kind, spec, f"{where} {key} value #{i + 1}")
             else:
-                _check_value(v, kind, f"{where} {key}")
+                self._check_one(v, kind, spec, f"{where} {key}")
             out[key] = v
         return out
 
-    def _random(self, table, head, src) -> list:
-        """``samples`` draws (seeded by [sweep] seed, default 0) uniform in each [random] key's
-        [lo, hi] (integers: uniform integers in [lo, hi])."""
+    def _spec(self, key: str, kind: str):
+        """A design option's range (None for pattern keys: the reader checks those per case)."""
+        if self.verb == "design" and kind in ("number", "stretch"):
+            return design_number_spec(DESIGN_OPTIONS[key][0])
+        return None
+
+    def _check_one(self, v, kind: str, spec, where: str):
+        """One value (_check_value); a design sweep's law file must exist."""
+        _check_value(v, kind, where, spec)
+        if kind == "path" and not os.path.isfile(v if os.path.isabs(v) else os.path.join(self.folder, v)):
+            raise SelfshapeError(f"{where}: {v}: file not found")
+
+    def _random(self, table, head, src) -> tuple:
+        """The [random] ranges {key: [lo, hi]} (finite, lo <= hi; a design option's ends in its
+        range, so every draw is; integer ends within int64), [sweep] samples and seed, checked."""
         where = f"{src}: [random]"
         if not isinstance(table, dict):
             raise SelfshapeError(f"{where} must be a table")
         ranges = {}
         for key, v in _flatten_keys(table).items():
             kind = self._kind(key, where)
-            if kind not in ("number", "stretch", "field", "count", "count0", "any"):
+            if kind not in ("number", "stretch", "field", "any"):
                 raise SelfshapeError(f"{where} {key}: only numeric keys can be drawn at random")
-            if not (isinstance(v, list) and len(v) == 2 and all(_is_num(x) for x in v)):
-                raise SelfshapeError(f"{where} {key} must be a range [lo, hi] of two numbers, got {_what(v)}")
+            if not (isinstance(v, list) and len(v) == 2 and all(_is_finite_num(x) for x in v)):
+                raise SelfshapeError(f"{where} {key} must be a range [lo, hi] of two finite numbers, got "
+                                     f"{_show(v) if isinstance(v, list) else _what(v)}")
             if not v[0] <= v[1]:
                 raise SelfshapeError(f"{where} {key}: the range [lo, hi] has lo > hi ({v[0]} > {v[1]})")
+            if all(isinstance(x, int) for x in v) and not all(abs(x) < 2 ** 62 for x in v):
+                raise SelfshapeError(f"{where} {key}: the integer range {_show(v)} goes beyond +-2^62")
+            if not math.isfinite(float(v[1]) - float(v[0])):
+                raise SelfshapeError(f"{where} {key}: the range {_show(v)} is wider than a float can hold")
+            spec = self._spec(key, kind)
+            for end, x in zip(("lo", "hi"), v):
+                self._check_one(x, kind, spec, f"{where} {key} {end}")
             ranges[key] = v
         samples, seed = head.get("samples"), head.get("seed", 0)
         if not ranges:
             if samples is not None:
                 raise SelfshapeError(f"{src}: [sweep] samples needs [random] ranges")
-            return []
+            return {}, None, None
         if not (isinstance(samples, int) and not isinstance(samples, bool) and samples >= 1):
             raise SelfshapeError(f"{src}: [sweep] samples must be an integer >= 1 with [random] ranges, got "
                                  f"{_what(samples) if samples is not None else 'nothing'}")
         if not (isinstance(seed, int) and not isinstance(seed, bool) and seed >= 0):
             raise SelfshapeError(f"{src}: [sweep] seed must be an integer >= 0, got {_what(seed)}")
-        rng = np.random.default_rng(seed)
-        draws = []
-        for _ in range(samples):
-            d = {}
-            for key, (lo, hi) in ranges.items():
-                if isinstance(lo, int) and isinstance(hi, int):
-                    d[key] = int(rng.integers(lo, hi + 1))
-                else:
-                    d[key] = float(f"{rng.uniform(lo, hi):.6g}")      # 6 digits: readable labels, exact inputs
-            draws.append(d)
-        return draws
+        return ranges, samples, seed
+
+
+def _draw(ranges: dict, samples, seed) -> list:
+    """``samples`` draws (seeded by ``seed``) uniform in each key's [lo, hi] (integers:
+    uniform integers in [lo, hi]); [] without ranges."""
+    if not ranges:
+        return []
+    rng = np.random.default_rng(seed)
+    draws = []
+    for _ in range(samples):
+        d = {}
+        for key, (lo, hi) in ranges.items():
+            if isinstance(lo, int) and isinstance(hi, int):
+                d[key] = int(rng.integers(lo, hi + 1))
+            else:
+                # 6 digits: readable labels, exact inputs; kept in [lo, hi], whose ends were checked
+                d[key] = min(max(float(f"{rng.uniform(lo, hi):.6g}"), float(lo)), float(hi))
+        draws.append(d)
+    return draws
 
 
 def _raise(e):
@@ -423,10 +570,7 @@ def case_specs(sweep: Sweep, out_dir: str) -> list[dict]:
             i = len(specs)
             spec = {"index": i, "verb": sweep.verb, "inputs": dict(inputs), "render": sweep.render}
             if sweep.verb == "simulate":
-                raw = copy.deepcopy(sweep.base)
-                for key, v in inputs.items():
-                    set_key(raw, key, copy.deepcopy(v))
-                text = tomli_w.dumps(_plain(raw))
+                text = tomli_w.dumps(_plain(resolve_case(sweep.base, inputs)))
                 ident = {"verb": "simulate", "pattern": text, "render": sweep.render, "version": version}
                 spec.update(pattern_text=text, pattern_name=os.path.basename(sweep.pattern_path))
             else:
@@ -464,9 +608,15 @@ def read_marker(folder: str, digest: str) -> dict | None:
     return None
 
 
+def _finite(v):
+    """``v``, or None for a NaN or infinite float: no output of a sweep holds a non-finite number
+    (case.json would refuse it and fail the case; the table writes None as an empty cell)."""
+    return None if isinstance(v, float) and not math.isfinite(v) else v
+
+
 def flatten_figures(obj, prefix: str) -> dict:
     """Every scalar of a summary/report dict as {prefix.key.sub.0: value} (numbers, bools,
-    strings; None kept as None)."""
+    strings; None kept as None, a non-finite number becomes None)."""
     out = {}
 
     def walk(v, key):
@@ -477,9 +627,9 @@ def flatten_figures(obj, prefix: str) -> dict:
             for j, x in enumerate(v):
                 walk(x, f"{key}.{j}")
         elif v is None or isinstance(v, (bool, int, float, str)):
-            out[key] = v
+            out[key] = _finite(v)
         elif isinstance(v, np.generic):
-            out[key] = v.item()
+            out[key] = _finite(v.item())
     walk(obj, prefix)
     return out
 
@@ -551,6 +701,7 @@ def _column_types(rows, columns):
 
 
 def _cell(v, kind):
+    v = _finite(v)
     if v is None:
         return None
     if kind == "string":
@@ -579,8 +730,8 @@ def write_table(out, rows) -> None:
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(columns)
     for r in rows:
-        w.writerow(["" if r.get(c) is None else (repr(float(r[c])) if types[c] == "float" else
-                                                 _cell(r[c], types[c])) for c in columns])
+        cells = [_cell(r.get(c), types[c]) for c in columns]
+        w.writerow(["" if v is None else (repr(v) if types[c] == "float" else v) for c, v in zip(columns, cells)])
     out.write_text("results.csv", buf.getvalue())
     try:
         import pyarrow as pa

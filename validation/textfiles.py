@@ -14,30 +14,22 @@ import os
 import numpy as np
 
 from shellfem.errors import SelfshapeError
+from shellfem.infiles import csv_error_text, read_input_text
 
-MAX_BYTES = 256 * 1024 * 1024  # a lab table or JSON beyond this is not one
+#: A lab table or JSON beyond this is not one (bytes): the csv module's rows of a 64 MB file
+#: take ~0.7 GB, and the readers' row caps (validation.strips.MAX_ROWS, fabric_files.MAX_TABLE_ROWS)
+#: are reached far below it.
+MAX_BYTES = 64 * 1024 * 1024
 
 
 def read_text(path, what: str = "text file") -> str:
-    """The file's text (UTF-8, an optional BOM removed). Errors name the file and, for bytes
-    that are not UTF-8, the line they are on."""
+    """The file's text (UTF-8, an optional BOM removed), through shellfem.infiles: a folder,
+    a device or pipe, or a file over MAX_BYTES is refused before reading. Errors name the
+    file and, for bytes that are not UTF-8, the line they are on."""
     name = os.path.basename(str(path))
-    try:
-        size = os.path.getsize(path)
-        if size > MAX_BYTES:
-            raise SelfshapeError(f"{name}: {size} bytes, larger than any {what} ({MAX_BYTES} bytes)")
-        with open(path, "rb") as f:
-            data = f.read()
-    except IsADirectoryError:
-        raise SelfshapeError(f"{path}: is a directory, expected a {what}") from None
-    except OSError as e:
-        raise SelfshapeError(f"{path}: cannot read ({e.strerror or e})") from None
-    try:
-        return data.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        line = data[:e.start].count(b"\n") + 1
-        raise SelfshapeError(f"{name}: line {line}: not UTF-8 text (byte 0x{data[e.start]:02x}); "
-                             f"expected a {what}") from None
+    if os.path.isdir(path):
+        raise SelfshapeError(f"{path}: is a directory, expected a {what}")
+    return read_input_text(path, what, name, MAX_BYTES)
 
 
 def read_csv_rows(path, what: str = "CSV table") -> list:
@@ -54,17 +46,14 @@ def read_csv_rows(path, what: str = "CSV table") -> list:
         for r in reader:
             rows.append(r)
     except csv.Error as e:
-        limit = csv.field_size_limit()
-        msg = str(e)
-        if "field larger than field limit" in msg:
-            msg = f"a field longer than {limit} characters (the csv module's limit)"
-        raise SelfshapeError(f"{name}: line {reader.line_num + (0 if rows else 1)}: {msg}") from None
+        raise SelfshapeError(f"{name}: line {reader.line_num + (0 if rows else 1)}: {csv_error_text(e)}") from None
     return rows
 
 
 def read_json(path, what: str = "JSON file"):
     """Parsed JSON, with errors naming file and line (invalid JSON, NaN/Infinity literals
-    are allowed by the parser and left to the caller's finiteness checks, nesting too deep)."""
+    are allowed by the parser and left to the caller's finiteness checks, nesting too deep,
+    an integer of more digits than Python converts (4,300): a ValueError without a line)."""
     name = os.path.basename(str(path))
     text = read_text(path, what)
     try:
@@ -73,6 +62,9 @@ def read_json(path, what: str = "JSON file"):
         raise SelfshapeError(f"{name}: line {e.lineno}: invalid JSON ({e.msg})") from None
     except RecursionError:
         raise SelfshapeError(f"{name}: JSON nested too deeply to be a {what}") from None
+    except ValueError as e:         # int('9' * 5000): the digit limit of int(), not a JSON error
+        raise SelfshapeError(f"{name}: a number too long to be read ({' '.join(str(e).split()[:8])}); "
+                             f"expected a {what}") from None
 
 
 def refuse_overwrite(output, inputs, verb_option: str = "-o") -> None:
