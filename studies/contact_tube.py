@@ -12,7 +12,7 @@ deployed shape (forward.render.render_roll: isometric view and a section across 
 the triangles that intersect another in black without contact, those in contact with it).
 
     python studies/contact_tube.py [--pattern examples/gallery/tube.toml ...] [--out out/contact_tube]
-        [--max-iterations N] [--only off|on] [--png DIR]
+        [--max-iterations N] [--only off|on] [--strip] [--png DIR]
 
 prints ONE JSON line and writes OUT/contact_tube.json (contact_tube_{off,on}.json with --only) and
 OUT/<name>_{off,on}.png (with --png
@@ -92,11 +92,52 @@ def run_pattern(path: str, out: str, max_iterations: int | None = None, runs=("o
     return rows
 
 
+def run_strip(out: str) -> dict:
+    """The 70 mm bilayer strip of tests/test_contact.py (0.25 mm fabric + 0.1 mm plastic,
+    pre-stretched 1.1 along it, 1 mm mesh, one level): without contact from flat (it rolls about
+    2.9 turns through itself), with contact from a loose spiral (the branch of a single roll; from
+    flat it rolls from both ends); per run as run_pattern's rows plus the turns and inner / outer
+    radii (mm) of its centre line, and the pictures OUT/strip_{off,on}.png (no highlight: without
+    contact nearly every triangle crosses another)."""
+    from forward.render import render_roll
+    from forward.simulate import simulate_sheet
+    from geometry.meshing import mesh_pattern
+
+    t = _tests()
+    s, L = 1.1, 70.0
+    pat = t._strip(L=L, size=1.0, stretch=(s, 1.0))
+    sheet = mesh_pattern(pat)
+    rows, kappa0 = {}, None
+    for on in (False, True):
+        start = None if not on else t._rolled(sheet.points, 1.0 / kappa0, 0.7, s)
+        t0, c0 = time.perf_counter(), time.process_time()
+        sim = simulate_sheet(sheet, pat.fabric, pat.plastic, contact=on, start=start)
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        if not on:
+            kappa0 = float(np.median(np.abs(sim.model.curvatures(sim.result.q)[0]).max(1)))
+        crossing = t.intersecting_pairs(sim.positions, sheet.triangles)
+        turns, r_in, r_out = t.centreline_turns(sheet, sim.positions)
+        rep = sim.contact_report() if on else {}
+        tag = "on" if on else "off"
+        render_roll(sim, os.path.join(out, f"strip_{tag}.png"), size=(1000, 450),
+                    title=f"70 mm strip {'with' if on else 'without'} contact: {turns:.2f} turns, "
+                          f"{len(crossing)} crossing pairs")
+        rows[tag] = dict(converged=bool(sim.result.converged), iterations=int(sim.result.iterations),
+                         wall_s=round(wall, 1), cpu_s=round(cpu, 1), energy_nmm=float(sim.result.energy),
+                         crossing_pairs=int(len(crossing)), turns=round(turns, 3), r_in_mm=round(r_in, 3),
+                         r_out_mm=round(r_out, 3), min_distance_mm=rep.get("min_distance_mm"),
+                         active_pairs=int(rep.get("active_pairs", 0)))
+    rows["n_vertices"] = int(sheet.n_vertices)
+    return rows
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--pattern", nargs="+", default=["examples/gallery/tube.toml"])
+    ap.add_argument("--pattern", nargs="*", default=["examples/gallery/tube.toml"])
     ap.add_argument("--out", default="out/contact_tube")
     ap.add_argument("--max-iterations", type=int, default=None)
+    ap.add_argument("--strip", action="store_true",
+                    help="also the 70 mm strip that rolls ~2.9 turns (tests/test_contact.py), OUT/strip_{off,on}.png")
     ap.add_argument("--only", choices=["off", "on"], default=None,
                     help="one run only (two such processes side by side: compare their CPU times)")
     ap.add_argument("--png", default=None, help="also copy the pictures to DIR/<name>_no_contact.png / _contact.png")
@@ -104,12 +145,17 @@ def main(argv=None):
     os.makedirs(a.out, exist_ok=True)
     runs = ("off", "on") if a.only is None else (a.only,)
     result = {os.path.basename(p): run_pattern(p, a.out, a.max_iterations, runs) for p in a.pattern}
+    if a.strip:
+        result["strip"] = run_strip(a.out)
     if a.png:
         os.makedirs(a.png, exist_ok=True)
         for p in a.pattern:
             name = os.path.splitext(os.path.basename(p))[0]
             for tag, suffix in [(t, {"off": "no_contact", "on": "contact"}[t]) for t in runs]:
                 shutil.copyfile(os.path.join(a.out, f"{name}_{tag}.png"), os.path.join(a.png, f"{name}_{suffix}.png"))
+        if a.strip:
+            for tag, suffix in (("off", "no_contact"), ("on", "contact")):
+                shutil.copyfile(os.path.join(a.out, f"strip_{tag}.png"), os.path.join(a.png, f"strip_{suffix}.png"))
     with open(os.path.join(a.out, "contact_tube.json" if a.only is None else f"contact_tube_{a.only}.json"), "w") as f:
         json.dump(result, f, indent=1)
     print(json.dumps(result))
