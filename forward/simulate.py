@@ -108,21 +108,23 @@ def support_plane(sheet: Sheet, fabric, ground: float | None) -> float:
     return float(ground) + BAND_FRACTION * contact_offset(sheet, fabric)
 
 
-def make_contact(sheet: Sheet, fabric, fixed: np.ndarray, self_contact: bool, ground: float | None):
+def make_contact(sheet: Sheet, fabric, fixed: np.ndarray, self_contact: bool, ground: float | None,
+                 exclusion_mm: float | None = None):
     """shellfem.contact.Contact of a sheet (None when both are off): the offset is
     :func:`contact_offset`, the ground plane at ``ground`` (mm, None: no ground) under the
-    vertices whose z is not held by ``fixed``."""
+    vertices whose z is not held by ``fixed``; ``exclusion_mm``: a smaller printed-state exclusion
+    than the sheet's own (a coarse level takes the finest level's, see :func:`simulate_sheet`)."""
     if not self_contact and ground is None:
         return None
     from shellfem.contact import Contact
     held_z = np.zeros(sheet.n_vertices, bool)
     held_z[fixed[fixed % 3 == 2] // 3] = True
     return Contact(sheet.points, sheet.triangles, contact_offset(sheet, fabric), stretch_max=float(max(fabric.stretch)),
-                   self_contact=self_contact, ground=ground, held_z=held_z)
+                   self_contact=self_contact, ground=ground, held_z=held_z, exclusion_mm=exclusion_mm)
 
 
 def _level_setup(sheet: Sheet, fabric, plastic, supports, seed: int, tol_support: float | None, start=None,
-                 factory=None, contact: bool = False, ground: float | None = None):
+                 factory=None, contact: bool = False, ground: float | None = None, exclusion_mm: float | None = None):
     """(model, perturbed flat start, held DOFs, their values, gauge DOFs, free mask) of one mesh;
     ``start``: (n_vertices, 3) start positions instead of the perturbed flat state; ``factory``:
     (sheet, fabric, plastic) -> model (default ShellModel.from_materials, exact metric). ``contact``,
@@ -136,7 +138,7 @@ def _level_setup(sheet: Sheet, fabric, plastic, supports, seed: int, tol_support
     tol = tol_support if tol_support is not None else 2.0 * float(edge.max())
     fixed, values = support_constraints(sheet, model.topo, supports, fabric, tol,
                                         plane_z=support_plane(sheet, fabric, ground))
-    model.contact = make_contact(sheet, fabric, fixed, contact, ground)
+    model.contact = make_contact(sheet, fabric, fixed, contact, ground, exclusion_mm)
     if start is not None:
         x[:] = np.asarray(start, dtype=float).reshape(x.shape)
     else:
@@ -310,13 +312,20 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
         level_log.append(dict(n_vertices=int(n_vertices), iterations=int(iterations),
                               converged=bool(result.converged), interpolated=bool(interpolated),
                               seconds=round(time.perf_counter() - t_level, 3), metric=metric))
+    # the coarse levels resolve contact with the finest level's exclusion where it is smaller (their
+    # longer edges give them a larger one): with their own, parts of a tight roll one turn apart
+    # were excluded on a coarse level and passed through each other there, and the finer level's
+    # interpolated start intersected itself (a flat restart)
+    finest_exclusion = (make_contact(sheet, fabric, np.zeros(0, np.int64), True, None).exclusion_mm
+                        if contact and len(sheets) > 1 else None)
     for j, sh in enumerate(sheets):
         t_level = time.perf_counter()
         last = j == len(sheets) - 1
         final = last and not two_stage          # this level's solve decides the result
         model, q, fixed, values, gauge, free = _level_setup(sh, fabric, plastic, supports, seed, tol_support,
                                                             start=start if last else None, factory=factory(last),
-                                                            contact=contact, ground=ground)
+                                                            contact=contact, ground=ground,
+                                                            exclusion_mm=None if last else finest_exclusion)
         opts = dict(max_iterations=max_iterations, verbose=verbose, metric_floor=metric_floor,
                     rtol=rtol if final else COARSE_RTOL)
         if progress is not None:

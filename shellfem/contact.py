@@ -102,12 +102,14 @@ class Contact:
     points: (n, 2) printed positions (mm); triangles: (m, 3); offset: minimum surface distance
     (mm, the largest total thickness); stretch_max: largest pre-stretch of the fabric;
     self_contact: build the self-contact barrier; ground: None or the plane's height z (mm);
-    held_z: (n,) bool, vertices whose z is held (kept out of the ground barrier).
+    held_z: (n,) bool, vertices whose z is held (kept out of the ground barrier);
+    exclusion_mm: a smaller printed-state exclusion than this mesh's own (see __init__), or None.
     kappa is set by :meth:`set_stiffness` (N/mm^3 for self-contact, N/mm for the ground).
     """
 
     def __init__(self, points, triangles, offset: float, stretch_max: float = 1.0, self_contact: bool = True,
-                 ground: float | None = None, held_z=None, band_fraction: float = BAND_FRACTION):
+                 ground: float | None = None, held_z=None, band_fraction: float = BAND_FRACTION,
+                 exclusion_mm: float | None = None):
         self.n = len(points)
         self.rest = np.column_stack([points, np.zeros(self.n)]).astype(float)
         self.faces = np.ascontiguousarray(triangles, dtype=np.int32)
@@ -134,6 +136,15 @@ class Contact:
         # the printed state (max-norm) is excluded, every pair farther than g sqrt(2) is not;
         # g/2 = (K + 1) h + 4 L / 3 covers every vertex pair of two patches within K cells
         self.exclusion_mm = 2.0 * ((K + 1) * h + 4.0 / 3.0 * L)
+        if exclusion_mm is not None and exclusion_mm < self.exclusion_mm:
+            # a smaller exclusion asked for (a coarse level of nested iteration takes the finest
+            # level's, so that both resolve the same contacts): at least the neighbours' minimum
+            # g/2 = 1.3 s_max delta + 2 L (a non-excluded pair of primitives then keeps
+            # (g/2 - 2 L) / (1.3 s_max) > delta apart in a released, moderately curved state);
+            # the skip test's reach shrinks to the patches that still hold only excluded pairs
+            # (none: every evaluation builds its collisions)
+            self.exclusion_mm = max(float(exclusion_mm), 2.0 * (1.3 * stretch_max * delta + 2.0 * L))
+            self.patch_reach = int(np.floor((self.exclusion_mm / 2.0 - 4.0 / 3.0 * L) / h)) - 1
         origin = P.min(0)
         cells = np.floor((P[self.faces].mean(1) - origin) / h).astype(np.int64)
         ncol = int(cells[:, 1].max()) + 1
@@ -190,6 +201,8 @@ class Contact:
         over the patch centres."""
         if not self.self_contact:
             return False
+        if self.patch_reach < 0:
+            return True          # a patch's own triangles may hold pairs that are not excluded
         x = np.asarray(x, float).reshape(self.n, 3)
         states = [x] if x1 is None else [x, np.asarray(x1, float).reshape(self.n, 3)]
         cnt = self._pv_count * len(states)

@@ -313,6 +313,49 @@ def test_rolled_strip_is_a_spiral_whose_layers_keep_the_thickness():
     assert rep["active_pairs"] > 0 and offset < rep["min_distance_mm"] < offset + band
 
 
+def test_coarse_level_with_the_finest_exclusion_hands_on_a_roll_that_does_not_intersect():
+    """Nested iteration on a roll: a coarse mesh (2 mm) has a larger printed-state exclusion than
+    the fine one (1 mm), larger than a turn of this spiral, so with its own the coarse roll
+    passes through itself and the interpolated fine start intersects (the fine level restarted
+    from flat). With the finest level's exclusion (Contact(exclusion_mm=...), as simulate_sheet
+    gives its coarse levels) it converges without a crossing (all pairs, exact test) and hands
+    the fine mesh an admissible start. A smaller exclusion than a mesh's neighbours need is
+    raised to their minimum, and its skip test then still holds (every pair within patch_reach
+    cells is excluded)."""
+    from shellfem.multilevel import prolongate
+    s = 1.1
+    coarse, fine = (_strip(L=70.0, size=h, stretch=(s, 1.0)) for h in (2.0, 1.0))
+    shc, shf = mesh_pattern(coarse), mesh_pattern(fine)
+    cf = make_contact(shf, fine.fabric, np.zeros(0, np.int64), True, None)
+    start = _rolled(shc.points, 3.2, 0.7, s)
+    own = simulate_sheet(shc, coarse.fabric, coarse.plastic, contact=True, start=start)
+    assert own.model.contact.exclusion_mm > 2 * cf.exclusion_mm
+    x_own = prolongate(shc.points, shc.triangles, own.positions, shf.points)
+    assert len(intersecting_pairs(x_own, shf.triangles)) > 0 and cf.check_start(x_own) is not None
+    sim = own                                   # its model, gauge and start again, with the finest exclusion
+    c = make_contact(shc, coarse.fabric, np.zeros(0, np.int64), True, None, exclusion_mm=cf.exclusion_mm)
+    assert c.exclusion_mm == cf.exclusion_mm and c.patch_reach >= 0
+    sim.model.contact = c
+    from shellfem.newton import newton
+    free = np.ones(sim.model.n_dofs, bool)
+    free[sim.gauge] = False
+    q0 = sim.model.initial_state()
+    q0[:3 * shc.n_vertices] = start.ravel()
+    r = newton(sim.model, q0, free, max_iterations=300)
+    assert r.converged, r.reason
+    xc = sim.model.split(r.q)[0]
+    assert len(intersecting_pairs(xc, shc.triangles)) == 0
+    xf = prolongate(shc.points, shc.triangles, xc, shf.points)
+    assert cf.check_start(xf) is None and len(intersecting_pairs(xf, shf.triangles)) == 0
+    tiny = make_contact(shc, coarse.fabric, np.zeros(0, np.int64), True, None, exclusion_mm=0.1)
+    L = float(np.linalg.norm(shc.points[tiny.edges[:, 1]] - shc.points[tiny.edges[:, 0]], axis=1).max())
+    assert tiny.exclusion_mm == pytest.approx(2 * (1.3 * 1.1 * (tiny.offset + tiny.dhat) + 2 * L))
+    assert (tiny.patch_reach + 1) * L + 4 / 3 * L <= tiny.exclusion_mm / 2 + 1e-12
+    flat = np.column_stack([shc.points / [s, 1.0], np.zeros(shc.n_vertices)])
+    tiny.set_stiffness(np.ones(3))
+    assert tiny.evaluate(flat, order=1)[0] == 0.0                   # its neighbours are not in contact
+
+
 # ----------------------------------------------------------------------------- the ground
 
 
