@@ -251,7 +251,8 @@ def loop_section(p: Page, d: dict):
           "Relative RMS error on rows held out by an outer 5-fold split grouped by specimen, before (base model) "
           "and after the effects the loop adds; the reference is the noise floor, the scatter of the "
           "residuals within groups of replicate specimens (variance a + b kappa^2, additive and relative noise, "
-          "fitted over the groups).", "")
+          "fitted over the groups; the better of the additive-only and relative-only laws, both terms only "
+          "when a likelihood-ratio test at 5 % prefers them).", "")
     rows = [["held-out error, base model", _g(d["error_before"], 3), _g(d["noise_relative"], 3),
              "noise floor (replicates)", f"{d['error_before'] / d['noise_relative']:.2f} x noise"],
             ["held-out error, with the effects added", _g(d["error_after"], 3), _g(d["noise_relative"], 3),
