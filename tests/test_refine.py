@@ -3,12 +3,12 @@ the shape they deploy to, and the objective's pieces."""
 import numpy as np
 import pytest
 
+from ribbon_sheets import ribbon_checkerboard, sheet_at
 from inverse.refine import RefineOptions, ThicknessProblem, neighbour_pairs, refine_thickness, vertex_areas
 from shellfem.boundary import gauge_dofs, smooth_perturbation
 from shellfem.materials import Fabric, Plastic
 from shellfem.model import ShellModel
 from shellfem.newton import newton
-from shellfem.sheet import Sheet
 
 FABRIC = Fabric(stretch=1.3)
 PLASTIC = Plastic(young_modulus=1180.0)
@@ -18,22 +18,7 @@ TRUE = np.array([0.8, 1.0, 1.2, 0.9, 1.1, 0.7, 1.0, 0.8, 0.9])
 def basket(size=36.0, n=24):
     """A size x size mm sheet with a 3 x 3 checkerboard of 10 x 2 mm front ribbons, along x and
     along y in turn (a doubly curved, well-determined shape); one parameter per ribbon."""
-    base = Sheet.rectangle(size, size, n, n)
-    c = base.points[base.triangles].mean(1)
-    param = np.full(base.n_triangles, -1)
-    cell = size / 3
-    for j in range(3):
-        for i in range(3):
-            cx, cy = cell * (i + 0.5), cell * (j + 0.5)
-            along, across = (0, 1) if (i + j) % 2 == 0 else (1, 0)
-            sel = (np.abs(c[:, along] - (cx, cy)[along]) < 5.0) & (np.abs(c[:, across] - (cx, cy)[across]) < 1.0)
-            param[sel] = 3 * j + i
-    return base, param
-
-
-def sheet_at(base, param, p):
-    t = np.where(param >= 0, np.asarray(p)[np.maximum(param, 0)], 0.0)
-    return Sheet(base.points, base.triangles, region=param + 1, thickness_front=t)
+    return ribbon_checkerboard(size, n, 3, 5.0)
 
 
 @pytest.fixture(scope="module")

@@ -5,39 +5,28 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
+from ribbon_sheets import ribbon_checkerboard, sheet_at
+from shellfem.assembly import symmetric_matvec
 from shellfem.boundary import gauge_dofs, smooth_perturbation
 from shellfem.materials import Fabric, Plastic
-from shellfem.model import ShellModel
+from shellfem.model import ShellModel, nodal_loads
 from shellfem.newton import newton
 from shellfem.sensitivity import equilibrium_factor, free_hessian, thickness_form, thickness_gradient
-from shellfem.sheet import Sheet
-from shellfem.stability import lowest_mode, lumped_areas, mode_sensitivity, symmetric_product
+from shellfem.stability import lowest_mode, mode_sensitivity
 
 FABRIC = Fabric(stretch=1.3)
 PLASTIC = Plastic(young_modulus=1180.0)
 P0 = np.array([0.5, 0.7, 0.6, 0.8])
 
 
-def two_by_two(size=24.0, n=12):
-    """A size x size mm sheet with four 8 x 2 mm front ribbons (2 x 2 checkerboard of
-    directions); one parameter per ribbon."""
-    base = Sheet.rectangle(size, size, n, n)
-    c = base.points[base.triangles].mean(1)
-    param = np.full(base.n_triangles, -1)
-    cell = size / 2
-    for j in range(2):
-        for i in range(2):
-            cx, cy = cell * (i + 0.5), cell * (j + 0.5)
-            along, across = (0, 1) if (i + j) % 2 == 0 else (1, 0)
-            sel = (np.abs(c[:, along] - (cx, cy)[along]) < 4.0) & (np.abs(c[:, across] - (cx, cy)[across]) < 1.0)
-            param[sel] = 2 * j + i
-    return base, param
+def two_by_two():
+    """A 24 x 24 mm sheet with four 8 x 2 mm front ribbons (2 x 2 checkerboard of directions);
+    one parameter per ribbon."""
+    return ribbon_checkerboard(24.0, 12, 2, 4.0)
 
 
 def model_at(base, param, p):
-    t = np.where(param >= 0, np.asarray(p)[np.maximum(param, 0)], 0.0)
-    return ShellModel.from_materials(Sheet(base.points, base.triangles, region=param + 1, thickness_front=t),
-                                     FABRIC, PLASTIC)
+    return ShellModel.from_materials(sheet_at(base, param, p), FABRIC, PLASTIC)
 
 
 def equilibrium(model, q0, free):
@@ -68,12 +57,12 @@ def test_the_lowest_mode_is_the_dense_schur_complements_smallest_eigenvalue(stat
     idx = np.flatnonzero(free)
     xs = idx < 3 * n
     K = H[np.ix_(xs, xs)] - H[np.ix_(xs, ~xs)] @ np.linalg.solve(H[np.ix_(~xs, ~xs)], H[np.ix_(~xs, xs)])
-    m = np.repeat(lumped_areas(base), 3)[idx[xs]]
+    m = np.repeat(nodal_loads(base, 1.0), 3)[idx[xs]]
     ref = sla.eigh(K, np.diag(m), eigvals_only=True, subset_by_index=[0, 0])[0]
     assert ref > 0
     assert lam == pytest.approx(ref, rel=1e-7)
     # the mode: H u = (lambda M v, 0) on the free DOFs, v^T M v = 1, zero on held DOFs
-    r = symmetric_product(Hu, u[free])
+    r = symmetric_matvec(Hu, u[free])
     v = u[free][xs]
     assert v @ (m * v) == pytest.approx(1.0, rel=1e-10)
     assert np.linalg.norm(r[xs] - lam * m * v) < 1e-6 * np.linalg.norm(lam * m * v)
