@@ -30,24 +30,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from shellfem.assembly import symmetric_matvec
 from shellfem.errors import SelfshapeError
-
-
-def lumped_areas(sheet) -> np.ndarray:
-    """Printed-state area per vertex (one third of each triangle), mm^2."""
-    p = sheet.points[sheet.triangles]
-    if p.shape[2] == 2:
-        a = 0.5 * np.abs((p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1])
-                         - (p[:, 1, 1] - p[:, 0, 1]) * (p[:, 2, 0] - p[:, 0, 0]))
-    else:
-        a = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-    return np.bincount(sheet.triangles.ravel(), weights=np.repeat(a / 3.0, 3), minlength=sheet.n_vertices)
-
-
-def symmetric_product(H_upper: sp.spmatrix, u: np.ndarray) -> np.ndarray:
-    """H u for a symmetric H stored as its upper triangle (the Newton solver's layout)."""
-    H = sp.csr_matrix(H_upper)
-    return H @ u + H.T @ u - H.diagonal() * u
 
 
 def lowest_mode(model, q, free, solve=None, tol: float = 1e-6, v0=None):
@@ -57,6 +41,7 @@ def lowest_mode(model, q, free, solve=None, tol: float = 1e-6, v0=None):
     None; it raises shellfem.linalg.NotPositiveDefinite when q is not stable). Lanczos on
     M^1/2 (H^-1)_xx M^1/2, whose largest eigenvalue is 1 / lambda; v0 (n_dofs,) starts it (a
     previous mode: a few iterations)."""
+    from shellfem.model import nodal_loads
     from shellfem.sensitivity import equilibrium_factor
 
     if solve is None:
@@ -64,7 +49,7 @@ def lowest_mode(model, q, free, solve=None, tol: float = 1e-6, v0=None):
     n = model.sheet.n_vertices
     free = np.asarray(free, bool)
     fx = free[:3 * n]                                   # free position DOFs
-    m = np.repeat(lumped_areas(model.sheet), 3)[fx]
+    m = np.repeat(nodal_loads(model.sheet, 1.0), 3)[fx]    # lumped vertex areas (mm^2)
     s = np.sqrt(m)
     nf = int(free.sum())
     pos = np.flatnonzero(fx)                            # free positions inside the free vector:
@@ -115,8 +100,8 @@ def mode_sensitivity(model, q, free, u, lam, G_at, solve, step: float | None = N
     h = (1e-4 if step is None else float(step)) / umax
     qp, qm = q + h * u, q - h * u
     uf = u[free]
-    Tuu = (symmetric_product(free_hessian(model, qp, free), uf)
-           - symmetric_product(free_hessian(model, qm, free), uf)) / (2 * h)   # T(u, u, .) on free DOFs
+    Tuu = (symmetric_matvec(free_hessian(model, qp, free), uf)
+           - symmetric_matvec(free_hessian(model, qm, free), uf)) / (2 * h)   # T(u, u, .) on free DOFs
     Gp, Gm = sp.csr_matrix(G_at(qp)), sp.csr_matrix(G_at(qm))
     direct = (Gp.T @ u - Gm.T @ u) / (2 * h)                                    # u^T dH/dp u
     G = sp.csc_matrix(G_at(q))[free]
