@@ -321,7 +321,11 @@ class StabilityMargin:
     def __init__(self, problem: ThicknessProblem, fraction: float, weight: float = 1.0):
         self.problem, self.fraction, self.weight = problem, float(fraction), float(weight)
         self.lam_star = self.scale = None
-        self.form = None
+
+    @property
+    def on(self) -> bool:
+        """A margin is asked for (fraction > 0) and its reference is set (a stable start)."""
+        return self.fraction > 0 and self.lam_star is not None
 
     def reference(self, lam0: float, J0: float):
         """Set lambda_star from the start's eigenvalue lam0 (none if the start is not stable)."""
@@ -331,14 +335,14 @@ class StabilityMargin:
         self.scale = float(np.sqrt(self.weight * J0))
 
     def value(self, lam: float) -> float:
-        if self.fraction <= 0 or self.lam_star is None:
+        if not self.on:
             return 0.0
         if not lam > 0:
             return np.inf
         return self.scale ** 2 * max(0.0, 1.0 - lam / self.lam_star) ** 2
 
     def active(self, lam: float) -> bool:
-        return self.fraction > 0 and self.lam_star is not None and lam < self.lam_star
+        return self.on and lam < self.lam_star
 
     def gradient(self, model, q, solve, lam, u) -> np.ndarray:
         """dlambda/dp (P,) at the equilibrium q (shellfem.stability.mode_sensitivity)."""
@@ -396,24 +400,22 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
     from shellfem.sensitivity import equilibrium_factor
     from shellfem.stability import lowest_mode
 
-    on = margin is not None and margin.fraction > 0 and margin.lam_star is not None
+    on = margin is not None and margin.on
     lo, hi = bounds
     model = problem.model_at(p)
     J = problem.objective(model.split(q)[0], p)[0]
-    lam = u = None
-    if on:
-        try:
-            lam, u = lowest_mode(model, q, problem.free)
-        except NotPositiveDefinite:
-            return p, q, J, []
+    lam = u = solve = None          # the current state's lowest mode and factorisation, when known
     history = []
     for k in range(1, rounds + 1):
         shifted = (shifted_run, shifted_grace, J)
         try:
-            solve = equilibrium_factor(model, q, problem.free)
+            if solve is None:
+                solve = equilibrium_factor(model, q, problem.free)
             M, b, dq, _ = gauss_newton_model(problem, model, q, p, solve)
         except NotPositiveDefinite:
             break
+        if on and lam is None:
+            lam, u = lowest_mode(model, q, problem.free, solve)
         Jt = J + (margin.value(lam) if on else 0.0)
         move = layer_descent(M, b, p, step, lo, hi) - p
         if on:
@@ -438,10 +440,11 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
             model_new = problem.model_at(p_new)
             res = problem.trial_solve(model_new, q + dq @ s, q, newton_iterations, p_new, leave_factor * J, shifted)
             J_new = problem.objective(model_new.split(res.q)[0], p_new)[0] if res.converged else np.inf
-            Jt_new, lam_new, u_new = J_new, None, None
+            Jt_new, lam_new, u_new, solve_new = J_new, None, None, None
             if on and res.converged:
                 try:
-                    lam_new, u_new = lowest_mode(model_new, res.q, problem.free, v0=u)
+                    solve_new = equilibrium_factor(model_new, res.q, problem.free)
+                    lam_new, u_new = lowest_mode(model_new, res.q, problem.free, solve_new, v0=u)
                     Jt_new = J_new + margin.value(lam_new)
                 except NotPositiveDefinite:
                     Jt_new = np.inf
@@ -456,7 +459,7 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
                       f"{'' if ok else ', rejected'}", flush=True)
             if ok:
                 p, q, model, J, accepted = p_new, res.q, model_new, J_new, True
-                lam, u = lam_new, u_new
+                lam, u, solve = lam_new, u_new, solve_new
                 break
             idx = idx[:len(idx) // 2]
         if not accepted:
@@ -530,11 +533,10 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
         Jt = J + margin.value(lam)              # the objective with the stability margin's penalty
         systems = [(M, b)]
         dlam = None
-        if margin.fraction > 0 and margin.lam_star is not None:
+        if margin.on:
             # the penalty's row (exact on its active side, lambda < lambda_star): used where the
-            # current state is active, or where a step's linearised lambda would cross
-            if solve is None:
-                solve = equilibrium_factor(model, q, problem.free)
+            # current state is active, or where a step's linearised lambda would cross (a margin
+            # is on only from a stable start, and every accepted state keeps its factorisation)
             row, rhs, dlam = margin.row(model, q, solve, lam, u)
             systems.append((np.concatenate([M, row[None]], 0), np.concatenate([b, [rhs]])))
         t_sens = time.perf_counter() - t_it
