@@ -104,6 +104,20 @@ def triangle_distances(x, tri, pairs):
     return d
 
 
+def _pairs_within(points, reach, chunk=2_000):
+    """Yield (k, 2) arrays of the index pairs i < j of ``points`` (m, 3) within ``reach``, a
+    chunk of first indices at a time: memory bounded by the chunk's neighbours, not by all pairs
+    (a tight roll passing through itself has thousands of centroids within reach of each)."""
+    tree = cKDTree(points)
+    for s in range(0, len(points), chunk):
+        idx = np.arange(s, min(s + chunk, len(points)))
+        m = cKDTree(points[idx]).sparse_distance_matrix(tree, reach, output_type="ndarray")
+        i, j = idx[m["i"]], m["j"].astype(np.int64)
+        keep = j > i
+        if keep.any():
+            yield np.column_stack([i[keep], j[keep]])
+
+
 def intersecting_pairs(x, tri, chunk=200_000):
     """(k, 2) the pairs of triangles of a surface (x (n, 3) mm, tri (m, 3)) that share no vertex
     and cross each other (an edge of one through the other: :func:`triangle_distances` 0), over
@@ -113,28 +127,33 @@ def intersecting_pairs(x, tri, chunk=200_000):
     P = x[tri]
     c = P.mean(1)
     reach = 2.0 * float(np.linalg.norm(P - c[:, None], axis=2).max())
-    pairs = cKDTree(c).query_pairs(reach, output_type="ndarray")
-    share = (tri[pairs[:, 0]][:, :, None] == tri[pairs[:, 1]][:, None, :]).any(axis=(1, 2))
-    pairs = pairs[~share]
-    hit = [pairs[i:i + chunk][triangle_distances(x, tri, pairs[i:i + chunk]) == 0.0]
-           for i in range(0, len(pairs), chunk)]
+    hit = []
+    for pairs in _pairs_within(c, reach):
+        share = (tri[pairs[:, 0]][:, :, None] == tri[pairs[:, 1]][:, None, :]).any(axis=(1, 2))
+        pairs = pairs[~share]
+        hit += [pairs[i:i + chunk][triangle_distances(x, tri, pairs[i:i + chunk]) == 0.0]
+                for i in range(0, len(pairs), chunk)]
     return np.concatenate(hit) if hit else np.zeros((0, 2), np.int64)
 
 
-def far_pairs_min_distance(sheet, x, printed_apart, reach):
+def far_pairs_min_distance(sheet, x, printed_apart, reach, chunk=200_000):
     """Smallest exact distance (mm) between triangles at least ``printed_apart`` mm apart in the
     printed sheet (centroids), over all such pairs whose deformed centroids are within
     ``reach`` (a KD-tree on the centroids; ``reach`` >= the distance tested + 2 x the longest
-    edge makes it exhaustive); inf if no pair is that close."""
+    edge makes it exhaustive); inf if no pair is that close. Pairs are taken a chunk of
+    triangles at a time and their distances ``chunk`` pairs at a time (bounded memory); a 0
+    (two far triangles crossing) ends the search."""
     tri = sheet.triangles
     cd = x[tri].mean(1)
     cp = sheet.points[tri].mean(1)
-    pairs = cKDTree(cd).query_pairs(reach, output_type="ndarray")
-    if len(pairs) == 0:
-        return np.inf
-    far = np.linalg.norm(cp[pairs[:, 0]] - cp[pairs[:, 1]], axis=1) >= printed_apart
-    pairs = pairs[far]
-    return float(triangle_distances(x, tri, pairs).min()) if len(pairs) else np.inf
+    best = np.inf
+    for pairs in _pairs_within(cd, reach):
+        pairs = pairs[np.linalg.norm(cp[pairs[:, 0]] - cp[pairs[:, 1]], axis=1) >= printed_apart]
+        for k in range(0, len(pairs), chunk):
+            best = min(best, float(triangle_distances(x, tri, pairs[k:k + chunk]).min()))
+            if best == 0.0:
+                return 0.0
+    return best
 
 
 def centreline_turns(sheet, x, bin_mm=0.5):
