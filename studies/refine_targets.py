@@ -158,6 +158,8 @@ def main(argv=None) -> int:
     if args.table:
         print(table(read_rows(args.table)))
         return 0
+    if not 0.0 <= args.stability < 1.0:
+        ap.error(f"--stability {args.stability:g}: a fraction of the start's lowest eigenvalue in [0, 1) (0: off)")
     workers = args.workers if args.workers is not None or args.scheduler else 0
     try:
         check_options(args.scheduler, workers)
