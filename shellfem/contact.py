@@ -27,8 +27,10 @@ per broad phase.)
 Skip: before building collisions at a state (or running CCD on a move), a cheap test proves that
 no pair of non-excluded primitives is within offset + dhat (:meth:`Contact.maybe_close`: bounding
 boxes of printed-grid patches of vertices, inflated by the longest edge, compared only between
-patches that are not printed neighbours); then the barrier is 0 with zero derivatives and nothing
-is built, so a sheet that never touches itself pays only that test.
+patches that are not printed neighbours, and where two patches come close, the same test on their
+triangles' bounding spheres against the printed distance the exclusion covers); then the barrier
+is 0 with zero derivatives and nothing is built, so a sheet that never touches itself pays only
+that test.
 
 Ground: the plane z = height (mm) under the sheet's mid-surface: a barrier on each free vertex's
 height above it, kappa_g b(z - height, dhat) (hand-written, vectorised, exact first and second
@@ -145,11 +147,14 @@ class Contact:
             # (none: every evaluation builds its collisions)
             self.exclusion_mm = max(float(exclusion_mm), 2.0 * (1.3 * stretch_max * delta + 2.0 * L))
             self.patch_reach = int(np.floor((self.exclusion_mm / 2.0 - 4.0 / 3.0 * L) / h)) - 1
+        self._edge_printed = L
+        self._tri_printed = P[self.faces].mean(1)          # printed triangle centroids (the second stage)
         origin = P.min(0)
-        cells = np.floor((P[self.faces].mean(1) - origin) / h).astype(np.int64)
+        cells = np.floor((self._tri_printed - origin) / h).astype(np.int64)
         ncol = int(cells[:, 1].max()) + 1
         key = cells[:, 0] * ncol + cells[:, 1]
         uniq, tri_patch = np.unique(key, return_inverse=True)
+        self._tri_patch = tri_patch
         self._cells = np.stack([uniq // ncol, uniq % ncol], 1)
         pv = np.unique(np.stack([np.repeat(tri_patch, 3), self.faces.ravel().astype(np.int64)], 1), axis=0)
         self._pv_patch, self._pv_vertex = pv[:, 0], pv[:, 1]          # sorted by patch
@@ -197,14 +202,16 @@ class Contact:
         farthest of them) holds its triangles all along the move (each point of a moving triangle
         is a convex combination of its corners' start and end positions); patches within
         patch_reach printed cells hold only excluded pairs, so if no two other patches' spheres
-        come within offset + dhat, no pair of non-excluded primitives does. O(n) plus a KD-tree
-        over the patch centres."""
+        come within offset + dhat, no pair of non-excluded primitives does. Where two do, the same
+        test on the triangles of those patches (:meth:`_triangles_close`) decides. O(n) plus a
+        KD-tree over the patch centres (and one over the triangles of the patches that came close)."""
         if not self.self_contact:
             return False
-        if self.patch_reach < 0:
-            return True          # a patch's own triangles may hold pairs that are not excluded
         x = np.asarray(x, float).reshape(self.n, 3)
         states = [x] if x1 is None else [x, np.asarray(x1, float).reshape(self.n, 3)]
+        delta = self.offset + self.dhat
+        if self.patch_reach < 0:         # a patch's own triangles may hold pairs that are not excluded
+            return self._triangles_close(states, np.arange(len(self._cells)), delta)
         cnt = self._pv_count * len(states)
         centre = sum(np.stack([np.bincount(self._pv_patch, weights=y[self._pv_vertex, k], minlength=len(cnt))
                                for k in range(3)], 1) for y in states) / cnt[:, None]
@@ -212,14 +219,38 @@ class Contact:
         for y in states:
             d = y[self._pv_vertex] - centre[self._pv_patch]
             radius = np.maximum(radius, np.sqrt(np.maximum.reduceat(np.einsum("ij,ij->i", d, d), self._pv_start)))
-        delta = self.offset + self.dhat
         pairs = cKDTree(centre).query_pairs(2.0 * float(radius.max()) + delta, output_type="ndarray")
         if len(pairs) == 0:
             return False
         a, b = pairs[:, 0], pairs[:, 1]
         far = np.abs(self._cells[a] - self._cells[b]).max(1) > self.patch_reach
         a, b = a[far], b[far]
-        gap = np.linalg.norm(centre[a] - centre[b], axis=1) - radius[a] - radius[b]
+        close = np.linalg.norm(centre[a] - centre[b], axis=1) - radius[a] - radius[b] < delta
+        if not close.any():
+            return False
+        return self._triangles_close(states, np.unique(np.concatenate([a[close], b[close]])), delta)
+
+    def _triangles_close(self, states, patches, delta) -> bool:
+        """The skip test's second stage, on the triangles of the patches whose spheres came
+        within delta: True if two of them that the exclusion may not cover (printed centroids at
+        least g/2 - 4 L / 3 apart: closer ones have all nine vertex pairs within g/2, so excluded)
+        have bounding spheres (over the move) within delta. The patches' spheres are at least
+        about a cell plus an edge wide, so next to the exclusion's minimum (the coarse levels take
+        the finest level's) neighbouring patches never prove apart and every evaluation built
+        its collisions; triangle spheres are an edge wide."""
+        tri = np.flatnonzero(np.isin(self._tri_patch, patches))
+        f = self.faces[tri]
+        centre = sum(y[f].sum(1) for y in states) / (3.0 * len(states))
+        radius = np.zeros(len(tri))
+        for y in states:
+            radius = np.maximum(radius, np.linalg.norm(y[f] - centre[:, None], axis=2).max(1))
+        pairs = cKDTree(centre).query_pairs(2.0 * float(radius.max()) + delta, output_type="ndarray")
+        if len(pairs) == 0:
+            return False
+        i, j = pairs[:, 0], pairs[:, 1]
+        apart = self.exclusion_mm / 2.0 - 4.0 / 3.0 * self._edge_printed
+        may = np.linalg.norm(self._tri_printed[tri[i]] - self._tri_printed[tri[j]], axis=1) >= apart
+        gap = np.linalg.norm(centre[i[may]] - centre[j[may]], axis=1) - radius[i[may]] - radius[j[may]]
         return bool(np.any(gap < delta))
 
     def _collisions(self, x):

@@ -11,7 +11,7 @@ from fd import central_difference
 from forward.simulate import make_contact, simulate, simulate_sheet, support_plane
 from geometry.meshing import mesh_pattern
 from geometry.patterns import load_pattern, parse_pattern
-from shellfem.contact import Contact, ground_barrier
+from shellfem.contact import Contact, _ipctk, ground_barrier
 from shellfem.errors import SelfshapeError
 
 # ----------------------------------------------------------------------------- helpers
@@ -617,3 +617,44 @@ def test_outputs_report_contact(tmp_path):
     m = meshio.read(tmp_path / "out" / "deployed.vtu")
     flag = m.cell_data["in_contact"][0]
     assert set(np.unique(flag)) == {0, 1} and 0 < flag.sum() < len(flag)
+
+
+def test_skip_test_settles_a_coarse_level_that_does_not_touch_itself_and_never_skips_a_contact():
+    """The skip test's triangle stage: on a coarse mesh (2 mm) with the finest level's exclusion
+    (1 mm mesh), the patches next to each other are outside its reach, and their spheres always
+    come within offset + dhat, so the patch stage alone built the collisions at every evaluation
+    of a sheet that never comes near itself (less than a turn of a wide roll). The triangles'
+    spheres settle it. Sound: wherever the test skips, ipctk finds no pair in the band at either
+    end of a move and the move is free of collisions (rolls of random radius and pitch, many
+    tight enough to touch)."""
+    rng = np.random.default_rng(0)
+    fine = mesh_pattern(_strip(L=70.0, W=20.0, size=1.0, stretch=(1.1, 1.0)))
+    cf = Contact(fine.points, fine.triangles, 0.35, 1.1)
+    sh = mesh_pattern(_strip(L=70.0, W=20.0, size=2.0, stretch=(1.1, 1.0)))
+    c = Contact(sh.points, sh.triangles, 0.35, 1.1, exclusion_mm=cf.exclusion_mm)
+    assert c.patch_reach == 0
+    for _ in range(5):
+        x = _rolled(sh.points, rng.uniform(11.0, 20.0), 1e-9, 1.1) + 0.05 * rng.standard_normal((sh.n_vertices, 3))
+        x1 = x + 0.1 * rng.standard_normal(x.shape)
+        assert not c.maybe_close(x, x1)
+        c._triangles_close = lambda *a: True          # the patch stage alone
+        assert c.maybe_close(x, x1)
+        del c._triangles_close
+    ipctk = _ipctk()
+    mesh = c._collision_mesh()
+    skipped = touching = 0
+    for k in range(60):
+        x = _rolled(sh.points, rng.uniform(2.0, 20.0), rng.uniform(0.3, 1.2), 1.1) \
+            + rng.uniform(0, 0.2) * rng.standard_normal((sh.n_vertices, 3))
+        x1 = x + rng.uniform(0, 0.5) * rng.standard_normal(x.shape)
+        if c.maybe_close(x, x1):
+            touching += 1
+            continue
+        skipped += 1
+        for y in (x, x1):
+            col = ipctk.NormalCollisions()
+            col.build(mesh, np.asfortranarray(y), c.dhat, dmin=c.offset)
+            assert len(col) == 0
+        assert ipctk.compute_collision_free_stepsize(mesh, np.asfortranarray(x), np.asfortranarray(x1),
+                                                     min_distance=c.offset, narrow_phase_ccd=ipctk.AdditiveCCD()) == 1.0
+    assert skipped > 10 and touching > 10, (skipped, touching)
