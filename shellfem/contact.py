@@ -154,7 +154,12 @@ class Contact:
         ncol = int(cells[:, 1].max()) + 1
         key = cells[:, 0] * ncol + cells[:, 1]
         uniq, tri_patch = np.unique(key, return_inverse=True)
-        self._tri_patch = tri_patch
+        # the triangles of each patch, padded with -1: (n_patches, most triangles in a patch)
+        order = np.argsort(tri_patch, kind="stable")
+        count = np.bincount(tri_patch, minlength=len(uniq))
+        slot = np.arange(len(order)) - np.repeat(np.cumsum(count) - count, count)
+        self._patch_tris = np.full((len(uniq), int(count.max())), -1, np.int64)
+        self._patch_tris[tri_patch[order], slot] = order
         self._cells = np.stack([uniq // ncol, uniq % ncol], 1)
         pv = np.unique(np.stack([np.repeat(tri_patch, 3), self.faces.ravel().astype(np.int64)], 1), axis=0)
         self._pv_patch, self._pv_vertex = pv[:, 0], pv[:, 1]          # sorted by patch
@@ -210,8 +215,8 @@ class Contact:
         x = np.asarray(x, float).reshape(self.n, 3)
         states = [x] if x1 is None else [x, np.asarray(x1, float).reshape(self.n, 3)]
         delta = self.offset + self.dhat
-        if self.patch_reach < 0:         # a patch's own triangles may hold pairs that are not excluded
-            return self._triangles_close(states, np.arange(len(self._cells)), delta)
+        if self.patch_reach < 0:
+            return True          # a patch's own triangles may hold pairs that are not excluded
         cnt = self._pv_count * len(states)
         centre = sum(np.stack([np.bincount(self._pv_patch, weights=y[self._pv_vertex, k], minlength=len(cnt))
                                for k in range(3)], 1) for y in states) / cnt[:, None]
@@ -228,30 +233,35 @@ class Contact:
         close = np.linalg.norm(centre[a] - centre[b], axis=1) - radius[a] - radius[b] < delta
         if not close.any():
             return False
-        return self._triangles_close(states, np.unique(np.concatenate([a[close], b[close]])), delta)
+        return self._triangles_close(states, a[close], b[close], delta)
 
-    def _triangles_close(self, states, patches, delta) -> bool:
-        """The skip test's second stage, on the triangles of the patches whose spheres came
-        within delta: True if two of them that the exclusion may not cover (printed centroids at
-        least g/2 - 4 L / 3 apart: closer ones have all nine vertex pairs within g/2, so excluded)
-        have bounding spheres (over the move) within delta. The patches' spheres are at least
-        about a cell plus an edge wide, so next to the exclusion's minimum (the coarse levels take
-        the finest level's) neighbouring patches never prove apart and every evaluation built
-        its collisions; triangle spheres are an edge wide."""
-        tri = np.flatnonzero(np.isin(self._tri_patch, patches))
+    def _triangles_close(self, states, a, b, delta) -> bool:
+        """The skip test's second stage, on the triangle pairs of the patch pairs (a, b) whose
+        spheres came within delta: True if a pair that the exclusion may not cover (printed
+        centroids at least g/2 - 4 L / 3 apart: closer ones have all nine vertex pairs within
+        g/2, so excluded) has bounding spheres (over the move) within delta. The patches' spheres
+        are about a cell plus an edge wide, so next to the exclusion's minimum (the coarse levels
+        take the finest level's) patches near the reach never proved apart and every evaluation
+        built its collisions; triangle spheres are an edge wide."""
+        ta, tb = self._patch_tris[a][:, :, None], self._patch_tris[b][:, None, :]
+        ok = (ta >= 0) & (tb >= 0)
+        i, j = np.broadcast_to(ta, ok.shape)[ok], np.broadcast_to(tb, ok.shape)[ok]
+        apart = self.exclusion_mm / 2.0 - 4.0 / 3.0 * self._edge_printed
+        dp = self._tri_printed[i] - self._tri_printed[j]
+        may = np.einsum("ij,ij->i", dp, dp) >= apart * apart
+        i, j = i[may], j[may]
+        if len(i) == 0:
+            return False
+        tri = np.unique(np.concatenate([i, j]))
         f = self.faces[tri]
         centre = sum(y[f].sum(1) for y in states) / (3.0 * len(states))
         radius = np.zeros(len(tri))
         for y in states:
-            radius = np.maximum(radius, np.linalg.norm(y[f] - centre[:, None], axis=2).max(1))
-        pairs = cKDTree(centre).query_pairs(2.0 * float(radius.max()) + delta, output_type="ndarray")
-        if len(pairs) == 0:
-            return False
-        i, j = pairs[:, 0], pairs[:, 1]
-        apart = self.exclusion_mm / 2.0 - 4.0 / 3.0 * self._edge_printed
-        may = np.linalg.norm(self._tri_printed[tri[i]] - self._tri_printed[tri[j]], axis=1) >= apart
-        gap = np.linalg.norm(centre[i[may]] - centre[j[may]], axis=1) - radius[i[may]] - radius[j[may]]
-        return bool(np.any(gap < delta))
+            d = y[f] - centre[:, None]
+            radius = np.maximum(radius, np.sqrt(np.einsum("ijk,ijk->ij", d, d).max(1)))
+        i, j = np.searchsorted(tri, i), np.searchsorted(tri, j)
+        dc = centre[i] - centre[j]
+        return bool(np.any(np.sqrt(np.einsum("ij,ij->i", dc, dc)) - radius[i] - radius[j] < delta))
 
     def _collisions(self, x):
         """ipctk NormalCollisions at x, or None when the skip test settles it."""
