@@ -344,20 +344,20 @@ class StabilityMargin:
     def active(self, lam: float) -> bool:
         return self.on and lam < self.lam_star
 
-    def gradient(self, model, q, solve, lam, u) -> np.ndarray:
+    def gradient(self, model, q, solve, u) -> np.ndarray:
         """dlambda/dp (P,) at the equilibrium q (shellfem.stability.mode_sensitivity)."""
         from shellfem.sensitivity import thickness_form, thickness_gradient
         from shellfem.stability import mode_sensitivity
 
         pr = self.problem
         form = thickness_form(model, pr.fabric, pr.plastic)
-        return mode_sensitivity(model, q, pr.free, u, lam,
+        return mode_sensitivity(model, q, pr.free, u,
                                 lambda s: thickness_gradient(model, form, s, pr.parameter, pr.P)[1], solve)
 
     def row(self, model, q, solve, lam, u):
         """(M row (P,), b entry, dlambda/dp (P,)) of the penalty's Gauss-Newton row at lambda,
         the linearisation of its active side: |row s - b|^2 = the penalty at lambda + dlambda/dp s."""
-        d = self.gradient(model, q, solve, lam, u)
+        d = self.gradient(model, q, solve, u)
         return -self.scale * d / self.lam_star, -self.scale * (1.0 - lam / self.lam_star), d
 
 

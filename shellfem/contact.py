@@ -215,8 +215,8 @@ class Contact:
         is a convex combination of its corners' start and end positions); patches within
         patch_reach printed cells hold only excluded pairs, so if no two other patches' spheres
         come within offset + dhat, no pair of non-excluded primitives does. Where two do, the same
-        test on the triangles of those patches (:meth:`_triangles_close`) decides. O(n) plus a
-        KD-tree over the patch centres (and one over the triangles of the patches that came close)."""
+        test on their triangle pairs (:meth:`_triangles_close`) decides, where few enough came close
+        (TRIANGLE_STAGE_PAIRS). O(n) plus a KD-tree over the patch centres."""
         if not self.self_contact:
             return False
         x = np.asarray(x, float).reshape(self.n, 3)

@@ -84,8 +84,8 @@ def lowest_mode(model, q, free, solve=None, tol: float = 1e-6, v0=None):
     return lam, u
 
 
-def mode_sensitivity(model, q, free, u, lam, G_at, solve, step: float | None = None):
-    """dlambda/dp (P,) (N/mm^3 per mm) of the lowest mode (lam, u) of :func:`lowest_mode` at the
+def mode_sensitivity(model, q, free, u, G_at, solve, step: float | None = None):
+    """dlambda/dp (P,) (N/mm^3 per mm) of the lowest mode u of :func:`lowest_mode` at the
     equilibrium q; ``G_at(q)`` returns dg/dp (n_dofs, P) at a state (the exact thickness
     derivative of the gradient); ``solve`` the free Hessian's factorisation. ``step``: the
     central-difference step along u (mm; default 1e-4 of the mode's largest displacement
