@@ -76,7 +76,7 @@ def test_the_modes_thickness_sensitivity_equals_finite_differences_of_re_solved_
     base, param, free, q = state
     model = model_at(base, param, P0)
     solve = equilibrium_factor(model, q, free)
-    _, u = lowest_mode(model, q, free, solve, tol=1e-12)
+    lam, u = lowest_mode(model, q, free, solve, tol=1e-12)
     form = thickness_form(model, FABRIC, PLASTIC)
     d = mode_sensitivity(model, q, free, u, lambda s: thickness_gradient(model, form, s, param, 4)[1], solve)
     h = 1e-4
