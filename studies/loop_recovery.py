@@ -11,7 +11,10 @@ nested in each training part, then the selection on all rows) and record:
 - false additions: added effects that are neither present nor confounded with a
   present one;
 - held-out error / noise floor: the loop's relative held-out RMS error over its own
-  noise-floor estimate (pooled replicate scatter), and over the true noise;
+  noise-floor estimate (the replicate scatter's variance function), over the held-out
+  floor (the same estimate x sqrt(1 + p / n_train): the held-out error of a correct model
+  with p parameters fitted on n_train rows, validation.loop.held_out_floor), and over the
+  true noise;
 - identifiability (oracle, noise-free): for each present effect, the noncentrality
   sum (misfit / sigma)^2 of the best fit of the true model without it to the noise-free
   curvatures: below ~20 the other parameters absorb it and no selection rule can find
@@ -103,6 +106,8 @@ def run_case(case, seed, n_points, reps, with_oracle=True):
            "error_before": rep["error_before"], "error_after": rep["error_after"],
            "noise_relative": rep["noise_relative"], "true_noise_relative": true_sigma_rel,
            "heldout_over_floor": rep["error_after"] / rep["noise_relative"],
+           "noise_relative_held_out": rep["noise_relative_held_out"],
+           "heldout_over_held_out_floor": rep["error_after"] / rep["noise_relative_held_out"],
            "heldout_over_true_noise": rep["error_after"] / true_sigma_rel,
            "seconds": dt}
     if with_oracle and truth:
@@ -131,11 +136,14 @@ def summarise(records):
         rec = {e: sum(r["found"][e] for r in rs) / len(rs) for e in rs[0]["present"]}
         ratio = np.array([r["heldout_over_floor"] for r in rs])
         ratio_true = np.array([r["heldout_over_true_noise"] for r in rs])
+        ratio_ho = np.array([r.get("heldout_over_held_out_floor", np.nan) for r in rs])
         row = {"case": case, "seeds": len(rs), "recovery": rec,
                "all_found_rate": sum(all(r["found"].values()) for r in rs) / len(rs),
                "false_additions": sum(len(r["false_additions"]) for r in rs),
                "heldout_over_floor_mean": float(ratio.mean()), "heldout_over_floor_max": float(ratio.max()),
                "heldout_over_true_noise_mean": float(ratio_true.mean()),
+               "heldout_over_held_out_floor_mean": float(ratio_ho.mean()),
+               "heldout_over_held_out_floor_max": float(ratio_ho.max()),
                "error_before_over_floor_mean": float(np.mean([r["error_before"] / r["noise_relative"] for r in rs])),
                "seconds_mean": float(np.mean([r["seconds"] for r in rs]))}
         if "oracle_noncentrality_without" in rs[0]:
@@ -147,12 +155,14 @@ def summarise(records):
 
 def print_table(table, out=sys.stdout):
     print("| case | seeds | recovery per effect (found/present) | all found | false additions | "
-          "held-out / floor mean (max) | held-out / true noise | before / floor | min noncentrality |", file=out)
-    print("|---|---|---|---|---|---|---|---|---|", file=out)
+          "held-out / floor mean (max) | held-out / held-out floor mean (max) | held-out / true noise | "
+          "before / floor | min noncentrality |", file=out)
+    print("|---|---|---|---|---|---|---|---|---|---|", file=out)
     for t in table:
         rec = ", ".join(f"{e} {v:.2f}" for e, v in t["recovery"].items()) or "-"
         print(f"| {t['case']} | {t['seeds']} | {rec} | {t['all_found_rate']:.2f} | {t['false_additions']} | "
               f"{t['heldout_over_floor_mean']:.3f} ({t['heldout_over_floor_max']:.3f}) | "
+              f"{t['heldout_over_held_out_floor_mean']:.3f} ({t['heldout_over_held_out_floor_max']:.3f}) | "
               f"{t['heldout_over_true_noise_mean']:.3f} | {t['error_before_over_floor_mean']:.2f} | "
               f"{', '.join(f'{v:.0f}' for v in t.get('oracle_min_noncentrality', {}).values()) or '-'} |", file=out)
 

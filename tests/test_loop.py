@@ -162,6 +162,38 @@ def test_clean_data_add_nothing_and_errors_are_held_out():
     assert abs(rep["error_after"] - rep["error_before"]) < 1e-12
     assert 0.5 * NOISE < rep["error_before"] < 1.3 * NOISE
     assert abs(rep["parameters"]["modulus_ratio"][0] - R_TRUE) < 4 * rep["parameters"]["modulus_ratio"][1]
+    # one fitted parameter on 3/4 of the rows: the held-out floor lies just above the residual floor
+    n_train = 0.75 * rep["n_rows"]
+    assert rep["noise_relative_held_out"] == pytest.approx(rep["noise_relative"] * np.sqrt(1 + 1 / n_train), rel=1e-12)
+
+
+def test_held_out_floor_is_the_held_out_error_of_a_correct_linear_model():
+    """Least squares with p parameters on n_train rows, K-fold held-out over many noise draws:
+    the mean held-out squared error is sigma^2 (1 + p / n_train) up to the rows' leverage
+    (between p / n_train and p / (n_train - p - 1)); the plain sigma is below it."""
+    rng = np.random.default_rng(11)
+    n, p, sigma, k = 60, 6, 0.3, 5
+    X = np.column_stack([np.ones(n), rng.normal(size=(n, p - 1))])
+    beta = rng.normal(size=p)
+    folds = np.array_split(rng.permutation(n), k)
+    mse = []
+    for _ in range(800):
+        y = X @ beta + rng.normal(0, sigma, n)
+        err = np.empty(n)
+        for te in folds:
+            tr = np.setdiff1d(np.arange(n), te)
+            b = np.linalg.lstsq(X[tr], y[tr], rcond=None)[0]
+            err[te] = y[te] - X[te] @ b
+        mse.append(np.mean(err ** 2))
+    held = np.sqrt(np.mean(mse))
+    n_train = n - n // k
+    lo = loop.held_out_floor(sigma, p, n_train)
+    hi = sigma * np.sqrt(1 + p / (n_train - p - 1))
+    assert lo == pytest.approx(sigma * np.sqrt(1 + p / n_train))
+    assert 0.99 * lo < held < 1.01 * hi
+    assert held > 1.03 * sigma
+    with pytest.raises(ValueError):
+        loop.held_out_floor(sigma, p, 0)
 
 
 def test_confounded_effects_are_reported():

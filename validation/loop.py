@@ -655,7 +655,7 @@ def validate(rows, seed=0, outer_folds=5, inner_folds=5, progress=None):
                              f"{2 * outer_folds}")
     y = rows[MEASURED]
     before, after = np.empty(n), np.empty(n)
-    per_fold = []
+    per_fold, n_train = [], []
 
     def fitted(done, last):
         if progress is not None:
@@ -663,6 +663,7 @@ def validate(rows, seed=0, outer_folds=5, inner_folds=5, progress=None):
     fitted(0, None)
     for j, (tr, te) in enumerate(stats.kfold(n, outer_folds, seed, groups=rows["specimen"])):
         train, test = subset(rows, tr), subset(rows, te)
+        n_train.append(len(tr))
         sel = select_effects(train, seed=seed + 1 + j, folds=inner_folds, report=False)
         before[te] = predict_fit(test, sel["base_fit"])
         after[te] = predict_fit(test, sel["fit"])
@@ -681,6 +682,7 @@ def validate(rows, seed=0, outer_folds=5, inner_folds=5, progress=None):
         "error_before": stats.rel_rms(before, y),
         "error_after": stats.rel_rms(after, y),
         "noise_relative": noise["sigma"] / rms_y,
+        "noise_relative_held_out": held_out_floor(noise["sigma"], len(f["theta"]), float(np.mean(n_train))) / rms_y,
         "noise": noise,
         "effects_added": list(final["added"]),
         "effects_rejected": [{"name": k, "reason": v} for k, v in final["rejected"].items()],
@@ -706,6 +708,20 @@ def validate(rows, seed=0, outer_folds=5, inner_folds=5, progress=None):
     report["_final"] = final
     report["_heldout"] = {"before": before, "after": after}
     return report
+
+
+def held_out_floor(sigma, n_parameters, n_train):
+    """The held-out RMS error (same unit as ``sigma``, 1/mm) of a correct model with
+    ``n_parameters`` fitted on ``n_train`` rows whose noise has RMS ``sigma``:
+    sigma sqrt(1 + p / n_train). A held-out row carries its own noise plus the fitted
+    parameters' estimation error at that row; least squares makes that error's variance
+    average p / n_train noise variances over the training rows (a linear model with
+    homoscedastic noise; rows new to the fit have a little more, p / (n_train - p - 1)
+    for Gaussian covariates, so this floor is the stricter of the two). It is the level a
+    held-out error can reach, where ``sigma`` alone is the level of the fit residuals."""
+    if n_train <= 0 or n_parameters < 0:
+        raise ValueError("held_out_floor needs n_train > 0 and n_parameters >= 0")
+    return float(sigma * np.sqrt(1.0 + n_parameters / n_train))
 
 
 def _parameters(f):
