@@ -13,7 +13,9 @@
    classical partial F test) and add the one with the largest F if its drop also
    exceeds GAIN_NOISE_FRACTION of the noise variance; then test each effect already in
    for removal; rejected effects are tried again at every step. Stop when none passes.
-   Then the best subset of the added effects by an extended BIC with the noise known.
+   Then the best subset of the added effects by an extended BIC with the noise known,
+   and sequential replacement: an added effect is swapped for another where the swapped
+   model scores lower by that criterion and fits differently beyond the noise.
    Finally every added effect is swapped for every other effect: swaps that fit as well
    within the noise are reported as indistinguishable ("confounded with X"), strongly
    correlated parameters as partly confounded;
@@ -406,9 +408,12 @@ def select_effects(rows, seed=0, folds=5, candidates=fx.CATALOGUE, report=True):
     added effects by an information criterion with the noise floor known (squared-error
     increase over the reference variance + PENALTY per parameter, PENALTY = log n +
     2 log m for m candidate effects, the extended BIC), which undoes a wrong first step
-    of the greedy path. Finally each added effect is swapped for each effect not in the
-    model: a swap that fits as well within the noise is reported as indistinguishable
-    (the data cannot tell the two apart) instead of picking one silently.
+    of the greedy path. Then sequential replacement (:func:`_swap_improve`): an added
+    effect is swapped for one not in the model where that scores lower by the same
+    criterion and fits differently beyond the noise (the greedy path can add the wrong one
+    of two overlapping effects first). Finally each added effect is swapped for each effect
+    not in the model: a swap that fits as well within the noise is reported as
+    indistinguishable (the data cannot tell the two apart) instead of picking one silently.
 
     ``report=False`` (the outer folds of :func:`validate`) skips what only the report
     needs: the residual permutation tests, the swap analysis and the CV errors.
@@ -518,6 +523,17 @@ def select_effects(rows, seed=0, folds=5, candidates=fx.CATALOGUE, report=True):
         ref = _Reference(rows, cur)
         cur = fit(rows, _effects_of(added), start=cur["theta"], weights=ref.w)
         noise = ref.summary if ref.replicates else _residual_noise(cur)
+    swaps = []
+    cur, added, swaps = _swap_improve(rows, cur, added, pool, ref, penalty, noise["sigma"])
+    if swaps:
+        for old, new, q in swaps:
+            last[old] = (f"added, then swapped for {new}: the model with {new} instead scores {q:.3g} lower "
+                         f"(squared-error over the noise variance + {penalty:.3g} per parameter) and the two fits "
+                         f"differ beyond the noise")
+            last[new] = "added"
+        ref = _Reference(rows, cur)
+        cur = fit(rows, _effects_of(added), start=cur["theta"], weights=ref.w)
+        noise = ref.summary if ref.replicates else _residual_noise(cur)
     for name, why in last.items():
         if name not in added:
             rejected[name] = why
@@ -592,6 +608,58 @@ def _why_not(t, sig2, ref):
                 f"p = {t['p']:.3g}, Bonferroni {t['p_bonferroni']:.3g} >= {ALPHA_ADD:g})")
     return (f"does not pay: its {'weighted ' if ref.replicates else ''}squared-error gain per row "
             f"{t['gain']:.3g} is below {GAIN_NOISE_FRACTION:g} x noise variance {sig2:.3g}")
+
+
+def _swap_candidates(rows, cur, added, pool, ref, a):
+    """Fits of the final model with the added effect ``a`` replaced by each effect of the
+    pool not in the model: every swap screened with the other effects' parameters held
+    (the modulus ratio and the new effect free), the MAX_REFIT best screens refitted with
+    all parameters. Returns [(effect, fit)] of the refitted ones."""
+    base = [x for x in added if x != a]
+    start = _theta_without(cur, a)
+    screens = []
+    for e in pool:
+        if e.name in added:
+            continue
+        f = fit_best(rows, _effects_of(base) + [e], start, weights=ref.w, partial=bool(base))
+        screens.append((ref.wssr(f), e, f))
+    screens.sort(key=lambda t: t[0])
+    return [(e, fit(rows, _effects_of(base) + [e], start=list(f0["theta"]), weights=ref.w) if base else f0)
+            for _, e, f0 in screens[:MAX_REFIT]]
+
+
+def _swap_improve(rows, cur, added, pool, ref, penalty, sigma, max_rounds=4):
+    """Sequential replacement after the greedy path: an added effect is replaced by an
+    effect not in the model where the swapped model scores lower by the best subset's
+    criterion (squared error over the reference variance + ``penalty`` per parameter) and
+    its fit differs from the current one beyond the noise (not
+    :meth:`_Reference.indistinguishable`; swaps within the noise are reported, not taken).
+    The greedy path adds the effect with the largest drop first; where two effects overlap
+    (an extra deposition on one side, a stiffer fabric on that side), that can be the wrong
+    one, and the right one then no longer pays on top of it. The best such swap is taken,
+    then the search repeats (at most ``max_rounds`` swaps; a set met before ends it).
+    Returns (fit, added, [(old, new, score drop)])."""
+    s2, _ = ref._s2(cur)
+    s2 = max(s2, 1e-300)
+    swaps, seen = [], {frozenset(added)}
+    for _ in range(max_rounds):
+        q_cur = ref.wssr(cur) / s2 + penalty * len(cur["theta"])
+        best = None
+        for a in added:
+            for e, f in _swap_candidates(rows, cur, added, pool, ref, a):
+                q = ref.wssr(f) / s2 + penalty * len(f["theta"])
+                new = frozenset([x for x in added if x != a] + [e.name])
+                if q < q_cur and new not in seen and not ref.indistinguishable(cur, f, sigma)[0] \
+                        and (best is None or q < best[0]):
+                    best = (q, a, e, f, new)
+        if best is None:
+            break
+        q, a, e, f, new = best
+        seen.add(new)
+        added = [e.name if x == a else x for x in added]
+        swaps.append((a, e.name, float(q_cur - q)))
+        cur = f
+    return cur, added, swaps
 
 
 def _swap_analysis(rows, cur, added, pool, ref, sigma):
