@@ -53,6 +53,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from shellfem.errors import SelfshapeError
+from shellfem.triangle_distance import triangle_pair_distances
 
 #: the barrier's activation band above the offset, as a fraction of the offset
 BAND_FRACTION = 0.25
@@ -66,6 +67,9 @@ KAPPA_SCALE = 0.01
 #: large line-search move or a sheet in contact), at 10-60 ms a call against 0.2 ms; there
 #: ipctk's own broad phase is cheaper
 TRIANGLE_STAGE_PAIRS = 8.0
+#: Most triangle pairs the skip test measures exactly (shellfem.triangle_distance) after their
+#: bounding spheres came within reach; beyond it the collisions are built.
+EXACT_STAGE_PAIRS = 20_000
 
 _IPCTK = None
 
@@ -270,7 +274,21 @@ class Contact:
             radius = np.maximum(radius, np.sqrt(np.einsum("ijk,ijk->ij", d, d).max(1)))
         i, j = np.searchsorted(tri, i), np.searchsorted(tri, j)
         dc = centre[i] - centre[j]
-        return bool(np.any(np.sqrt(np.einsum("ij,ij->i", dc, dc)) - radius[i] - radius[j] < delta))
+        near = np.sqrt(np.einsum("ij,ij->i", dc, dc)) - radius[i] - radius[j] < delta
+        if not near.any():
+            return False
+        if near.sum() > EXACT_STAGE_PAIRS:
+            return True
+        # third stage: the exact distance of the pairs left, at the start of the move; along the
+        # straight move no point of a triangle travels farther than its farthest corner, so the
+        # distance falls by at most the two triangles' largest corner moves
+        i, j = i[near], j[near]
+        x0 = states[0]
+        d = triangle_pair_distances(x0[f[i]], x0[f[j]])
+        if len(states) > 1:
+            move = np.linalg.norm(states[1][f] - x0[f], axis=2).max(1)
+            d = d - move[i] - move[j]
+        return bool(np.any(d < delta))
 
     def _collisions(self, x):
         """ipctk NormalCollisions at x, or None when the skip test settles it."""

@@ -12,12 +12,22 @@ includes meshing every level), and the per-iteration split (assembly vs factoris
 search). Target: under 60 s on 2 cores.
 
 Run: python studies/bench_solver.py [--width 85 --height 60 --across 1] [--fabric-bending-stiffness K]
-     [--coarse-levels auto|N] [--contact]
+     [--coarse-levels auto|N] [--contact | --compare-contact]
+
+``--compare-contact`` solves the case twice in one process, without and with self-contact, and
+adds per run the CPU time (s, all threads), the energy (N mm) and the pairs of triangles that pass
+through each other over all pairs sharing no vertex (tests/test_contact.intersecting_pairs: an
+exact test independent of ipctk), and the with / without ratios of wall and CPU time. The default
+85 x 60 mm sheet closes past a full turn at one end (its edges meet: a contact problem); 113 x 45 mm
+has as many vertices and rolls less than a turn, so it measures what contact costs a sheet that
+never touches itself.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import sys
 import time
 
 import numpy as np
@@ -92,6 +102,32 @@ def run(width: float = 85.0, height: float = 60.0, across: float = 1.0, max_iter
     }
 
 
+def compare_contact(width: float = 85.0, height: float = 60.0, across: float = 1.0, max_iterations: int = 300,
+                    fabric_bending_stiffness: float | None = None, seed: int = 0,
+                    metric_floor: float = DEFAULT_METRIC_FLOOR, coarse_levels="auto") -> dict:
+    """:func:`run` without and then with self-contact: {"off": ..., "on": ..., "wall_ratio", "cpu_ratio"},
+    each run with ``cpu_s``, ``energy_nmm`` and ``crossing_pairs`` added (see the module's docstring)."""
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
+    from test_contact import intersecting_pairs
+    run(20.0, 15.0, across, 50, fabric_bending_stiffness, seed, metric_floor, coarse_levels, contact=True)  # warm-up:
+    # loads the compiled kernels and the contact library once, so neither timed run pays for it
+    out = {}
+    for tag in ("off", "on"):
+        keep = {}
+        c0 = time.process_time()
+        r = run(width, height, across, max_iterations, fabric_bending_stiffness, seed, metric_floor, coarse_levels,
+                contact=tag == "on", keep=keep)
+        r["cpu_s"] = round(time.process_time() - c0, 2)
+        sim = keep["simulation"]
+        r["energy_nmm"] = float(sim.result.energy)
+        r["crossing_pairs"] = int(len(intersecting_pairs(sim.positions, sim.sheet.triangles)))
+        r["load_1min_after"] = round(os.getloadavg()[0], 2)
+        out[tag] = r
+    out["wall_ratio"] = round(out["on"]["total_s"] / out["off"]["total_s"], 3)
+    out["cpu_ratio"] = round(out["on"]["cpu_s"] / out["off"]["cpu_s"], 3)
+    return out
+
+
 def main(argv=None):
     from shellfem.memory import keep_freed_memory
     keep_freed_memory()
@@ -110,8 +146,15 @@ def main(argv=None):
                     help="coarser meshes solved first (nested iteration): 'auto' (default) or a number, 0 = none")
     ap.add_argument("--contact", action="store_true",
                     help="self-contact on (shellfem.contact; as selfshape simulate has it by default)")
+    ap.add_argument("--compare-contact", action="store_true",
+                    help="solve without and then with self-contact in one process; one JSON line with both runs, "
+                         "their crossing pairs and the time ratios")
     a = ap.parse_args(argv)
     levels = a.coarse_levels if a.coarse_levels == "auto" else int(a.coarse_levels)
+    if a.compare_contact:
+        print(json.dumps(compare_contact(a.width, a.height, a.across, a.max_iterations, a.fabric_bending_stiffness,
+                                         a.seed, a.metric_floor, levels)))
+        return
     print(json.dumps(run(a.width, a.height, a.across, a.max_iterations, a.fabric_bending_stiffness, a.seed,
                          a.metric_floor, levels, a.contact)))
 

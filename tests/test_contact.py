@@ -658,3 +658,39 @@ def test_skip_test_settles_a_coarse_level_that_does_not_touch_itself_and_never_s
         assert ipctk.compute_collision_free_stepsize(mesh, np.asfortranarray(x), np.asfortranarray(x1),
                                                      min_distance=c.offset, narrow_phase_ccd=ipctk.AdditiveCCD()) == 1.0
     assert skipped > 10 and touching > 10, (skipped, touching)
+
+
+def test_skip_test_measures_layers_just_beyond_the_band_exactly(monkeypatch):
+    """The skip test's exact stage: layers of a roll 0.75 mm apart (offset 0.35 + band 0.0875 mm)
+    on a 1.5 mm mesh have triangle spheres (about 0.9 mm) that overlap across the gap, so the
+    sphere stages build the collisions; the exact distances of those pairs, less the corners'
+    largest moves, prove them apart. Sound: where it skips, ipctk finds no pair in the band at
+    either end and the move is free of collisions; moves that close the gap are never skipped."""
+    from shellfem import contact as contact_module
+    sh = mesh_pattern(_strip(L=60.0, W=6.0, size=1.5, stretch=(1.1, 1.0)))
+    c = Contact(sh.points, sh.triangles, 0.35, 1.1)
+    rng = np.random.default_rng(2)
+    x = _rolled(sh.points, 4.0, 0.75, 1.1)
+    x1 = x + 0.02 * rng.standard_normal(x.shape)
+    assert not c.maybe_close(x) and not c.maybe_close(x, x1)
+    monkeypatch.setattr(contact_module, "EXACT_STAGE_PAIRS", 0)      # the sphere stages alone
+    assert c.maybe_close(x) and c.maybe_close(x, x1)
+    monkeypatch.undo()
+    ipctk = _ipctk()
+    mesh = c._collision_mesh()
+    skipped = touching = 0
+    for k in range(40):
+        x = _rolled(sh.points, rng.uniform(3.0, 8.0), rng.uniform(0.45, 1.0), 1.1) \
+            + rng.uniform(0, 0.05) * rng.standard_normal((sh.n_vertices, 3))
+        x1 = x + rng.uniform(0, 0.15) * rng.standard_normal(x.shape)
+        if c.maybe_close(x, x1):
+            touching += 1
+            continue
+        skipped += 1
+        for y in (x, x1):
+            col = ipctk.NormalCollisions()
+            col.build(mesh, np.asfortranarray(y), c.dhat, dmin=c.offset)
+            assert len(col) == 0
+        assert ipctk.compute_collision_free_stepsize(mesh, np.asfortranarray(x), np.asfortranarray(x1),
+                                                     min_distance=c.offset, narrow_phase_ccd=ipctk.AdditiveCCD()) == 1.0
+    assert skipped > 5 and touching > 5, (skipped, touching)
