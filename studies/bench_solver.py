@@ -18,9 +18,9 @@ Run: python studies/bench_solver.py [--width 85 --height 60 --across 1] [--fabri
 adds per run the CPU time (s, all threads), the energy (N mm) and the pairs of triangles that pass
 through each other over all pairs sharing no vertex (tests/test_contact.intersecting_pairs: an
 exact test independent of ipctk), and the with / without ratios of wall and CPU time. The default
-85 x 60 mm sheet closes past a full turn at one end (its edges meet: a contact problem); 113 x 45 mm
-has as many vertices and rolls less than a turn, so it measures what contact costs a sheet that
-never touches itself.
+85 x 60 mm sheet closes past a full turn at one end (its edges meet: a contact problem);
+130 x 38 mm (12k vertices) rolls less than a turn and its edges stay apart all the way, so it
+measures what contact costs a sheet that never touches itself.
 """
 from __future__ import annotations
 
