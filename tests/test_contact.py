@@ -640,13 +640,21 @@ def test_skip_test_settles_a_coarse_level_that_does_not_touch_itself_and_never_s
         c._triangles_close = lambda *a: True          # the patch stage alone
         assert c.maybe_close(x, x1)
         del c._triangles_close
+    skipped, touching = _skips_are_sound(c, sh, rng, 60, (2.0, 20.0), (0.3, 1.2), 0.2, 0.5)
+    assert skipped > 10 and touching > 10, (skipped, touching)
+
+
+def _skips_are_sound(c, sh, rng, n, radius, pitch, noise, move):
+    """Random rolls of the mesh sh (radius and pitch drawn from the ranges, mm; position noise and a
+    random move up to the given sizes, mm): wherever the skip test of Contact c skips, ipctk finds no
+    pair in the band at either end and the move is free of collisions. Returns (skipped, touching)."""
     ipctk = _ipctk()
     mesh = c._collision_mesh()
     skipped = touching = 0
-    for k in range(60):
-        x = _rolled(sh.points, rng.uniform(2.0, 20.0), rng.uniform(0.3, 1.2), 1.1) \
-            + rng.uniform(0, 0.2) * rng.standard_normal((sh.n_vertices, 3))
-        x1 = x + rng.uniform(0, 0.5) * rng.standard_normal(x.shape)
+    for k in range(n):
+        x = _rolled(sh.points, rng.uniform(*radius), rng.uniform(*pitch), 1.1) \
+            + rng.uniform(0, noise) * rng.standard_normal((sh.n_vertices, 3))
+        x1 = x + rng.uniform(0, move) * rng.standard_normal(x.shape)
         if c.maybe_close(x, x1):
             touching += 1
             continue
@@ -657,7 +665,7 @@ def test_skip_test_settles_a_coarse_level_that_does_not_touch_itself_and_never_s
             assert len(col) == 0
         assert ipctk.compute_collision_free_stepsize(mesh, np.asfortranarray(x), np.asfortranarray(x1),
                                                      min_distance=c.offset, narrow_phase_ccd=ipctk.AdditiveCCD()) == 1.0
-    assert skipped > 10 and touching > 10, (skipped, touching)
+    return skipped, touching
 
 
 def test_skip_test_measures_layers_just_beyond_the_band_exactly(monkeypatch):
@@ -676,21 +684,5 @@ def test_skip_test_measures_layers_just_beyond_the_band_exactly(monkeypatch):
     monkeypatch.setattr(contact_module, "EXACT_STAGE_PAIRS", 0)      # the sphere stages alone
     assert c.maybe_close(x) and c.maybe_close(x, x1)
     monkeypatch.undo()
-    ipctk = _ipctk()
-    mesh = c._collision_mesh()
-    skipped = touching = 0
-    for k in range(40):
-        x = _rolled(sh.points, rng.uniform(3.0, 8.0), rng.uniform(0.45, 1.0), 1.1) \
-            + rng.uniform(0, 0.05) * rng.standard_normal((sh.n_vertices, 3))
-        x1 = x + rng.uniform(0, 0.15) * rng.standard_normal(x.shape)
-        if c.maybe_close(x, x1):
-            touching += 1
-            continue
-        skipped += 1
-        for y in (x, x1):
-            col = ipctk.NormalCollisions()
-            col.build(mesh, np.asfortranarray(y), c.dhat, dmin=c.offset)
-            assert len(col) == 0
-        assert ipctk.compute_collision_free_stepsize(mesh, np.asfortranarray(x), np.asfortranarray(x1),
-                                                     min_distance=c.offset, narrow_phase_ccd=ipctk.AdditiveCCD()) == 1.0
+    skipped, touching = _skips_are_sound(c, sh, rng, 40, (3.0, 8.0), (0.45, 1.0), 0.05, 0.15)
     assert skipped > 5 and touching > 5, (skipped, touching)

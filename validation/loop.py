@@ -664,23 +664,11 @@ def _swap_improve(rows, cur, added, pool, ref, penalty, sigma, max_rounds=4):
 
 def _swap_analysis(rows, cur, added, pool, ref, sigma):
     """Pairs (added effect, other effect) such that replacing the first by the second in
-    the final model fits as well within the noise (:meth:`_Reference.indistinguishable`).
-    Each swap is screened with the other effects' parameters held (the modulus ratio and
-    the new effect free) and the MAX_REFIT best screens per added effect are refitted
-    with all parameters."""
+    the final model fits as well within the noise (:meth:`_Reference.indistinguishable`),
+    among each added effect's swaps that :func:`_swap_candidates` refits."""
     out = []
     for a in added:
-        base = [x for x in added if x != a]
-        start = _theta_without(cur, a)
-        screens = []
-        for e in pool:
-            if e.name in added:
-                continue
-            f = fit_best(rows, _effects_of(base) + [e], start, weights=ref.w, partial=bool(base))
-            screens.append((ref.wssr(f), e, f))
-        screens.sort(key=lambda t: t[0])
-        for _, e, f0 in screens[:MAX_REFIT]:
-            f = fit(rows, _effects_of(base) + [e], start=list(f0["theta"]), weights=ref.w) if base else f0
+        for e, f in _swap_candidates(rows, cur, added, pool, ref, a):
             same, d, diff = ref.indistinguishable(cur, f, sigma)
             if same:
                 out.append({"effects": [a, e.name], "ssr_difference_over_noise": d,
