@@ -19,7 +19,8 @@ def _dot(u, v):
 
 def points_to_triangles(p, tri):
     """Distances (...,) from points p (..., 3) to triangles tri (..., 3, 3) (mm): the plane's
-    distance where the foot point lies inside the triangle, else the nearest edge's."""
+    distance where the foot point lies inside the triangle (no edge is closer then), else the
+    nearest edge's."""
     a, b, c = tri[..., 0, :], tri[..., 1, :], tri[..., 2, :]
     e1, e2, r = b - a, c - a, p - a
     g11, g12, g22 = _dot(e1, e1), _dot(e1, e2), _dot(e2, e2)
@@ -33,7 +34,7 @@ def points_to_triangles(p, tri):
     d_in = np.linalg.norm(p - foot, axis=-1)
     d_edge = np.minimum(np.minimum(points_to_segments(p, a, b), points_to_segments(p, b, c)),
                         points_to_segments(p, c, a))
-    return np.where(inside, np.minimum(d_in, d_edge), d_edge)
+    return np.where(inside, d_in, d_edge)
 
 
 def points_to_segments(p, s0, s1):

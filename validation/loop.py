@@ -523,8 +523,7 @@ def select_effects(rows, seed=0, folds=5, candidates=fx.CATALOGUE, report=True):
         ref = _Reference(rows, cur)
         cur = fit(rows, _effects_of(added), start=cur["theta"], weights=ref.w)
         noise = ref.summary if ref.replicates else _residual_noise(cur)
-    swaps = []
-    cur, added, swaps = _swap_improve(rows, cur, added, pool, ref, penalty, noise["sigma"])
+    cur, added, swaps, candidates = _swap_improve(rows, cur, added, pool, ref, penalty, noise["sigma"])
     if swaps:
         for old, new, q in swaps:
             last[old] = (f"added, then swapped for {new}: the model with {new} instead scores {q:.3g} lower "
@@ -534,13 +533,14 @@ def select_effects(rows, seed=0, folds=5, candidates=fx.CATALOGUE, report=True):
         ref = _Reference(rows, cur)
         cur = fit(rows, _effects_of(added), start=cur["theta"], weights=ref.w)
         noise = ref.summary if ref.replicates else _residual_noise(cur)
+        candidates = None       # refitted with this model's weights: the swaps are measured again
     for name, why in last.items():
         if name not in added:
             rejected[name] = why
     for e in pool:
         if e.name not in added and e.name not in rejected:
             rejected[e.name] = "not tried"
-    indist = _swap_analysis(rows, cur, added, pool, ref, noise["sigma"]) if report else []
+    indist = _swap_analysis(rows, cur, added, pool, ref, noise["sigma"], candidates) if report else []
     for d in indist:
         a, c = d["effects"]
         rejected[c] = (f"indistinguishable from {a} (swapping it for {a} changes the squared error by "
@@ -638,37 +638,41 @@ def _swap_improve(rows, cur, added, pool, ref, penalty, sigma, max_rounds=4):
     (an extra deposition on one side, a stiffer fabric on that side), that can be the wrong
     one, and the right one then no longer pays on top of it. The best such swap is taken,
     then the search repeats (at most ``max_rounds`` swaps; a set met before ends it).
-    Returns (fit, added, [(old, new, score drop)])."""
+    Returns (fit, added, [(old, new, score drop)], candidates): ``candidates`` {added effect:
+    :func:`_swap_candidates`} of the returned fit where the last round measured them there
+    (it took no swap), else None."""
     s2, _ = ref._s2(cur)
     s2 = max(s2, 1e-300)
     swaps, seen = [], {frozenset(added)}
     for _ in range(max_rounds):
         q_cur = ref.wssr(cur) / s2 + penalty * len(cur["theta"])
         best = None
+        candidates = {a: _swap_candidates(rows, cur, added, pool, ref, a) for a in added}
         for a in added:
-            for e, f in _swap_candidates(rows, cur, added, pool, ref, a):
+            for e, f in candidates[a]:
                 q = ref.wssr(f) / s2 + penalty * len(f["theta"])
                 new = frozenset([x for x in added if x != a] + [e.name])
                 if q < q_cur and new not in seen and not ref.indistinguishable(cur, f, sigma)[0] \
                         and (best is None or q < best[0]):
                     best = (q, a, e, f, new)
         if best is None:
-            break
+            return cur, added, swaps, candidates
         q, a, e, f, new = best
         seen.add(new)
         added = [e.name if x == a else x for x in added]
         swaps.append((a, e.name, float(q_cur - q)))
         cur = f
-    return cur, added, swaps
+    return cur, added, swaps, None
 
 
-def _swap_analysis(rows, cur, added, pool, ref, sigma):
+def _swap_analysis(rows, cur, added, pool, ref, sigma, candidates=None):
     """Pairs (added effect, other effect) such that replacing the first by the second in
     the final model fits as well within the noise (:meth:`_Reference.indistinguishable`),
-    among each added effect's swaps that :func:`_swap_candidates` refits."""
+    among each added effect's swaps that :func:`_swap_candidates` refits (``candidates``:
+    those already measured at ``cur`` with ``ref``'s weights, by :func:`_swap_improve`)."""
     out = []
     for a in added:
-        for e, f in _swap_candidates(rows, cur, added, pool, ref, a):
+        for e, f in (candidates[a] if candidates is not None else _swap_candidates(rows, cur, added, pool, ref, a)):
             same, d, diff = ref.indistinguishable(cur, f, sigma)
             if same:
                 out.append({"effects": [a, e.name], "ssr_difference_over_noise": d,
