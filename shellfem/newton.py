@@ -64,6 +64,15 @@ MAX_ITERATIONS_REASON = "maximum number of iterations reached"
 
 LAM_MIN = 1e-10          # below this the Levenberg-Marquardt shift is dropped to 0
 
+#: A gradient norm above the tolerance by at most GRADIENT_FLOOR_FACTOR at a stable state whose
+#: exact Newton step is below the step tolerance and promises no energy is at its round-off floor
+#: (the solve has converged) when taking that step does not lower it, or when it stays so over
+#: GRADIENT_FLOOR_STEPS consecutive Newton steps. Why: the tolerance is relative to a reference
+#: force, and on a large sheet the gradient's round-off can sit just above it; such a solve used
+#: to run on into a collapsed trust region, reported as not converged (docs/notes.md, session 26).
+GRADIENT_FLOOR_FACTOR = 10.0
+GRADIENT_FLOOR_STEPS = 3
+
 
 def _psd_blocks(B):
     """Blocks (k, d, d) with their negative eigenvalues set to 0."""
@@ -254,6 +263,7 @@ class _Newton:
                 self.stiff = StiffRegionRelaxation(model, free, mask, opts.backend, buffers=self.blocks_out)
         self.g = self.H = self.D = self.factor = self.tol = None
         self.exact = self.projected = False
+        self.floor_steps = 0            # consecutive Newton steps at round-off with |g| above tol
 
     # --- helpers -----------------------------------------------------------------------
     def _result(self, converged: bool, it: int, energy=None) -> SolveResult:
@@ -439,6 +449,13 @@ class _Newton:
                 return _STOP
         return _NEXT
 
+    def _at_gradient_floor(self, it, step, how):
+        """Converged: see GRADIENT_FLOOR_FACTOR."""
+        self.reason = (f"Newton step below tolerance at a stable state, the gradient norm at its round-off floor "
+                       f"({self.gnorm:.2e} N, {how}; tolerance {self.tol:.2e} N)")
+        self.history.append(dict(iteration=it, energy=self.E, gradient_norm=self.gnorm, lam=0.0, step=step))
+        return self._result(True, it, self.E)
+
     def _newton_step(self, it):
         """The Newton step of a positive definite Hessian with an Armijo line search: a
         converged SolveResult, _NEXT (step taken), _STOP (iteration cap) or None (no
@@ -447,11 +464,16 @@ class _Newton:
         q, E, g, gnorm = self.q, self.E, self.g, self.gnorm
         d_free = -self.factor(g)
         step, promise = self._step_size(d_free)
-        if (not self.projected and gnorm <= self.tol and step <= self.step_tol
-                and promise <= opts.energy_tolerance * self._energy_scale(E)):
+        at_rest = (not self.projected and step <= self.step_tol
+                   and promise <= opts.energy_tolerance * self._energy_scale(E))
+        if at_rest and gnorm <= self.tol:
             self.reason = "gradient norm and Newton step below tolerance at a stable state"
             self.history.append(dict(iteration=it, energy=E, gradient_norm=gnorm, lam=0.0, step=step))
             return self._result(True, it, E)
+        near_floor = at_rest and gnorm <= GRADIENT_FLOOR_FACTOR * self.tol
+        self.floor_steps = self.floor_steps + 1 if near_floor else 0
+        if self.floor_steps >= GRADIENT_FLOOR_STEPS:
+            return self._at_gradient_floor(it, step, f"over {self.floor_steps} steps")
         if it == opts.max_iterations:
             self.stable = True
             return _STOP
@@ -470,6 +492,10 @@ class _Newton:
             if np.isfinite(E_try) and float(np.linalg.norm(g_try)) < gnorm:
                 timings["line_search"] += time.perf_counter() - t0
                 return self._accept_newton(it, q_try, E_try, 1.0, "1 (round-off)")
+            if near_floor:
+                # the full Newton step, below the step tolerance, does not lower |g| either
+                timings["line_search"] += time.perf_counter() - t0
+                return self._at_gradient_floor(it, step, "the Newton step does not lower it")
         for _ in range(40):
             q_try = along(a)
             if self.contact is not None:
@@ -524,6 +550,7 @@ class _Newton:
         converged SolveResult, _NEXT (step taken or rejected) or _STOP."""
         opts, timings, model, free = self.opts, self.timings, self.model, self.free
         q, E, g, gnorm, H, D = self.q, self.E, self.g, self.gnorm, self.H, self.D
+        self.floor_steps = 0
         factor, lam_try = self._lm_factor()
         self.factor = factor
         if factor is None:

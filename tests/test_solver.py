@@ -97,6 +97,30 @@ def test_iteration_cap_is_reported_as_not_converged():
     assert "maximum" in r.reason
 
 
+def test_a_gradient_at_its_round_off_floor_just_above_the_tolerance_is_converged():
+    """Exact Newton steps below the step tolerance that leave |g| at its round-off floor, just
+    above a tolerance set too tight, end the solve as converged with that reason (before, such a
+    solve ran on into a collapsed trust region); a floor far above the tolerance does not."""
+    from shellfem.newton import GRADIENT_FLOOR_FACTOR
+    sh, free_x, tip = _cantilever(10.0, 20)
+    M = ShellModel.homogeneous(sh, E, 0.0, H)
+    f = np.zeros((sh.n_vertices, 3))
+    f[tip, 2] = 4.0 / len(tip)
+    M.external_force = f
+    r0 = newton(M, M.initial_state(), free_x, max_iterations=200)
+    assert r0.converged
+    # the floor: the gradient norms of Newton steps from the converged state, with no tolerance to reach
+    probe = newton(M, r0.q, free_x, max_iterations=12, atol=1e-300, rtol=0.0)
+    assert not probe.converged
+    floor = min(h["gradient_norm"] for h in probe.history)
+    assert 0 < floor < 1e-6
+    r = newton(M, r0.q, free_x, max_iterations=50, atol=0.5 * floor, rtol=0.0)
+    assert r.converged and "round-off floor" in r.reason, r.reason
+    assert np.abs(M.split(r.q)[0] - M.split(r0.q)[0]).max() < 1e-9
+    far = newton(M, r0.q, free_x, max_iterations=12, atol=floor / (4 * GRADIENT_FLOOR_FACTOR), rtol=0.0)
+    assert not far.converged
+
+
 def test_a_monitor_stops_the_solve_unconverged_with_its_reason():
     """The monitor sees each accepted iterate; the first non-empty answer ends the solve there
     (not converged, that reason, the iterate it saw returned). Without a stop the solve is the
