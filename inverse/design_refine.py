@@ -52,7 +52,7 @@ def rounded(p, layer_mm: float, bounds) -> np.ndarray:
 
 
 def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.05, verbose: bool = False,
-                  progress=None, layer_rounds_max: int = 2) -> tuple:
+                  progress=None, layer_rounds_max: int = 8) -> tuple:
     """Refine the thicknesses of the design ``d`` (whose pattern is ``pattern`` and whose
     verification simulation is ``sim``, forward.simulate.Simulation). Sets the ribbons'
     thickness_mm to the rounded refined values and returns (block, positions): the report block
@@ -64,7 +64,11 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     equilibrium near the target can be found (the caller keeps the open-loop design).
     ``progress``: called with {"stage": "outer", "iteration", "rms_mm"} at each accepted outer
     iterate (the CLI's status line). ``layer_rounds_max``: rounds of one-layer moves after the
-    rounding (inverse.refine.refine_layers; 0: none), recorded as "layer_rounds"."""
+    rounding (inverse.refine.refine_layers; 0: none; they end at the first round none of whose
+    moves lowers the objective), recorded as "layer_rounds". Why several: each round is
+    linearised where the previous one left the design, and the rounding of thin ribbons to
+    0.1 mm layers is far from the continuous optimum (on the saddle rounds 3 and 4 still took J
+    from 2.38 to 1.33 mm^2, the continuous optimum's 1.31; docs/notes.md, session 26)."""
     from inverse.refine import (RefineOptions, ThicknessProblem, finite_or_none, follow_thickness, linear_rounding,
                                 refine_layers, refine_thickness)
     from inverse.registration import flat_to_target
