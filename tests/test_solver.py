@@ -26,6 +26,16 @@ def _cantilever(L, nx):
     return sh, np.concatenate([free, ~held]), tip
 
 
+def _loaded_cantilever():
+    """The 10 mm cantilever of 20 elements with the full tip load 4: (model, free dofs, tip)."""
+    sh, free_x, tip = _cantilever(10.0, 20)
+    M = ShellModel.homogeneous(sh, E, 0.0, H)
+    f = np.zeros((sh.n_vertices, 3))
+    f[tip, 2] = 4.0 / len(tip)
+    M.external_force = f
+    return M, free_x, tip
+
+
 def _path(models, q, free):
     """Load steps, each started from the secant prediction of the last two equilibria."""
     q_prev, out = None, []
@@ -87,11 +97,7 @@ def test_sze_end_shear_cantilever():
 
 
 def test_iteration_cap_is_reported_as_not_converged():
-    sh, free_x, tip = _cantilever(10.0, 20)
-    M = ShellModel.homogeneous(sh, E, 0.0, H)
-    f = np.zeros((sh.n_vertices, 3))
-    f[tip, 2] = 4.0 / len(tip)
-    M.external_force = f
+    M, free_x, tip = _loaded_cantilever()
     r = newton(M, M.initial_state(), free_x, max_iterations=2)
     assert not r.converged
     assert "maximum" in r.reason
@@ -102,11 +108,7 @@ def test_a_gradient_at_its_round_off_floor_just_above_the_tolerance_is_converged
     above a tolerance set too tight, end the solve as converged with that reason (before, such a
     solve ran on into a collapsed trust region); a floor far above the tolerance does not."""
     from shellfem.newton import GRADIENT_FLOOR_FACTOR
-    sh, free_x, tip = _cantilever(10.0, 20)
-    M = ShellModel.homogeneous(sh, E, 0.0, H)
-    f = np.zeros((sh.n_vertices, 3))
-    f[tip, 2] = 4.0 / len(tip)
-    M.external_force = f
+    M, free_x, tip = _loaded_cantilever()
     r0 = newton(M, M.initial_state(), free_x, max_iterations=200)
     assert r0.converged
     # the floor: the gradient norms of Newton steps from the converged state, with no tolerance to reach
@@ -125,11 +127,7 @@ def test_a_monitor_stops_the_solve_unconverged_with_its_reason():
     """The monitor sees each accepted iterate; the first non-empty answer ends the solve there
     (not converged, that reason, the iterate it saw returned). Without a stop the solve is the
     plain one."""
-    sh, free_x, tip = _cantilever(10.0, 20)
-    M = ShellModel.homogeneous(sh, E, 0.0, H)
-    f = np.zeros((sh.n_vertices, 3))
-    f[tip, 2] = 4.0 / len(tip)
-    M.external_force = f
+    M, free_x, tip = _loaded_cantilever()
     seen = []
 
     def monitor(q):
