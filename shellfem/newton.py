@@ -449,12 +449,16 @@ class _Newton:
                 return _STOP
         return _NEXT
 
+    def _converged(self, it, step, reason, lam=0.0):
+        """The converged SolveResult at the current iterate, its last history entry and ``reason``."""
+        self.reason = reason
+        self.history.append(dict(iteration=it, energy=self.E, gradient_norm=self.gnorm, lam=lam, step=step))
+        return self._result(True, it, self.E)
+
     def _at_gradient_floor(self, it, step, how):
         """Converged: see GRADIENT_FLOOR_FACTOR."""
-        self.reason = (f"Newton step below tolerance at a stable state, the gradient norm at its round-off floor "
-                       f"({self.gnorm:.2e} N, {how}; tolerance {self.tol:.2e} N)")
-        self.history.append(dict(iteration=it, energy=self.E, gradient_norm=self.gnorm, lam=0.0, step=step))
-        return self._result(True, it, self.E)
+        return self._converged(it, step, f"Newton step below tolerance at a stable state, the gradient norm at its "
+                                         f"round-off floor ({self.gnorm:.2e} N, {how}; tolerance {self.tol:.2e} N)")
 
     def _newton_step(self, it):
         """The Newton step of a positive definite Hessian with an Armijo line search: a
@@ -467,9 +471,7 @@ class _Newton:
         at_rest = (not self.projected and step <= self.step_tol
                    and promise <= opts.energy_tolerance * self._energy_scale(E))
         if at_rest and gnorm <= self.tol:
-            self.reason = "gradient norm and Newton step below tolerance at a stable state"
-            self.history.append(dict(iteration=it, energy=E, gradient_norm=gnorm, lam=0.0, step=step))
-            return self._result(True, it, E)
+            return self._converged(it, step, "gradient norm and Newton step below tolerance at a stable state")
         near_floor = at_rest and gnorm <= GRADIENT_FLOOR_FACTOR * self.tol
         self.floor_steps = self.floor_steps + 1 if near_floor else 0
         if self.floor_steps >= GRADIENT_FLOOR_STEPS:
@@ -563,9 +565,7 @@ class _Newton:
             d_free = -factor(g)
             step, promise = self._step_size(d_free)
             if step <= self.step_tol and promise <= opts.energy_tolerance * self._energy_scale(E):
-                self.reason = "gradient norm and step below tolerance at a stable state"
-                self.history.append(dict(iteration=it, energy=E, gradient_norm=gnorm, lam=lam_try, step=step))
-                return self._result(True, it, E)
+                return self._converged(it, step, "gradient norm and step below tolerance at a stable state", lam_try)
         if it == opts.max_iterations:
             return _STOP
         self.lam = lam_try
