@@ -66,9 +66,8 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     iterate (the CLI's status line). ``layer_rounds_max``: rounds of one-layer moves after the
     rounding (inverse.refine.refine_layers; 0: none; they end at the first round none of whose
     moves lowers the objective), recorded as "layer_rounds". Why several: each round is
-    linearised where the previous one left the design, and the rounding of thin ribbons to
-    0.1 mm layers is far from the continuous optimum (on the saddle rounds 3 and 4 still took J
-    from 2.38 to 1.33 mm^2, the continuous optimum's 1.31; docs/notes.md, session 26)."""
+    linearised where the previous one left the design, and thin ribbons rounded to 0.1 mm layers
+    start far from the continuous optimum, so later rounds still gain (docs/notes.md, session 26)."""
     from inverse.refine import (RefineOptions, ThicknessProblem, finite_or_none, follow_thickness, linear_rounding,
                                 refine_layers, refine_thickness)
     from inverse.registration import flat_to_target
