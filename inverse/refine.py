@@ -44,8 +44,11 @@ class RefineOptions:
     warm-started solves stay short and the Gauss-Newton model valid; it is also the largest
     trust radius: a rejected trial halves the radius to half its step's largest change (the
     damping alone does not shorten a step whose changes sit at the radius: the bounded
-    least-squares step keeps them there until the damping outweighs the model), an accepted
-    trial that the model predicted well (rho > 0.75) doubles it. damping: initial
+    least-squares step keeps them there until the damping outweighs the model) and remembers
+    that change as a ceiling; an accepted trial that the model predicted well (rho > 0.75)
+    raises the ceiling by a quarter and grows the radius to at most twice itself and at most
+    the geometric mean of itself and the ceiling (a step as long as one that just left the
+    branch is likely to leave it again, and each rejected trial costs a long solve). damping: initial
     Levenberg-Marquardt weight relative to the Gauss-Newton matrix's mean diagonal.
     leave_factor: a trial solve is stopped once its iterate's objective exceeds this times the
     current J: it is heading into another state (these sheets are multistable), and finishing
@@ -482,6 +485,21 @@ def follow_thickness(problem: ThicknessProblem, p_from, q_from, p_to, steps: int
     return q, True
 
 
+def next_trust_radius(radius: float, ceiling: float, step, rho: float, max_step: float):
+    """The refinement's trust radius and ceiling (mm) after a trial of the step ``step`` (P,)
+    whose actual over predicted decrease was ``rho`` (see RefineOptions.max_step): rejected
+    (rho <= 0.1): half the step's largest change, which becomes the ceiling; accepted and well
+    predicted (rho > 0.75): the ceiling raised by a quarter, the radius grown to at most twice
+    itself, ``max_step`` and the geometric mean of itself and the ceiling; otherwise unchanged."""
+    if not rho > 0.1:                   # rejected (also a NaN)
+        ceiling = float(np.max(np.abs(step)))
+        return 0.5 * ceiling, ceiling
+    if rho > 0.75:
+        ceiling = 1.25 * ceiling
+        radius = min(max_step, 2.0 * radius, float(np.sqrt(radius * ceiling)))
+    return radius, ceiling
+
+
 def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions = RefineOptions(),
                      callback=None) -> RefineResult:
     """Gauss-Newton refinement of the thicknesses from p0 (P,) with the equilibrium solve
@@ -519,6 +537,7 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
         print(f"refine 0: J {J:.4e} mm^2, rms {np.sqrt(msd):.4f} mm, lambda_min {lam:.4e} N/mm^3, {res.iterations} Newton iterations", flush=True)
     mu = None
     radius = options.max_step
+    ceiling = np.inf            # the largest change of the last rejected step (mm), raised by each good one
     reason = f"reached max_outer = {options.max_outer}"
     last_model = None
     it = 0
@@ -604,10 +623,10 @@ def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions =
             if rho > 0.1:
                 accepted = True
                 mu = mu / 3 if rho > 0.75 else mu
-                radius = min(options.max_step, 2.0 * radius) if rho > 0.75 else radius
+                radius, ceiling = next_trust_radius(radius, ceiling, step, rho, options.max_step)
                 break
             mu *= 8
-            radius = 0.5 * float(np.max(np.abs(step)))
+            radius, ceiling = next_trust_radius(radius, ceiling, step, rho, options.max_step)
             if mu > 1e8 * g_scale or radius < 1e-4:
                 reason = "the trust region collapsed: no trial step lowered the objective"
                 break

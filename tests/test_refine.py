@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from ribbon_sheets import ribbon_checkerboard, sheet_at
-from inverse.refine import RefineOptions, ThicknessProblem, neighbour_pairs, refine_thickness, vertex_areas
+from inverse.refine import (RefineOptions, ThicknessProblem, neighbour_pairs, next_trust_radius, refine_thickness,
+                            vertex_areas)
 from shellfem.boundary import gauge_dofs, smooth_perturbation
 from shellfem.materials import Fabric, Plastic
 from shellfem.model import ShellModel
@@ -53,6 +54,26 @@ def test_refinement_recovers_the_thicknesses_a_shape_was_deployed_with(deployed)
     assert np.max(np.abs(res.thickness / TRUE - 1)) < 0.05
     J = [h["objective"] for h in res.history if h["accepted"]]
     assert all(b <= a for a, b in zip(J, J[1:]))    # accepted steps never raise the objective
+
+
+def test_the_trust_radius_does_not_grow_back_to_a_step_that_was_just_rejected():
+    max_step = 0.2
+    # no rejection yet: good trials double the radius up to max_step; a fair one keeps it
+    assert next_trust_radius(0.05, np.inf, np.full(3, 0.05), 0.9, max_step) == (0.1, np.inf)
+    assert next_trust_radius(0.1, np.inf, np.full(3, 0.1), 0.9, max_step) == (0.2, np.inf)
+    assert next_trust_radius(0.1, np.inf, np.full(3, 0.1), 0.5, max_step) == (0.1, np.inf)
+    # a rejected step of largest change 0.2 mm: half of it, and 0.2 becomes the ceiling
+    r, c = next_trust_radius(0.2, np.inf, np.array([0.05, -0.2, 0.1]), -np.inf, max_step)
+    assert (r, c) == (0.1, 0.2)
+    assert next_trust_radius(r, c, np.full(3, 0.1), float("nan"), max_step) == (0.05, 0.1)   # NaN: rejected
+    # good trials after it: the radius climbs towards the raised ceiling, below twice itself
+    radii = []
+    for _ in range(6):
+        r, c = next_trust_radius(r, c, np.full(3, r), 0.9, max_step)
+        radii.append(r)
+    assert radii[0] == pytest.approx(np.sqrt(0.1 * 0.25))
+    assert all(b > a for a, b in zip(radii, radii[1:] + [np.inf]) if a < max_step)
+    assert radii[0] < 0.2 and radii[-1] == max_step
 
 
 def test_vertex_areas_sum_to_the_sheet_and_neighbours_are_the_adjacent_ribbons():
