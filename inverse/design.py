@@ -572,7 +572,8 @@ JIG_TRIALS = ((4, 1), (8, 1), (8, 4))
 JIG_MAX_ITERATIONS = 600
 
 
-def _try_jig(block, rep, candidates, printed_points, near_x, refined_raw, name, write_and_verify, reaches_near):
+def _try_jig(block, rep, candidates, printed_points, triangles, near_x, refined_raw, name, write_and_verify,
+             reaches_near):
     """Release the refined design held on jig posts (inverse.jig) at its state nearest the target,
     with the JIG_TRIALS posts and release steps in turn until one reaches that state; records block["jig"] (posts, the
     deviations, the largest post reaction in N, whether the state was reached) and, when reached,
@@ -581,14 +582,18 @@ def _try_jig(block, rep, candidates, printed_points, near_x, refined_raw, name, 
 
     tried = []
     for k, steps in JIG_TRIALS:
-        raw_j = {**refined_raw, "support": jig_supports(printed_points, near_x, k)}
+        raw_j = {**refined_raw, "support": jig_supports(printed_points, near_x, k, triangles=triangles)}
         solver = dict(raw_j.get("solver", {}))
         solver["max_iterations"] = min(int(solver.get("max_iterations", JIG_MAX_ITERATIONS)), JIG_MAX_ITERATIONS)
         if steps > 1:
             solver["release_steps"] = steps
         raw_j["solver"] = solver
         sims_j: list = []
-        write_and_verify(raw_j, name + " (refined, on a jig)", sims_j)
+        try:
+            write_and_verify(raw_j, name + " (refined, on a jig)", sims_j)
+        except SelfshapeError as e:        # this jig cannot be simulated: the next one, or no jig
+            tried.append({"posts": k, "release_steps": steps, "reached": False, "error": str(e)})
+            continue
         reached = reaches_near(rep)
         reaction = float(support_reactions(sims_j[0]).max(initial=0.0)) if sims_j and rep.get("verify_converged") \
             else None
@@ -665,8 +670,8 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
         block["release_reaches_refined_state"] = reaches_near(rep)
     candidates = {"refined": (_deviation_score(rep), {k: rep[k] for k in VERIFY_KEYS if k in rep}, refined_raw)}
     if near_x is not None and near.get("deviation_pct_bbox") and not block["release_reaches_refined_state"]:
-        _try_jig(block, rep, candidates, sims[0].sheet.points, near_x, refined_raw, name, write_and_verify,
-                 reaches_near)
+        _try_jig(block, rep, candidates, sims[0].sheet.points, sims[0].sheet.triangles, near_x, refined_raw, name,
+                 write_and_verify, reaches_near)
     open_score = _deviation_score(rep["open_loop"])
     scored = {k: v for k, v in candidates.items() if v[0] is not None}
     best = min(scored, key=lambda k: scored[k][0]) if scored else None

@@ -29,10 +29,13 @@ def farthest_points(points, k: int) -> np.ndarray:
     return np.array(chosen, np.int64)
 
 
-def jig_supports(printed_points, positions, k: int, *, align: bool = True) -> list[dict]:
+def jig_supports(printed_points, positions, k: int, *, align: bool = True, triangles=None) -> list[dict]:
     """Pattern ``[[support]]`` tables (a list of dicts) of k jig posts: vertices chosen by
     :func:`farthest_points` on the printed (flat) sheet ``printed_points`` (n, 2|3, mm), each held
-    (``fix = "xyz"``) at its position in the intended state ``positions`` (n, 3, mm). ``align``:
+    (``fix = "xyz"``) at its position in the intended state ``positions`` (n, 3, mm).
+    ``triangles`` (m, 3), the sheet's mesh: the posts are chosen among the vertices off its
+    boundary (a rim vertex written to 1e-4 mm can land outside a curved outline, which the
+    pattern then rejects; and a post is fixed under the sheet, not on its edge). ``align``:
     the state is first moved rigidly onto the printed sheet (least squares), so that the posts
     travel from the flat start by the shape change only: a state given in another frame (a
     target's) would drag the sheet through a large rigid motion, which the release's harmonic
@@ -44,7 +47,13 @@ def jig_supports(printed_points, positions, k: int, *, align: bool = True) -> li
     if align:
         R, c = kabsch(X, np.column_stack([flat, np.zeros(len(flat))]))
         X = X @ R.T + c
-    idx = farthest_points(flat, k)
+    cand = np.arange(len(flat))
+    if triangles is not None:
+        from geometry.meshops import unique_edges
+        E, _, counts = unique_edges(np.asarray(triangles, np.int64))
+        inner = np.setdiff1d(cand, E[counts == 1].ravel())
+        cand = inner if len(inner) else cand
+    idx = cand[farthest_points(flat[cand], k)]
     r4 = lambda a: np.round(a, 4).tolist()  # noqa: E731
     return [{"points": r4(flat[idx]), "fix": "xyz", "position": r4(X[idx])}]
 

@@ -162,3 +162,25 @@ def test_bad_mesh_options_are_refused_before_anything_is_written(tmp_path, kw, w
     with pytest.raises(SelfshapeError, match=what):
         design_file(write_obj(tmp_path / "c.obj", V, F), tmp_path / "out", refine=True, **kw)
     assert not (tmp_path / "out").exists()
+
+
+def test_a_jig_that_cannot_be_simulated_is_recorded_and_the_next_one_tried():
+    """A jig whose pattern the reader refuses (or whose release raises) is one failed trial with
+    its one-line reason, never the end of the design run; the next jig is tried."""
+    g = np.stack(np.meshgrid(np.linspace(0, 10, 6), np.linspace(0, 10, 6)), -1).reshape(-1, 2)
+    tris = np.array([[0, 1, 6], [1, 7, 6]])
+    calls = []
+
+    def write_and_verify(raw, title, sims=None):
+        calls.append(len(raw["support"][0]["points"]))
+        if len(calls) == 1:
+            raise SelfshapeError("pattern.toml: [[support]] #1: point 3 (1, 2) is outside the fabric")
+        rep.update(verify_converged=True)
+
+    rep, block, candidates = {}, {}, {}
+    design_module._try_jig(block, rep, candidates, g, tris, np.column_stack([g, np.zeros(len(g))]), {}, "t",
+                           write_and_verify, lambda r: r.get("verify_converged", False))
+    first, second = block["jig"]["tried"]
+    assert first == {"posts": 4, "release_steps": 1, "reached": False,
+                     "error": "pattern.toml: [[support]] #1: point 3 (1, 2) is outside the fabric"}
+    assert second["posts"] == 8 and second["reached"] and block["jig"]["posts"] == 8 and "jig" in candidates

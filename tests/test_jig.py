@@ -95,3 +95,29 @@ def test_posts_given_in_another_frame_are_moved_onto_the_printed_sheet_first():
     with pytest.raises(SelfshapeError, match=r"\[\[support\]\] #1 position \d is \d+(\.\d+)? mm from its point's "
                                              r"relaxed position, more than 3 x the fabric's"):
         _square(0, jig_supports(free.sheet.points, far, 4, align=False))
+
+
+def test_posts_are_inside_the_outline_and_the_pattern_with_them_loads():
+    """Outlines written to 1e-4 mm, as design writes its flat outline (a rotated rectangle, a
+    12-gon): posts chosen on the sheet's mesh off its boundary load as [[support]] (with 32 posts
+    the farthest-point choice reaches rim vertices inside the outline's segments, which rounded to
+    1e-4 mm can land outside the written outline, and the pattern refused them)."""
+    from geometry.meshing import mesh_pattern
+    from geometry.meshops import unique_edges
+
+    c, s = np.cos(0.3), np.sin(0.3)
+    box = np.array([[0, 0], [40, 0], [40, 25], [0, 25]]) @ np.array([[c, -s], [s, c]]).T
+    t = np.linspace(0, 2 * np.pi, 13)[:-1] + 0.1
+    for poly in (box, 21.37 * np.column_stack([np.cos(t), np.sin(t)])):
+        raw = {"fabric": {"outline": np.round(poly, 4).tolist(), "stretch": 1.2, "thickness_mm": 0.8},
+               "mesh": {"size_mm": 2.0}}
+        sheet = mesh_pattern(parse_pattern(raw, "outline", "."))
+        X = np.column_stack([sheet.points[:, :2], 0.01 * np.sum(sheet.points[:, :2] ** 2, 1)])    # a cap
+        E, _, counts = unique_edges(sheet.triangles)
+        rim = set(E[counts == 1].ravel().tolist())
+        for k in (4, 8, 32):
+            sup = jig_supports(sheet.points, X, k, triangles=sheet.triangles)
+            pts = np.array(sup[0]["points"])
+            idx = [int(np.argmin(np.sum((sheet.points[:, :2] - p) ** 2, 1))) for p in pts]
+            assert len(set(idx)) == k and not rim & set(idx)
+            assert len(parse_pattern({**raw, "support": sup}, "outline", ".").supports[0].points) == k
