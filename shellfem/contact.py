@@ -28,9 +28,11 @@ Skip: before building collisions at a state (or running CCD on a move), a cheap 
 no pair of non-excluded primitives is within offset + dhat (:meth:`Contact.maybe_close`: bounding
 boxes of printed-grid patches of vertices, inflated by the longest edge, compared only between
 patches that are not printed neighbours, and where two patches come close, the same test on their
-triangles' bounding spheres against the printed distance the exclusion covers); then the barrier
-is 0 with zero derivatives and nothing is built, so a sheet that never touches itself pays only
-that test.
+triangles' bounding spheres against the printed distance the exclusion covers, then the exact
+distances of the triangle pairs left); then the barrier is 0 with zero derivatives and nothing
+is built, so a sheet that never touches itself pays only that test. A sheet in contact fails the
+test at every call: the closest pairs found within reach are kept and measured first at the next
+call, which then fails at once instead of going through the stages.
 
 Ground: the plane z = height (mm) under the sheet's mid-surface: a barrier on each free vertex's
 height above it, kappa_g b(z - height, dhat) (hand-written, vectorised, exact first and second
@@ -70,6 +72,11 @@ TRIANGLE_STAGE_PAIRS = 8.0
 #: Most triangle pairs the skip test measures exactly (shellfem.triangle_distance) after their
 #: bounding spheres came within reach; beyond it the collisions are built.
 EXACT_STAGE_PAIRS = 20_000
+#: Triangle pairs the skip test keeps as witnesses: the closest pairs its exact stage found within
+#: reach, measured first at the next call (a sheet in contact stays in contact from one trial
+#: point to the next, and proving that again through the patch and triangle stages cost more
+#: than the collision build it leads to)
+WITNESS_PAIRS = 64
 
 _IPCTK = None
 
@@ -182,6 +189,10 @@ class Contact:
         self._mesh = None          # ipctk CollisionMesh, built the first time the skip test fails
         self.builds = 0            # collision builds (skip test failed)
         self.skips = 0             # evaluations the skip test settled
+        self.witness_hits = 0      # skip tests decided by the last close pairs alone
+        self.reuses = 0            # evaluations at the last state's positions (its collisions reused)
+        self._last_state = None    # (positions (n, 3), their collisions or None)
+        self._witness = None       # (k, 2) triangle pairs found within reach by the last exact stage
 
     # --- set-up ----------------------------------------------------------------------------
     def set_stiffness(self, diag_positions: np.ndarray):
@@ -220,7 +231,10 @@ class Contact:
         patch_reach printed cells hold only excluded pairs, so if no two other patches' spheres
         come within offset + dhat, no pair of non-excluded primitives does. Where two do, the same
         test on their triangle pairs (:meth:`_triangles_close`) decides, where few enough came close
-        (TRIANGLE_STAGE_PAIRS). O(n) plus a KD-tree over the patch centres."""
+        (TRIANGLE_STAGE_PAIRS). O(n) plus a KD-tree over the patch centres. First of all, the
+        closest pairs the last exact stage found within reach (the witnesses, WITNESS_PAIRS) are
+        measured: if one still is, the answer is True at once (a sheet in contact stays so from
+        one trial point to the next)."""
         if not self.self_contact:
             return False
         x = np.asarray(x, float).reshape(self.n, 3)
@@ -228,6 +242,11 @@ class Contact:
         delta = self.offset + self.dhat
         if self.patch_reach < 0:
             return True          # a patch's own triangles may hold pairs that are not excluded
+        if self._witness is not None:
+            if self._pairs_close(states, self._witness[:, 0], self._witness[:, 1], delta).any():
+                self.witness_hits += 1
+                return True
+            self._witness = None
         cnt = self._pv_count * len(states)
         centre = sum(np.stack([np.bincount(self._pv_patch, weights=y[self._pv_vertex, k], minlength=len(cnt))
                                for k in range(3)], 1) for y in states) / cnt[:, None]
@@ -274,32 +293,56 @@ class Contact:
             radius = np.maximum(radius, np.sqrt(np.einsum("ijk,ijk->ij", d, d).max(1)))
         i, j = np.searchsorted(tri, i), np.searchsorted(tri, j)
         dc = centre[i] - centre[j]
-        near = np.sqrt(np.einsum("ij,ij->i", dc, dc)) - radius[i] - radius[j] < delta
+        gap = np.sqrt(np.einsum("ij,ij->i", dc, dc)) - radius[i] - radius[j]
+        near = gap < delta
         if not near.any():
             return False
-        if near.sum() > EXACT_STAGE_PAIRS:
-            return True
-        # third stage: the exact distance of the pairs left, at the start of the move; along the
-        # straight move no point of a triangle travels farther than its farthest corner, so the
-        # distance falls by at most the two triangles' largest corner moves
-        i, j = i[near], j[near]
+        many = near.sum() > EXACT_STAGE_PAIRS
+        if many:             # the collisions are built anyway; the closest pairs give witnesses
+            near = np.flatnonzero(near)
+            near = near[np.argpartition(gap[near], EXACT_STAGE_PAIRS // 10)[:EXACT_STAGE_PAIRS // 10]]
+        # third stage: the exact distance of the pairs left (see _pairs_close); the closest
+        # pairs within reach are kept as the next call's witnesses
+        i, j = tri[i[near]], tri[j[near]]
+        d = self._pairs_close(states, i, j, delta, distances=True)
+        hit = d < delta
+        if not hit.any():
+            return many
+        keep = np.argsort(d)[:WITNESS_PAIRS]
+        keep = keep[hit[keep]]
+        self._witness = np.stack([i[keep], j[keep]], 1)
+        return True
+
+    def _pairs_close(self, states, i, j, delta, distances: bool = False):
+        """Which triangle pairs (i, j) (global indices) may come within delta (mm) at states[0] or
+        along the straight move to states[1]: their exact distance at the start of the move less
+        the two triangles' largest corner moves (along a straight move no point of a triangle
+        travels farther than its farthest corner). With ``distances`` those distances (mm)."""
         x0 = states[0]
-        d = triangle_pair_distances(x0[f[i]], x0[f[j]])
+        fi, fj = self.faces[i], self.faces[j]
+        d = triangle_pair_distances(x0[fi], x0[fj])
         if len(states) > 1:
-            move = np.linalg.norm(states[1][f] - x0[f], axis=2).max(1)
-            d = d - move[i] - move[j]
-        return bool(np.any(d < delta))
+            x1 = states[1]
+            d = d - np.linalg.norm(x1[fi] - x0[fi], axis=2).max(1) - np.linalg.norm(x1[fj] - x0[fj], axis=2).max(1)
+        return d if distances else d < delta
 
     def _collisions(self, x):
-        """ipctk NormalCollisions at x, or None when the skip test settles it."""
+        """ipctk NormalCollisions at x, or None when the skip test settles it. The last state's
+        answer is kept: the solver evaluates the state it accepts again (gradient, Hessian), and
+        the edge-angle relaxation evaluates many states that share their positions."""
+        if self._last_state is not None and np.array_equal(self._last_state[0], x):
+            self.reuses += 1
+            return self._last_state[1]
         if not self.maybe_close(x):
             self.skips += 1
-            return None
-        ipctk = _ipctk()
-        mesh = self._collision_mesh()
-        self.builds += 1
-        c = ipctk.NormalCollisions()
-        c.build(mesh, np.asfortranarray(x), self.dhat, dmin=self.offset)
+            c = None
+        else:
+            ipctk = _ipctk()
+            mesh = self._collision_mesh()
+            self.builds += 1
+            c = ipctk.NormalCollisions()
+            c.build(mesh, np.asfortranarray(x), self.dhat, dmin=self.offset)
+        self._last_state = (np.array(x, float, copy=True), c)
         return c
 
     def _potential(self):

@@ -686,3 +686,38 @@ def test_skip_test_measures_layers_just_beyond_the_band_exactly(monkeypatch):
     monkeypatch.undo()
     skipped, touching = _skips_are_sound(c, sh, rng, 40, (3.0, 8.0), (0.45, 1.0), 0.05, 0.15)
     assert skipped > 5 and touching > 5, (skipped, touching)
+
+
+def test_witness_pairs_decide_a_sheet_in_contact_at_once_and_change_nothing(monkeypatch):
+    """The skip test's witnesses (the closest pairs its exact stage found within reach, measured
+    first at the next call) only shortcut a test that would fail: the strip_narrow example, whose
+    ends touch, takes the same iterations, energy, collision builds and skips with and without
+    them, and the witnesses decide most of the calls that build."""
+    from shellfem import contact as contact_module
+
+    def run():
+        pat = load_pattern("examples/strip_narrow.toml")
+        pat.contact = True
+        sim = simulate(pat)
+        c = sim.model.contact
+        return sim.result.iterations, sim.result.energy, c.builds, c.skips, c.witness_hits
+
+    with_w = run()
+    monkeypatch.setattr(contact_module, "WITNESS_PAIRS", 0)
+    without = run()
+    assert with_w[:4] == without[:4] and without[4] == 0
+    assert with_w[4] > with_w[2] / 2, with_w
+
+
+def test_a_witness_that_moved_apart_is_dropped_and_the_stages_decide():
+    """A roll whose layers touch (0.4 mm apart: inside offset 0.35 + band 0.0875 mm) is close by
+    the exact stage, which keeps witnesses; the same call again is decided by them; once the
+    layers are 0.75 mm apart the witnesses fail, are dropped, and the stages prove it apart."""
+    sh = mesh_pattern(_strip(L=60.0, W=6.0, size=1.5, stretch=(1.1, 1.0)))
+    c = Contact(sh.points, sh.triangles, 0.35, 1.1)
+    touching = _rolled(sh.points, 4.0, 0.4, 1.1)
+    assert c.maybe_close(touching) and c._witness is not None and len(c._witness) > 0
+    assert c.witness_hits == 0
+    assert c.maybe_close(touching) and c.witness_hits == 1
+    apart = _rolled(sh.points, 4.0, 0.75, 1.1)
+    assert not c.maybe_close(apart) and c._witness is None and c.witness_hits == 1
