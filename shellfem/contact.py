@@ -243,7 +243,7 @@ class Contact:
         if self.patch_reach < 0:
             return True          # a patch's own triangles may hold pairs that are not excluded
         if self._witness is not None:
-            if self._pairs_close(states, self._witness[:, 0], self._witness[:, 1], delta).any():
+            if (self._pair_distances(states, self._witness[:, 0], self._witness[:, 1]) < delta).any():
                 self.witness_hits += 1
                 return True
             self._witness = None
@@ -301,10 +301,10 @@ class Contact:
         if many:             # the collisions are built anyway; the closest pairs give witnesses
             near = np.flatnonzero(near)
             near = near[np.argpartition(gap[near], EXACT_STAGE_PAIRS // 10)[:EXACT_STAGE_PAIRS // 10]]
-        # third stage: the exact distance of the pairs left (see _pairs_close); the closest
+        # third stage: the exact distance of the pairs left (see _pair_distances); the closest
         # pairs within reach are kept as the next call's witnesses
         i, j = tri[i[near]], tri[j[near]]
-        d = self._pairs_close(states, i, j, delta, distances=True)
+        d = self._pair_distances(states, i, j)
         hit = d < delta
         if not hit.any():
             return many
@@ -313,18 +313,18 @@ class Contact:
         self._witness = np.stack([i[keep], j[keep]], 1)
         return True
 
-    def _pairs_close(self, states, i, j, delta, distances: bool = False):
-        """Which triangle pairs (i, j) (global indices) may come within delta (mm) at states[0] or
-        along the straight move to states[1]: their exact distance at the start of the move less
-        the two triangles' largest corner moves (along a straight move no point of a triangle
-        travels farther than its farthest corner). With ``distances`` those distances (mm)."""
+    def _pair_distances(self, states, i, j):
+        """A lower bound (mm) on the distance of the triangle pairs (i, j) (global indices) at
+        states[0] and along the straight move to states[1]: their exact distance at the start of
+        the move less the two triangles' largest corner moves (along a straight move no point of
+        a triangle travels farther than its farthest corner)."""
         x0 = states[0]
         fi, fj = self.faces[i], self.faces[j]
         d = triangle_pair_distances(x0[fi], x0[fj])
         if len(states) > 1:
             x1 = states[1]
             d = d - np.linalg.norm(x1[fi] - x0[fi], axis=2).max(1) - np.linalg.norm(x1[fj] - x0[fj], axis=2).max(1)
-        return d if distances else d < delta
+        return d
 
     def _collisions(self, x):
         """ipctk NormalCollisions at x, or None when the skip test settles it. The last state's
