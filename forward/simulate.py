@@ -21,7 +21,7 @@ from forward.outputs import write_cad, write_vtu
 from forward.supports import carry_support_motion, support_constraints
 from shellfem.boundary import (gauge_dofs, gauge_reaction, graph_laplacian, harmonic_extension, lifted_perturbation,
                                smooth_perturbation)
-from shellfem.layers import RHO_TRUNCATED
+from shellfem.layers import RHO_FOLDED, RHO_TRUNCATED
 from shellfem.model import ShellModel
 from shellfem.multilevel import prolongate
 from shellfem.sheet import Sheet
@@ -61,6 +61,21 @@ class Simulation:
         return dict(enabled=bool(c.self_contact), ground=c.ground, offset_mm=c.offset, band_mm=c.dhat,
                     exclusion_mm=c.exclusion_mm, **rep)
 
+    def fibre_report(self) -> dict:
+        """max_fibre_kz: the largest |k z| of a printed fibre; fold_stop: the printed triangles
+        bent past the thin-shell range (|k z| >= 0.9, RHO_TRUNCATED), where the layers' energy is
+        the truncated metric's and the fold stop holds them (shellfem.layers): their number, their
+        printed-state area (mm^2) and its share of the printed area."""
+        rho = self.model.fibre_bending(self.result.q)
+        held = rho >= RHO_TRUNCATED
+        P = self.sheet.points[self.sheet.triangles]
+        e1, e2 = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]
+        area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+        printed = self.model.quad.thick
+        return {"max_fibre_kz": float(np.sqrt(rho.max(initial=0.0))),
+                "fold_stop": {"triangles": int(held.sum()), "area_mm2": float(area[held].sum()),
+                              "share_of_print": float(area[held].sum() / area[printed].sum()) if held.any() else 0.0}}
+
     def summary(self) -> dict:
         x = self.positions
         r = self.result
@@ -77,8 +92,7 @@ class Simulation:
             "n_triangles": int(self.sheet.n_triangles),
             "n_dofs": int(self.model.n_dofs),
             "bbox_mm": [float(v) for v in (x.max(0) - x.min(0))],
-            **({"max_fibre_kz": float(np.sqrt(self.model.fibre_bending(r.q).max()))}
-               if hasattr(self.model, "fibre_bending") else {}),
+            **(self.fibre_report() if hasattr(self.model, "fibre_bending") else {}),
             "contact": {k: v for k, v in self.contact_report().items() if k != "in_contact"},
             "timings_s": {k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.timings.items()},
             **({"n_rod_edges": int(len(self.model.rods.edges)), "n_rod_stencils": int(len(self.model.rods.weight))}
@@ -387,12 +401,12 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
         total_it += result.iterations
         log_level(result, sheet.n_vertices, result.iterations, False, t_level, "exact")
         rho = model.fibre_bending(result.q)
-        folded = int(np.count_nonzero(rho >= RHO_TRUNCATED))
+        folded = int(np.count_nonzero(rho >= RHO_FOLDED))
         if result.converged and folded:
             result.converged = False
             result.reason = (f"{folded} printed triangles are bent to |k z| = {np.sqrt(rho.max()):.2f} (a fibre "
-                             f"shortened by more than {np.sqrt(RHO_TRUNCATED):.0%}, where the exact metric is "
-                             "faded out): a folded state, not an elastic equilibrium")
+                             f"shortened to zero length, past the fold stop at |k z| = {np.sqrt(RHO_TRUNCATED):.1f}): "
+                             "a folded state, not an elastic equilibrium")
     result.iterations = total_it
     if result.converged and len(fixed) and np.max(np.abs(result.q[fixed] - values)) > 1e-9 * (1.0 + np.abs(values).max()):
         result.converged = False

@@ -31,6 +31,10 @@ $PY -m pip install -q -c scripts/constraints.txt -e ".[test]" 2>&1 | grep -v -i 
 $PY -c "import shellfem, geometry, gmsh, skfem, pyvista; print('selfshape installed')"
 $PY -c "import sksparse.cholmod" 2>/dev/null && echo "CHOLMOD available" || echo "CHOLMOD not available"
 $PY -c "from shellfem.linalg import default_backend; print('sparse Cholesky used by the solver:', default_backend())"
+# drop numba caches of an earlier checkout: numba checks a cached kernel against its own
+# module's time stamp only, so a kernel that inlines a function of another module that has
+# changed since (shellfem.layers.layer_terms in shellfem.face_energy) would load stale code
+find shellfem geometry forward inverse validation selfshape -name '*.nbi' -delete -o -name '*.nbc' -delete 2>/dev/null || true
 # compile the numba kernels once (~20 s; cached beside the modules) so the first run is not slower
 $PY -c "
 import numpy as np

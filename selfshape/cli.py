@@ -153,8 +153,14 @@ def _cmd_simulate(a):
         via = " (" + " -> ".join(f"exact metric: {lv['iterations']}" if lv.get("metric") == "exact" and k else
                                  f"{lv['n_vertices']} vertices: {lv['iterations']}"
                                  for k, lv in enumerate(levels)) + ")"
+    fold = s.get("fold_stop") or {}
+    held = ""
+    if s["converged"] and fold.get("triangles"):     # a converged state that is locally past the thin shell
+        held = (f"; {fold['triangles']} printed triangles ({fold['area_mm2']:.2g} mm^2, "
+                f"{100 * fold['share_of_print']:.2g} % of the print) bent to the thin-shell limit |k z| 0.9, "
+                f"held there by the fold stop")
     print(f"{state} in {s['newton_iterations']} Newton iterations{via}, |grad| {s['gradient_norm']:.2e}, "
-          f"{s['n_vertices']} vertices, {s['wall_time_s']:.1f} s -> {a.output}")
+          f"{s['n_vertices']} vertices, {s['wall_time_s']:.1f} s{held} -> {a.output}")
     return 0 if s["converged"] else 1
 
 

@@ -242,6 +242,16 @@ def layer_scratch():
 #: metric's quadratic energy beyond.
 RHO_EXACT = 0.25
 RHO_TRUNCATED = 0.81
+#: Beyond RHO_TRUNCATED a printed triangle also carries the fold stop kappa x^3,
+#: x = (rho - RHO_TRUNCATED) / (RHO_FOLDED - RHO_TRUNCATED), kappa = sum over its layers of
+#: abar^T Q_aa abar = E A t / (2 (1 - nu)) (its membrane energy scale, N mm): the layers'
+#: St.Venant-Kirchhoff energy stops growing as a fibre is compressed towards zero length (and
+#: the fade removes the third-form stiffness), so without it a triangle past the fade bends on
+#: at almost no cost (a 50 x 35 mm sheet of stars_tube's stars creased single edge triangles to
+#: |k z| = 119 on a fine mesh). Real layers stiffen sharply there; the stop holds such a
+#: triangle near |k z| = 0.9 (x of a few per cent) and makes RHO_FOLDED (|k z| = 1, a fibre at zero
+#: length) unreachable but by forces of the order of the layers' membrane stiffness.
+RHO_FOLDED = 1.0
 
 
 @njit(cache=True, inline="always")
@@ -364,6 +374,33 @@ def third_form_derivatives(z, order, c, Jc, Hc):
 
 
 @njit(cache=True, inline="always")
+def _fold_stop(z, t0, t1, Qs, zbars, zm2, rho, order, Wz, Z, ds, Hs):
+    """The fold stop kappa x^3 of one triangle past the fade (RHO_FOLDED), N mm; adds its gradient
+    to Wz and its Hessian to Z (6, 6) like layer_terms. ds, Hs: scratch for the derivatives of
+    s = rho / zm2."""
+    kappa = 0.0
+    for t in range(t0, t1):
+        for k in range(3):
+            for l in range(3):
+                kappa += zbars[t, k] * Qs[t, k, l] * zbars[t, l]
+    width = RHO_FOLDED - RHO_TRUNCATED
+    x = (rho - RHO_TRUNCATED) / width
+    w = kappa * x * x * x
+    if order == 0:
+        return w
+    curvature_square(z, order, ds, Hs)
+    b1 = 3.0 * kappa * x * x * zm2 / width          # dW/ds
+    for i in range(6):
+        Wz[i] += b1 * ds[i]
+    if order == 2:
+        b2 = 6.0 * kappa * x * zm2 * zm2 / (width * width)   # d2W/ds2
+        for i in range(6):
+            for j in range(6):
+                Z[i, j] += b2 * ds[i] * ds[j] + b1 * Hs[i, j]
+    return w
+
+
+@njit(cache=True, inline="always")
 def layer_terms(z, t0, t1, Qs, zbars, Rs, cbars, thick, zlo, zhi, order, Wz, Z, work):
     """Energy of one triangle's layer terms t0..t1-1 at z (6,); adds the gradient to Wz (6,)
     (order >= 1) and, for exact-metric terms, the state-dependent part of the Hessian to Z
@@ -394,6 +431,8 @@ def layer_terms(z, t0, t1, Qs, zbars, Rs, cbars, thick, zlo, zhi, order, Wz, Z, 
     zm2 = max(zlo * zlo, zhi * zhi)
     rho = zm2 * curvature_square(z, 0, ds, Hs)
     if not rho < RHO_TRUNCATED:                   # (also NaN: a degenerate metric)
+        if rho > RHO_TRUNCATED:
+            w += _fold_stop(z, t0, t1, Qs, zbars, zm2, rho, order, Wz, Z, ds, Hs)
         return w
     phi, phi1, phi2 = 1.0, 0.0, 0.0               # phi and its derivatives in rho
     if rho > RHO_EXACT:

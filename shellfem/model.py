@@ -294,8 +294,9 @@ class ShellModel:
         zmax mm the layers' largest |z|, k_i 1/mm): the measure in which the exact metric's
         third-form terms fade (shellfem.layers.RHO_EXACT, RHO_TRUNCATED); sqrt(rho) bounds every
         fibre's |k z|. Above RHO_EXACT a fibre is shortened or lengthened by more than half (the
-        exact energy is faded there); at RHO_TRUNCATED and beyond the Kirchhoff body has folded
-        (no elastic equilibrium of a printed sheet)."""
+        exact energy is faded there); from RHO_TRUNCATED the fold stop holds the triangle (past
+        the thin-shell range); at RHO_FOLDED a fibre has zero length: the Kirchhoff body has
+        folded (no elastic equilibrium of a printed sheet)."""
         rho = np.zeros(self.sheet.n_triangles)
         thick = self.quad.thick
         if thick.any():

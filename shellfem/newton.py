@@ -55,6 +55,9 @@ from shellfem.corotational import RotationPath, rotate
 from shellfem.linalg import NotPositiveDefinite, SparseSPD
 from shellfem.relaxations import EdgeAngleRelaxation, StiffRegionRelaxation
 
+#: inner steps of the start's edge-angle relaxation (after an accepted step: the relaxation's 4)
+START_ANGLE_ITERATIONS = 50
+
 #: Default trust-region metric floor (see :func:`lm_metric`); [solver] metric_floor = 0 gives
 #: plain Marquardt scaling.
 DEFAULT_METRIC_FLOOR = 10.0
@@ -280,11 +283,11 @@ class _Newton:
         self.timings["printed_relaxations"] = self.stiff.calls
         return out
 
-    def _relaxed(self, q, E):
+    def _relaxed(self, q, E, max_iterations=None):
         if self.relax is None:
             return q
         t0 = time.perf_counter()
-        out = self.relax(q, max(abs(E), 1e-300))
+        out = self.relax(q, max(abs(E), 1e-300), max_iterations)
         self.timings["angle_relaxation"] = self.timings.get("angle_relaxation", 0.0) + time.perf_counter() - t0
         self.timings["angle_iterations"] = self.relax.iterations
         return out
@@ -341,7 +344,11 @@ class _Newton:
             if np.isfinite(E_flat):
                 q, E0 = flat, E_flat
         if np.isfinite(E0):
-            q = self._relaxed(q, E0)
+            # the start's angles to their minimum (the inner steps end there by themselves): a
+            # start with angles that kink it (0 on a curved target, an interpolated mesh) can
+            # hold printed triangles at the fold stop, whose cubic the 4 steps after every accepted
+            # step do not undo (a refine start: 37,121 -> 23,392 N mm in 4 steps, 16.97 in 50)
+            q = self._relaxed(q, E0, START_ANGLE_ITERATIONS)
         self.q = q
         if self.contact is not None:
             self._contact_start()

@@ -37,8 +37,9 @@ class EdgeAngleRelaxation:
         self.iterations = 0
         self._shift = 0.0          # last shift that made the inner Hessian positive definite
 
-    def __call__(self, q, energy_scale: float):
-        """q with its free angles relaxed (never with a higher energy)."""
+    def __call__(self, q, energy_scale: float, max_iterations: int | None = None):
+        """q with its free angles relaxed (never with a higher energy); at most max_iterations
+        inner steps (default: the instance's)."""
         if not self.free.any():
             return q
         problem = self.model.edge_angle_problem(q)
@@ -46,7 +47,7 @@ class EdgeAngleRelaxation:
         E, g_all, blocks = problem.evaluate(theta)
         if not np.isfinite(E):
             return q
-        for _ in range(self.max_iterations):
+        for _ in range(self.max_iterations if max_iterations is None else max_iterations):
             g = g_all[self.free]
             H = self.scatter.matrix([blocks])
             factor, self._shift = _factor_shifted(self.solver, H, self.scatter.upper, self._shift)

@@ -33,7 +33,8 @@ def thickness_form(model: ShellModel, fabric, plastic, exact_metric: bool | None
     printed on both faces cannot take one thickness parameter: SelfshapeError. Exact where the
     third-form terms carry their full weight (shellfem.layers.RHO_EXACT: every fibre within
     |z k| <= 0.5, as at every equilibrium); in the fade before a focal point it is the
-    derivative of the unfaded exact-metric energy."""
+    derivative of the unfaded exact-metric energy, and past it that of the energy without the
+    fold stop (shellfem.layers.RHO_FOLDED)."""
     sheet = model.sheet
     if ((sheet.thickness_front > 0) & (sheet.thickness_back > 0)).any():
         raise SelfshapeError("thickness sensitivity: a triangle is printed on both faces; "

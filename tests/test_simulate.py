@@ -278,14 +278,36 @@ def test_fibre_bending_is_the_measure_the_exact_metric_fades_in():
 
 
 def test_a_folded_result_is_not_converged(monkeypatch):
-    """A state bent past |k z| = 0.9 on a printed triangle (the exact metric faded out: the
-    Kirchhoff body has folded) is reported as not converged, with the reason."""
+    """A state bent past |k z| = 1 on a printed triangle (a fibre at zero length, past the fold
+    stop: the Kirchhoff body has folded) is reported as not converged, with the reason."""
     from forward.simulate import simulate_sheet
     from shellfem.model import ShellModel
     monkeypatch.setattr(ShellModel, "fibre_bending", lambda self, q: np.full(self.sheet.n_triangles, 1.44))
     sim = simulate_sheet(_printed(Sheet.rectangle(30.0, 3.0, 30, 3), 0.3), Fabric(stretch=(1.35, 1.0)), Plastic(), [],
                          max_iterations=200)
     assert not sim.result.converged and "folded" in sim.result.reason and "1.20" in sim.result.reason
+
+
+def test_triangles_held_by_the_fold_stop_are_reported_not_failed(monkeypatch):
+    """Between the thin-shell limit |k z| = 0.9 and the fold |k z| = 1 a printed triangle is held
+    by the fold stop (shellfem.layers): the state converges, and summary.json's fold_stop says how
+    many triangles, how much area and which share of the print are held there."""
+    from forward.simulate import simulate_sheet
+    from shellfem.model import ShellModel
+    real = ShellModel.fibre_bending
+
+    def bent(self, q):                   # the real measure, with two printed triangles held
+        rho = real(self, q)
+        rho[np.flatnonzero(self.quad.thick)[:2]] = 0.9 ** 2 + 0.01
+        return rho
+    monkeypatch.setattr(ShellModel, "fibre_bending", bent)
+    sheet = _printed(Sheet.rectangle(30.0, 3.0, 30, 3), 0.3)
+    sim = simulate_sheet(sheet, Fabric(stretch=(1.35, 1.0)), Plastic(), [], max_iterations=200)
+    assert sim.result.converged
+    fold = sim.summary()["fold_stop"]
+    assert fold["triangles"] == 2 and fold["area_mm2"] == pytest.approx(2 * 0.5, rel=1e-12)
+    assert fold["share_of_print"] == pytest.approx(2.0 / sheet.n_triangles, rel=1e-12)
+    assert sim.summary()["max_fibre_kz"] == pytest.approx(np.sqrt(0.82), rel=1e-12)
 
 
 def test_nothing_to_release_converges_and_a_stop_says_why(tmp_path, capsys):

@@ -346,12 +346,17 @@ def test_third_form_terms_fade_smoothly_before_a_focal_point():
         return form.evaluate(z, 0)[0][0]
 
     assert abs(W(state(0.2499)) - W(state(0.2499), qt)) > 1e-3 * W(state(0.2499), qt)   # exact: differs
+    # beyond: the truncated energy and the fold stop kappa x^3, kappa = sum E t A / (2 (1 - nu))
+    # over the layers (A = 1/2 mm^2 for this abar), x = (rho - 0.81) / 0.19
+    kappa = (1.0 * 0.8 / (2 * 0.7) + 100.0 * 0.3 / (2 * 0.5)) / 2
     for rho in (0.8101, 1.5, 0.49 * 1.09 / 0.55 ** 2):
-        assert W(state(rho)) == pytest.approx(W(state(rho), qt), rel=1e-12)
+        stop = kappa * ((rho - 0.81) / 0.19) ** 3
+        assert W(state(rho)) == pytest.approx(W(state(rho), qt) + stop, rel=1e-12)
     z = np.array([[1.0, 0.0, 1.0, 2 / 0.55, 0.0, 0.0]])           # the spurious well of the plastic
-    assert W(z) == pytest.approx(W(z, qt), rel=1e-12)
-    for edge in (0.25, 0.81):                                      # continuous across both ends
-        lo, hi = qf.evaluate(state(edge - 1e-9)), qf.evaluate(state(edge + 1e-9))
+    rho = 0.49 * (2 / 0.55) ** 2
+    assert W(z) == pytest.approx(W(z, qt) + kappa * ((rho - 0.81) / 0.19) ** 3, rel=1e-12)
+    for edge, gap in ((0.25, 1e-9), (0.81, 1e-12)):    # continuous across both ends (the stop's H' ~ 1e4)
+        lo, hi = qf.evaluate(state(edge - gap)), qf.evaluate(state(edge + gap))
         for a, b in zip(lo, hi):
             assert np.allclose(a, b, rtol=1e-6, atol=1e-9 * np.abs(a).max())
     rng = np.random.default_rng(3)
@@ -365,3 +370,43 @@ def test_third_form_terms_fade_smoothly_before_a_focal_point():
         assert np.abs(H[0] - H[0].T).max() < 1e-13 * np.abs(H).max()
         _, gt, _ = qt.evaluate(z[None])
         assert np.abs(g - gt).max() > 1e-3 * np.abs(g).max()          # the blend is not the truncation
+
+
+def test_the_fold_stop_is_smooth_and_holds_a_triangle_before_a_focal_point():
+    """Past the fade (rho > 0.81) a printed triangle carries the fold stop kappa x^3: its
+    energy, gradient and Hessian equal central differences there, join the fade's at rho = 0.81
+    (C2: x^3 starts with zero value, slope and curvature), and along a cylindrical bend the
+    energy rises past the fade and exceeds the truncated energy by the layers' membrane energy
+    scale kappa at the focal point (|k z| = 1)."""
+    abar = np.array([[1.0, 0.0, 1.0]])
+    qf, qt = layers.QuadraticForm(1), layers.QuadraticForm(1)
+    for form, exact in ((qf, True), (qt, False)):
+        form.add(*layers.layer_form(abar, np.zeros((1, 3)), 1.05, 0.3, -0.4, 0.4, exact_metric=exact))
+        form.add(*layers.layer_form(abar, np.zeros((1, 3)), 72.3, 0.5, 0.4, 0.7, exact_metric=exact))
+    kappa = (1.05 * 0.8 / (2 * 0.7) + 72.3 * 0.3 / (2 * 0.5)) / 2
+
+    def state(k, ratio=0.3):          # principal curvatures ratio k and k: rho = 0.49 (1 + ratio^2) k^2
+        return np.array([[1.0, 0.0, 1.0, ratio * k, 0.0, k]])
+
+    def k_of(rho, ratio=0.3):
+        return np.sqrt(rho / (0.49 * (1 + ratio ** 2)))
+
+    lo, hi = qf.evaluate(state(k_of(0.81 - 1e-12))), qf.evaluate(state(k_of(0.81 + 1e-12)))
+    for a, b in zip(lo, hi):
+        assert np.allclose(a, b, rtol=1e-6, atol=1e-9 * np.abs(a).max())
+    rng = np.random.default_rng(5)
+    for rho in (0.83, 0.95, 1.5):
+        z = (state(k_of(rho)) + rng.normal(scale=0.005, size=(1, 6)))[0]
+        _, g, H = qf.evaluate(z[None])
+        _, gt, Ht = qt.evaluate(z[None])
+        gn = central_difference(lambda x: qf.evaluate(x[None], 0)[0][0], z)
+        Hn = central_difference(lambda x: qf.evaluate(x[None], 1)[1][0], z)
+        assert np.abs(g[0] - gn).max() < 1e-7 * np.abs(g).max()
+        assert np.abs(H[0] - Hn).max() < 1e-6 * np.abs(H).max()
+        assert np.abs(H[0] - H[0].T).max() < 1e-13 * np.abs(H).max()
+        assert np.abs(g - gt).max() > 1e-3 * np.abs(g).max()         # the stop is in the derivatives
+    # along a cylindrical bend (ratio 0) the energy rises through the fade and past it
+    ks = np.linspace(0.0, k_of(1.0, 0.0), 400)
+    Ws = np.array([qf.evaluate(state(k, 0.0), 0)[0][0] for k in ks])
+    assert np.all(np.diff(Ws[ks > 0.3]) > 0)
+    assert Ws[-1] - qt.evaluate(state(ks[-1], 0.0), 0)[0][0] == pytest.approx(kappa, rel=1e-9)
