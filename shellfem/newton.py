@@ -57,6 +57,10 @@ from shellfem.relaxations import EdgeAngleRelaxation, StiffRegionRelaxation
 
 #: inner steps of the start's edge-angle relaxation (after an accepted step: the relaxation's 4)
 START_ANGLE_ITERATIONS = 50
+#: a contact solve has stalled when STALL_ITERATIONS accepted iterations, each with a trial cut
+#: by the collision filter on average, moved the sheet by less than STALL_MOVE x the offset in all
+STALL_ITERATIONS = 30
+STALL_MOVE = 0.01
 
 #: Default trust-region metric floor (see :func:`lm_metric`); [solver] metric_floor = 0 gives
 #: plain Marquardt scaling.
@@ -267,6 +271,8 @@ class _Newton:
         self.g = self.H = self.D = self.factor = self.tol = None
         self.exact = self.projected = False
         self.floor_steps = 0            # consecutive Newton steps at round-off with |g| above tol
+        self._stall = []                # contact: per accepted iteration (largest vertex move mm, cuts so far)
+        self._x_accepted = None
 
     # --- helpers -----------------------------------------------------------------------
     def _result(self, converged: bool, it: int, energy=None) -> SolveResult:
@@ -448,13 +454,40 @@ class _Newton:
         return self._monitored()
 
     def _monitored(self):
-        """_NEXT, or _STOP with the monitor's reason when it asks to stop at the new iterate."""
+        """_NEXT, or _STOP with the monitor's reason when it asks to stop at the new iterate, or
+        when a contact solve has stalled (:meth:`_stalled`)."""
+        if self.contact is not None and self._stalled():
+            return _STOP
         if self.opts.monitor is not None:
             why = self.opts.monitor(self.q)
             if why:
                 self.reason = str(why)
                 return _STOP
         return _NEXT
+
+    def _stalled(self) -> bool:
+        """True (with the reason set) when the last STALL_ITERATIONS accepted iterations together
+        moved no vertex by more than STALL_MOVE x the contact offset while the collision filter cut
+        at least one trial per iteration: the iterate creeps along layers held at the offset by
+        steps the filter cuts to ~1e-10 of the Newton step, lowering the energy by ~1e-5 of itself
+        per 10 iterations (stars_tube's coarse level crept like that for 290 iterations, where
+        without contact its trust region collapsed after 84)."""
+        x = self.model.split(self.q)[0]
+        move = 0.0 if self._x_accepted is None else float(np.abs(x - self._x_accepted).max())
+        self._x_accepted = x.copy()
+        self._stall.append((move, self.timings.get("contact_cuts", 0)))
+        if len(self._stall) <= STALL_ITERATIONS:
+            return False
+        window = self._stall[-STALL_ITERATIONS:]
+        moved = sum(m for m, _ in window)
+        cuts = window[-1][1] - self._stall[-STALL_ITERATIONS - 1][1]
+        offset = float(getattr(self.contact, "offset", 0.0) or 0.0)
+        if cuts >= STALL_ITERATIONS and moved < STALL_MOVE * offset:
+            self.reason = (f"stalled against contact: the last {STALL_ITERATIONS} iterations moved the sheet by "
+                           f"{moved:.2g} mm in all ({cuts} steps cut by the collision filter), gradient norm "
+                           f"{self.gnorm:.3e}")
+            return True
+        return False
 
     def _converged(self, it, step, reason, lam=0.0):
         """The converged SolveResult at the current iterate, its last history entry and ``reason``."""

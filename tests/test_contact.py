@@ -721,3 +721,31 @@ def test_a_witness_that_moved_apart_is_dropped_and_the_stages_decide():
     assert c.maybe_close(touching) and c.witness_hits == 1
     apart = _rolled(sh.points, 4.0, 0.75, 1.1)
     assert not c.maybe_close(apart) and c._witness is None and c.witness_hits == 1
+
+
+def test_a_contact_solve_creeping_against_the_collision_filter_stops_stalled():
+    """A contact solve whose accepted iterations each had a trial cut by the collision filter and
+    together moved the sheet by less than 1 % of the offset over STALL_ITERATIONS iterations stops,
+    not converged, with the reason (stars_tube's coarse level crept like that for 290 iterations);
+    one that moved or was not cut goes on."""
+    from shellfem.newton import STALL_ITERATIONS, NewtonOptions, _Newton
+    sim = simulate(load_pattern("examples/strip_narrow.toml"))
+    free = np.ones(sim.model.n_dofs, bool)
+    free[np.concatenate([sim.fixed, sim.gauge]).astype(int)] = False
+
+    def run(cut_per_iteration, move_mm):
+        state = _Newton(sim.model, sim.result.q, free, NewtonOptions())
+        state.timings["contact_cuts"] = 0
+        for k in range(STALL_ITERATIONS + 1):
+            state.q = state.q.copy()
+            state.q[0] += move_mm                      # one coordinate of one vertex moves
+            state.timings["contact_cuts"] += cut_per_iteration
+            if state._stalled():
+                return k, state.reason
+        return None, state.reason
+
+    offset = sim.model.contact.offset
+    k, reason = run(2, 1e-3 * offset / STALL_ITERATIONS)
+    assert k == STALL_ITERATIONS and reason.startswith("stalled against contact") and "60 steps cut" in reason
+    assert run(2, 0.02 * offset / STALL_ITERATIONS)[0] is None           # it moves: not stalled
+    assert run(0, 0.0)[0] is None                                          # nothing cut: not this stall
