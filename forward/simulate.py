@@ -19,6 +19,7 @@ import numpy as np
 from shellfem.errors import SelfshapeError, check_number
 from forward.outputs import write_cad, write_vtu
 from forward.supports import carry_support_motion, support_constraints
+from geometry.meshops import signed_areas
 from shellfem.boundary import (gauge_dofs, gauge_reaction, graph_laplacian, harmonic_extension, lifted_perturbation,
                                smooth_perturbation)
 from shellfem.layers import RHO_FOLDED, RHO_TRUNCATED
@@ -68,9 +69,7 @@ class Simulation:
         printed-state area (mm^2) and its share of the printed area."""
         rho = self.model.fibre_bending(self.result.q)
         held = rho >= RHO_TRUNCATED
-        P = self.sheet.points[self.sheet.triangles]
-        e1, e2 = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]
-        area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+        area = np.abs(signed_areas(self.sheet.points, self.sheet.triangles))
         printed = self.model.quad.thick
         return {"max_fibre_kz": float(np.sqrt(rho.max(initial=0.0))),
                 "fold_stop": {"triangles": int(held.sum()), "area_mm2": float(area[held].sum()),

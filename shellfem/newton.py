@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import functools
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -271,7 +272,8 @@ class _Newton:
         self.g = self.H = self.D = self.factor = self.tol = None
         self.exact = self.projected = False
         self.floor_steps = 0            # consecutive Newton steps at round-off with |g| above tol
-        self._stall = []                # contact: per accepted iteration (largest vertex move mm, cuts so far)
+        # contact: per accepted iteration (largest vertex move mm, cuts so far), the last window's
+        self._stall = deque(maxlen=STALL_ITERATIONS + 1)
         self._x_accepted = None
 
     # --- helpers -----------------------------------------------------------------------
@@ -478,9 +480,8 @@ class _Newton:
         self._stall.append((move, self.timings.get("contact_cuts", 0)))
         if len(self._stall) <= STALL_ITERATIONS:
             return False
-        window = self._stall[-STALL_ITERATIONS:]
-        moved = sum(m for m, _ in window)
-        cuts = window[-1][1] - self._stall[-STALL_ITERATIONS - 1][1]
+        moved = sum(m for m, _ in list(self._stall)[1:])
+        cuts = self._stall[-1][1] - self._stall[0][1]
         offset = float(getattr(self.contact, "offset", 0.0) or 0.0)
         if cuts >= STALL_ITERATIONS and moved < STALL_MOVE * offset:
             self.reason = (f"stalled against contact: the last {STALL_ITERATIONS} iterations moved the sheet by "

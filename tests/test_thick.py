@@ -324,6 +324,24 @@ def test_thickness_sensitivity_on_a_rolled_thick_sheet():
         assert abs(dEt[j] - fd_E) > 1e-3 * abs(fd_E)
 
 
+def _assert_continuous(form, z_lo, z_hi):
+    """Energy, gradient and Hessian of ``form`` agree at two states either side of a joint."""
+    for a, b in zip(form.evaluate(z_lo), form.evaluate(z_hi)):
+        assert np.allclose(a, b, rtol=1e-6, atol=1e-9 * np.abs(a).max())
+
+
+def _assert_derivatives_at(form, z):
+    """The gradient and Hessian of a one-triangle ``form`` at z (6,) equal central differences
+    and the Hessian is symmetric; returns the gradient (1, 6)."""
+    _, g, H = form.evaluate(z[None])
+    gn = central_difference(lambda x: form.evaluate(x[None], 0)[0][0], z)
+    Hn = central_difference(lambda x: form.evaluate(x[None], 1)[1][0], z)
+    assert np.abs(g[0] - gn).max() < 1e-7 * np.abs(g).max()
+    assert np.abs(H[0] - Hn).max() < 1e-6 * np.abs(H).max()
+    assert np.abs(H[0] - H[0].T).max() < 1e-13 * np.abs(H).max()
+    return g
+
+
 def test_third_form_terms_fade_smoothly_before_a_focal_point():
     """The Kirchhoff body x + z n folds where 1 - z k_i <= 0 inside a layer, and there the exact
     energy has spurious wells (a fibre at z k = 2 has its length back). The third-form terms are
@@ -356,18 +374,11 @@ def test_third_form_terms_fade_smoothly_before_a_focal_point():
     rho = 0.49 * (2 / 0.55) ** 2
     assert W(z) == pytest.approx(W(z, qt) + kappa * ((rho - 0.81) / 0.19) ** 3, rel=1e-12)
     for edge, gap in ((0.25, 1e-9), (0.81, 1e-12)):    # continuous across both ends (the stop's H' ~ 1e4)
-        lo, hi = qf.evaluate(state(edge - gap)), qf.evaluate(state(edge + gap))
-        for a, b in zip(lo, hi):
-            assert np.allclose(a, b, rtol=1e-6, atol=1e-9 * np.abs(a).max())
+        _assert_continuous(qf, state(edge - gap), state(edge + gap))
     rng = np.random.default_rng(3)
     for rho in (0.3, 0.5, 0.7):
         z = (state(rho) + rng.normal(scale=0.01, size=(1, 6)))[0]
-        _, g, H = qf.evaluate(z[None])
-        gn = central_difference(lambda x: qf.evaluate(x[None], 0)[0][0], z)
-        Hn = central_difference(lambda x: qf.evaluate(x[None], 1)[1][0], z)
-        assert np.abs(g[0] - gn).max() < 1e-7 * np.abs(g).max()
-        assert np.abs(H[0] - Hn).max() < 1e-6 * np.abs(H).max()
-        assert np.abs(H[0] - H[0].T).max() < 1e-13 * np.abs(H).max()
+        g = _assert_derivatives_at(qf, z)
         _, gt, _ = qt.evaluate(z[None])
         assert np.abs(g - gt).max() > 1e-3 * np.abs(g).max()          # the blend is not the truncation
 
@@ -391,19 +402,12 @@ def test_the_fold_stop_is_smooth_and_holds_a_triangle_before_a_focal_point():
     def k_of(rho, ratio=0.3):
         return np.sqrt(rho / (0.49 * (1 + ratio ** 2)))
 
-    lo, hi = qf.evaluate(state(k_of(0.81 - 1e-12))), qf.evaluate(state(k_of(0.81 + 1e-12)))
-    for a, b in zip(lo, hi):
-        assert np.allclose(a, b, rtol=1e-6, atol=1e-9 * np.abs(a).max())
+    _assert_continuous(qf, state(k_of(0.81 - 1e-12)), state(k_of(0.81 + 1e-12)))
     rng = np.random.default_rng(5)
     for rho in (0.83, 0.95, 1.5):
         z = (state(k_of(rho)) + rng.normal(scale=0.005, size=(1, 6)))[0]
-        _, g, H = qf.evaluate(z[None])
-        _, gt, Ht = qt.evaluate(z[None])
-        gn = central_difference(lambda x: qf.evaluate(x[None], 0)[0][0], z)
-        Hn = central_difference(lambda x: qf.evaluate(x[None], 1)[1][0], z)
-        assert np.abs(g[0] - gn).max() < 1e-7 * np.abs(g).max()
-        assert np.abs(H[0] - Hn).max() < 1e-6 * np.abs(H).max()
-        assert np.abs(H[0] - H[0].T).max() < 1e-13 * np.abs(H).max()
+        g = _assert_derivatives_at(qf, z)
+        _, gt, _ = qt.evaluate(z[None])
         assert np.abs(g - gt).max() > 1e-3 * np.abs(g).max()         # the stop is in the derivatives
     # along a cylindrical bend (ratio 0) the energy rises through the fade and past it
     ks = np.linspace(0.0, k_of(1.0, 0.0), 400)
