@@ -60,7 +60,9 @@ class RefineOptions:
     branch and it is crossing to another state (0: never). A trial that stays on the branch
     converges from the prediction in Newton steps after at most a few shifted ones.
     stability: the stability margin (:class:`StabilityMargin`) as a fraction of the start
-    equilibrium's lowest eigenvalue (0: no margin; the eigenvalue is recorded either way);
+    equilibrium's lowest eigenvalue (0: no margin; the eigenvalue is recorded either way). On by
+    default (0.5): without it the refinement walks these soft sheets towards a fold, where every
+    trial step leaves the branch and the trust region collapses (docs/notes.md, session 30);
     stability_weight: its penalty at a fold, in units of the start's objective."""
     bounds: tuple = (0.1, 1.6)
     max_outer: int = 12
@@ -73,7 +75,7 @@ class RefineOptions:
     leave_factor: float = 1.25
     shifted_run: int = 6
     shifted_grace: int = 3
-    stability: float = 0.0
+    stability: float = 0.5
     stability_weight: float = 1.0
     verbose: bool = False
 

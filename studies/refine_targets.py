@@ -140,7 +140,7 @@ def main(argv=None) -> int:
     ap.add_argument("--across", type=float, default=1.0, help="[mesh] across: triangle rows across a ribbon")
     ap.add_argument("--verify-iterations", type=int, default=3000, help="Newton cap of the release from flat")
     ap.add_argument("--max-outer", type=int, default=12, help="outer (Gauss-Newton) iterations")
-    ap.add_argument("--stability", type=float, default=0.0,
+    ap.add_argument("--stability", type=float, default=0.5,
                     help="stability margin: keep the lowest eigenvalue above this fraction of the start's (0: off)")
     ap.add_argument("--layer", type=float, default=0.2, help="printer layer height (mm), without --printer")
     ap.add_argument("--printer", help="printer file (TOML), e.g. inverse/data/printers/layer_0.1mm.toml")
