@@ -47,6 +47,7 @@ import functools
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from itertools import islice
 
 import numpy as np
 from threadpoolctl import ThreadpoolController
@@ -272,7 +273,8 @@ class _Newton:
         self.g = self.H = self.D = self.factor = self.tol = None
         self.exact = self.projected = False
         self.floor_steps = 0            # consecutive Newton steps at round-off with |g| above tol
-        # contact: per accepted iteration (largest vertex move mm, cuts so far), the last window's
+        # contact: per accepted iteration (largest vertex move mm, cuts so far), kept for the last
+        # STALL_ITERATIONS and the one before them (whose cut count the window's is counted from)
         self._stall = deque(maxlen=STALL_ITERATIONS + 1)
         self._x_accepted = None
 
@@ -480,7 +482,7 @@ class _Newton:
         self._stall.append((move, self.timings.get("contact_cuts", 0)))
         if len(self._stall) <= STALL_ITERATIONS:
             return False
-        moved = sum(m for m, _ in list(self._stall)[1:])
+        moved = sum(m for m, _ in islice(self._stall, 1, None))
         cuts = self._stall[-1][1] - self._stall[0][1]
         offset = float(getattr(self.contact, "offset", 0.0) or 0.0)
         if cuts >= STALL_ITERATIONS and moved < STALL_MOVE * offset:

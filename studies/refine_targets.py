@@ -132,6 +132,7 @@ def main(argv=None) -> int:
     from selfshape.progress import StatusLine
     from shellfem.cluster import check_options
     from shellfem.errors import SelfshapeError
+    from inverse.refine import RefineOptions
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("names", nargs="*", help="target names in meshes/targets, analytic targets ("
                     + ", ".join(ANALYTIC_TARGETS) + "), or paths of other target meshes (default: all shipped targets)")
@@ -140,7 +141,7 @@ def main(argv=None) -> int:
     ap.add_argument("--across", type=float, default=1.0, help="[mesh] across: triangle rows across a ribbon")
     ap.add_argument("--verify-iterations", type=int, default=3000, help="Newton cap of the release from flat")
     ap.add_argument("--max-outer", type=int, default=12, help="outer (Gauss-Newton) iterations")
-    ap.add_argument("--stability", type=float, default=0.5,
+    ap.add_argument("--stability", type=float, default=RefineOptions.stability,
                     help="stability margin: keep the lowest eigenvalue above this fraction of the start's (0: off)")
     ap.add_argument("--layer", type=float, default=0.2, help="printer layer height (mm), without --printer")
     ap.add_argument("--printer", help="printer file (TOML), e.g. inverse/data/printers/layer_0.1mm.toml")
