@@ -35,7 +35,7 @@ LEFT_BRANCH = "left the branch"
 class RefineOptions:
     """Choices of the refinement (mm). bounds: printable thickness range [lo, hi] (mm).
     max_outer: cap on
-    outer (Gauss-Newton) iterations. ftol: stop when an accepted step lowers J by less than
+    outer (Gauss-Newton) iterations; ftol ends most runs before it. ftol: stop when an accepted step lowers J by less than
     this fraction (J is a mean squared distance: 1 % of J is 0.5 % of the RMS distance, below
     what the rounding to layers moves; each further outer iteration costs a sensitivity and a
     trial solve). newton_iterations: cap of each equilibrium solve; start_iterations: cap of
@@ -65,7 +65,7 @@ class RefineOptions:
     trial step leaves the branch and the trust region collapses (docs/notes.md, session 30);
     stability_weight: its penalty at a fold, in units of the start's objective."""
     bounds: tuple = (0.1, 1.6)
-    max_outer: int = 12
+    max_outer: int = 24
     ftol: float = 1e-2
     newton_iterations: int = 400
     trial_iterations: int = 100

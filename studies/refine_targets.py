@@ -16,7 +16,7 @@ ADDRESS; they need this repository on their PYTHONPATH and the output folder on 
 system). The JSON lines come as the targets finish; the summary lists them in the order asked.
 On a terminal a status line on stderr counts the targets done and the time left (-q hides it).
 
-    python studies/refine_targets.py [--mesh-size 3] [--across 1] [--max-outer 12] [--stretch 1.2]
+    python studies/refine_targets.py [--mesh-size 3] [--across 1] [--max-outer 24] [--stretch 1.2]
                                      [--printer inverse/data/printers/layer_0.1mm.toml]
                                      [--verify-iterations 3000] [--out out/refine]
                                      [--workers N | --scheduler ADDRESS] [-q] [names or paths...]
@@ -140,7 +140,7 @@ def main(argv=None) -> int:
     ap.add_argument("--mesh-size", type=float, default=3.0, help="[mesh] size_mm of the simulation (mm)")
     ap.add_argument("--across", type=float, default=1.0, help="[mesh] across: triangle rows across a ribbon")
     ap.add_argument("--verify-iterations", type=int, default=3000, help="Newton cap of the release from flat")
-    ap.add_argument("--max-outer", type=int, default=12, help="outer (Gauss-Newton) iterations")
+    ap.add_argument("--max-outer", type=int, default=RefineOptions.max_outer, help="outer (Gauss-Newton) iterations")
     ap.add_argument("--stability", type=float, default=RefineOptions.stability,
                     help="stability margin: keep the lowest eigenvalue above this fraction of the start's (0: off)")
     ap.add_argument("--layer", type=float, default=0.2, help="printer layer height (mm), without --printer")
