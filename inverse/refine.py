@@ -34,31 +34,31 @@ LEFT_BRANCH = "left the branch"
 @dataclass(frozen=True)
 class RefineOptions:
     """Choices of the refinement (mm). bounds: printable thickness range [lo, hi] (mm).
-    max_outer: cap on
-    outer (Gauss-Newton) iterations; ftol ends most runs before it. ftol: stop when an accepted step lowers J by less than
-    this fraction (J is a mean squared distance: 1 % of J is 0.5 % of the RMS distance, below
-    what the rounding to layers moves; each further outer iteration costs a sensitivity and a
-    trial solve). newton_iterations: cap of each equilibrium solve; start_iterations: cap of
-    the first one (from the caller's start, e.g. the target itself), which the caller may retry
-    from another start. max_step: largest thickness change of one outer iteration (mm): the
-    warm-started solves stay short and the Gauss-Newton model valid; it is also the largest
-    trust radius: a rejected trial halves the radius to half its step's largest change (the
-    damping alone does not shorten a step whose changes sit at the radius: the bounded
-    least-squares step keeps them there until the damping outweighs the model) and remembers
-    that change as a ceiling; an accepted trial that the model predicted well (rho > 0.75)
-    raises the ceiling by a quarter and grows the radius to at most twice itself and at most
-    the geometric mean of itself and the ceiling (a step as long as one that just left the
-    branch is likely to leave it again, and each rejected trial costs a long solve). damping: initial
-    Levenberg-Marquardt weight relative to the Gauss-Newton matrix's mean diagonal.
-    leave_factor: a trial solve is stopped once its iterate's objective exceeds this times the
-    current J: it is heading into another state (these sheets are multistable), and finishing
-    that long solve only to reject the step costs more than the rest of the outer iteration;
-    the trial counts as rejected. shifted_run: a trial solve is also stopped once this many
-    consecutive iterations (after its first ``shifted_grace``) were Levenberg-Marquardt steps
-    (a shifted Hessian: indefinite, or a full Newton step that did not lower the energy) while
-    its iterate's objective is above the current J: the prediction put it beyond a fold of the
-    branch and it is crossing to another state (0: never). A trial that stays on the branch
-    converges from the prediction in Newton steps after at most a few shifted ones.
+    max_outer: cap on outer (Gauss-Newton) iterations; ftol ends most runs before it. ftol: stop
+    when an accepted step lowers J by less than this fraction (J is a mean squared distance: 1 %
+    of J is 0.5 % of the RMS distance, below what the rounding to layers moves; each further
+    outer iteration costs a sensitivity and a trial solve). newton_iterations: cap of each
+    equilibrium solve; start_iterations: cap of the first one (from the caller's start, e.g. the
+    target itself), which the caller may retry from another start. max_step: largest thickness
+    change of one outer iteration (mm): the warm-started solves stay short and the Gauss-Newton
+    model valid; it is also the largest trust radius: a rejected trial halves the radius to half
+    its step's largest change (the damping alone does not shorten a step whose changes sit at
+    the radius: the bounded least-squares step keeps them there until the damping outweighs the
+    model) and remembers that change as a ceiling; an accepted trial that the model predicted
+    well (rho > 0.75) raises the ceiling by a quarter and grows the radius to at most twice
+    itself and at most the geometric mean of itself and the ceiling (a step as long as one that
+    just left the branch is likely to leave it again, and each rejected trial costs a long
+    solve). damping: initial Levenberg-Marquardt weight relative to the Gauss-Newton matrix's
+    mean diagonal. leave_factor: a trial solve is stopped once its iterate's objective exceeds
+    this times the current J: it is heading into another state (these sheets are multistable),
+    and finishing that long solve only to reject the step costs more than the rest of the outer
+    iteration; the trial counts as rejected. shifted_run: a trial solve is also stopped once
+    this many consecutive iterations (after its first ``shifted_grace``) were
+    Levenberg-Marquardt steps (a shifted Hessian: indefinite, or a full Newton step that did not
+    lower the energy) while its iterate's objective is above the current J: the prediction put
+    it beyond a fold of the branch and it is crossing to another state (0: never). A trial that
+    stays on the branch converges from the prediction in Newton steps after at most a few
+    shifted ones.
     stability: the stability margin (:class:`StabilityMargin`) as a fraction of the start
     equilibrium's lowest eigenvalue (0: no margin; the eigenvalue is recorded either way). On by
     default (0.5): without it the refinement walks these soft sheets towards a fold, where every

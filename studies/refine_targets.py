@@ -16,7 +16,7 @@ ADDRESS; they need this repository on their PYTHONPATH and the output folder on 
 system). The JSON lines come as the targets finish; the summary lists them in the order asked.
 On a terminal a status line on stderr counts the targets done and the time left (-q hides it).
 
-    python studies/refine_targets.py [--mesh-size 3] [--across 1] [--max-outer 24] [--stretch 1.2]
+    python studies/refine_targets.py [--mesh-size 3] [--across 1] [--max-outer N] [--stretch 1.2]
                                      [--printer inverse/data/printers/layer_0.1mm.toml]
                                      [--verify-iterations 3000] [--out out/refine]
                                      [--workers N | --scheduler ADDRESS] [-q] [names or paths...]
