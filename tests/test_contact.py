@@ -290,6 +290,63 @@ def test_step_filter_stops_a_move_through_the_other_layer():
     assert c.step_fraction(flat, flat + [0, 0, 0.5]) == 1.0
 
 
+def test_step_filter_checks_a_long_move_in_pieces_of_half_the_exclusion(monkeypatch):
+    """A move longer than g/2 (half the exclusion) goes to ipctk's CCD in pieces of at most g/2
+    of travel (its broad phase's memory grows with the square of the travel), at most
+    MAX_CCD_PIECES of them: a long move that touches nothing is allowed the fraction checked,
+    and one through the other layer is cut before the offset, as the whole move's CCD cuts it."""
+    import shellfem.contact as sc
+    pat = _strip(L=30.0, W=2.0, size=1.0)
+    sheet = mesh_pattern(pat)
+    c = Contact(sheet.points, sheet.triangles, offset=0.35, stretch_max=1.2)
+    half = 0.5 * c.exclusion_mm
+    ipctk = _ipctk()
+    travels = []
+    ccd = ipctk.compute_collision_free_stepsize
+
+    def recording(mesh, a, b, **kw):
+        travels.append(float(np.linalg.norm(np.asarray(b) - np.asarray(a), axis=1).max()))
+        return ccd(mesh, a, b, **kw)
+    monkeypatch.setattr(ipctk, "compute_collision_free_stepsize", recording)
+    x0 = _rolled(sheet.points, 1.5, 0.6)
+    far = x0 + [10.0 * half, 0.0, 0.0]                   # a rigid move of 10 g/2: no contact on it
+    assert c.step_fraction(x0, far) == pytest.approx(sc.MAX_CCD_PIECES / 10)
+    assert travels and max(travels) <= half * (1 + 1e-12) and len(travels) <= sc.MAX_CCD_PIECES
+    # through the other layer, stretched to 6 g/2 of travel: cut inside the first pieces, admissible
+    x1 = _rolled(sheet.points, 1.5, 1e-3)
+    through = x0 + 6.0 * half / np.linalg.norm(x1 - x0, axis=1).max() * (x1 - x0)
+    travels.clear()
+    t = c.step_fraction(x0, through)
+    xt = x0 + t * (through - x0)
+    assert 0 < t < 1 and max(travels) <= half * (1 + 1e-12)
+    assert c.minimum_distance(xt) > c.offset and not c.intersects(xt)
+    whole = float(ccd(c._collision_mesh(), np.asfortranarray(x0), np.asfortranarray(through),
+                      min_distance=c.offset, narrow_phase_ccd=ipctk.AdditiveCCD()))
+    assert t == pytest.approx(whole, rel=0.05, abs=0.01)     # conservative CCD: close to the whole move's
+    # two squares far apart in the printed state, one stacked 3 g/2 above the other and moved down
+    # by 6 g/2: the contact is in the third piece, and the fraction is the whole move's
+    g = np.stack(np.meshgrid(np.arange(6.0), np.arange(6.0), indexing="ij"), -1).reshape(-1, 2)
+    quads = np.array([[i * 6 + j, (i + 1) * 6 + j, (i + 1) * 6 + j + 1, i * 6 + j + 1]
+                      for i in range(5) for j in range(5)])
+    tri = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    pts = np.vstack([g, g + [100.0, 0.0]])
+    c2 = Contact(pts, np.vstack([tri, tri + 36]), offset=0.35, stretch_max=1.2)
+    half2 = 0.5 * c2.exclusion_mm
+    y0 = np.vstack([np.column_stack([g, np.zeros(36)]), np.column_stack([g + 0.3, np.full(36, 3 * half2)])])
+    y1 = y0 - np.r_[np.zeros(36), np.full(36, 6 * half2)][:, None] * [0, 0, 1]
+    travels.clear()
+    t = c2.step_fraction(y0, y1)
+    assert len(travels) == 3 and max(travels) <= half2 * (1 + 1e-12)
+    exact = (3 * half2 - c2.offset) / (6 * half2)       # where the layers would be the offset apart
+    assert 2 / 6 < 0.9 * exact < t < exact               # conservative (Additive CCD), in the third piece
+    yt = y0 + t * (y1 - y0)
+    assert c2.minimum_distance(yt) > c2.offset
+    # a short move is one piece, as before
+    travels.clear()
+    c.step_fraction(x0, x0 + [0.5 * half, 0.0, 0.0])
+    assert len(travels) <= 1
+
+
 # ----------------------------------------------------------------------------- the spiral
 
 
