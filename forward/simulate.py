@@ -242,7 +242,8 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
                    release_steps: int = 1, tol_support: float | None = None, verbose: bool = False,
                    rtol: float = 1e-8, metric_floor: float | None = None, coarse=(), start=None,
                    progress=None, model_factory=None, contact: bool = False,
-                   ground: float | None = None) -> Simulation:
+                   ground: float | None = None, metric_predictor: bool = True,
+                   exclusion_mm: float | None = None) -> Simulation:
     """Released equilibrium of a meshed sheet (printed-state mm) with the given materials.
 
     The start is the flat printed state with a smooth out-of-plane perturbation of 1 % of
@@ -276,14 +277,20 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
     the predictor reaches the exact equilibrium of the truncated one's branch (208.09 N mm) in
     52 + 23 + 16 + 12. A sheet without exact-metric layers (bare fabric) is solved once per level.
     ``timings["levels"]`` then has one more entry, its ``metric`` "exact" (the others "truncated";
-    None on a bare sheet, which has no exact metric to choose).
+    None on a bare sheet, which has no exact metric to choose). ``metric_predictor=False``: every
+    level with the exact metric (no predictor), so that the fold stop acts from the start: under
+    self-contact the truncated metric's convex curl creased printed triangles that contact then
+    pressed flat (the 50 x 35 mm analogue of examples/stars_tube.toml: E 6.9e8 N mm at the exact
+    stage's start), and the exact metric alone converged without a crossing (docs/notes.md, session 31).
 
     ``contact``: self-contact (shellfem.contact; off by default here, on by default for a
     pattern's :func:`simulate`); ``ground``: the height (mm) of a ground plane under the sheet,
     None for none; with one, "z" supports and "xyz" ones at relaxed positions hold the sheet at
     :func:`support_plane` (the top of the ground barrier's band), not at z = 0. A start that intersects, or a support below the ground, ends the solve
     unconverged with that reason; an interpolated start of nested iteration that intersects or
-    comes closer than the offset is dropped for the level's flat start.
+    comes closer than the offset is dropped for the level's flat start. ``exclusion_mm``: the
+    printed distance within which parts of the sheet are never in contact (shellfem.contact;
+    None: the finest mesh's own; a smaller value is raised to its minimum), on every level.
 
     ``progress``: called with a dict per event, for a progress display (the CLI's status line):
     {"stage": "level", "level", "levels", "n_vertices"} as each mesh level starts, {"stage":
@@ -304,18 +311,20 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
     sums = {}
     prev = None
     exact_model = ShellModel.from_materials(sheet, fabric, plastic) if model_factory is None else None
-    two_stage = exact_model is not None and bool(exact_model.quad.thick.any())   # truncated predictor first
+    printed = exact_model is not None and bool(exact_model.quad.thick.any())
+    two_stage = printed and metric_predictor          # truncated predictor first
 
-    # the metric of the loop's levels: "truncated" where the exact solve follows, None for a bare
-    # sheet or another model (no metric to choose)
-    level_metric = "truncated" if two_stage else None
+    # the metric of the loop's levels: "truncated" where the exact solve follows, "exact" without
+    # the predictor, None for a bare sheet or another model (no metric to choose)
+    level_metric = "truncated" if two_stage else ("exact" if printed else None)
 
     def factory(last):
         """The model of a level: the given factory, else the shell with the truncated metric
-        wherever the exact one follows."""
+        wherever the exact one follows (every level exact without the predictor)."""
         if model_factory is not None:
             return model_factory
-        return lambda sh, fab, pla: ShellModel.from_materials(sh, fab, pla, exact_metric=last and not two_stage)
+        exact = (last or not metric_predictor) and not two_stage
+        return lambda sh, fab, pla: ShellModel.from_materials(sh, fab, pla, exact_metric=exact)
 
     def log_level(result, n_vertices, iterations, interpolated, t_level, metric):
         """Sum the level's numeric timings into ``sums`` and append its entry to ``level_log``."""
@@ -329,8 +338,8 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
     # longer edges give them a larger one): with their own, parts of a tight roll one turn apart
     # were excluded on a coarse level and passed through each other there, and the finer level's
     # interpolated start intersected itself (a flat restart)
-    finest_exclusion = (make_contact(sheet, fabric, np.zeros(0, np.int64), True, None).exclusion_mm
-                        if contact and len(sheets) > 1 else None)
+    finest_exclusion = (make_contact(sheet, fabric, np.zeros(0, np.int64), True, None, exclusion_mm).exclusion_mm
+                        if contact and len(sheets) > 1 else exclusion_mm)
     for j, sh in enumerate(sheets):
         t_level = time.perf_counter()
         last = j == len(sheets) - 1
@@ -338,7 +347,7 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
         model, q, fixed, values, gauge, free = _level_setup(sh, fabric, plastic, supports, seed, tol_support,
                                                             start=start if last else None, factory=factory(last),
                                                             contact=contact, ground=ground,
-                                                            exclusion_mm=None if last else finest_exclusion)
+                                                            exclusion_mm=exclusion_mm if last else finest_exclusion)
         opts = dict(max_iterations=max_iterations, verbose=verbose, metric_floor=metric_floor,
                     rtol=rtol if final else COARSE_RTOL)
         if progress is not None:
@@ -399,6 +408,7 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
         result = newton(model, q_exact, free, **opts)
         total_it += result.iterations
         log_level(result, sheet.n_vertices, result.iterations, False, t_level, "exact")
+    if printed:
         rho = model.fibre_bending(result.q)
         folded = int(np.count_nonzero(rho >= RHO_FOLDED))
         if result.converged and folded:
@@ -466,7 +476,9 @@ def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=F
                           seed=pattern.seed if seed is None else seed, max_iterations=mi, verbose=verbose,
                           metric_floor=pattern.metric_floor, coarse=coarse, progress=progress,
                           release_steps=getattr(pattern, "release_steps", 1), contact=getattr(pattern, "contact", True),
-                          ground=getattr(pattern, "ground", None))
+                          ground=getattr(pattern, "ground", None),
+                          metric_predictor=getattr(pattern, "metric_predictor", True),
+                          exclusion_mm=getattr(pattern, "contact_exclusion", None))
 
 
 def simulate_pattern_file(pattern_path, out_dir, *, size_mm=None, seed=None, render=True, max_iterations=None,

@@ -55,7 +55,7 @@ KEYS = {
     "support": {"points", "fix", "position", "boundary"},
     "mesh": {"size_mm", "across"},
     "print": {"gcode", "side", "origin_mm"},
-    "contact": {"enabled"},
+    "contact": {"enabled", "exclusion_mm"},
     "ground": {"enabled", "height_mm"},
 }
 #: (key, Fabric attribute, lower bound, bound exclusive) of the numeric [fabric] entries; the
@@ -68,7 +68,7 @@ FABRIC_FIELDS = (("thickness_mm", "thickness", 0.0, True), ("young_modulus_mpa",
 PLASTIC_FIELDS = (("young_modulus_mpa", "young_modulus"), ("poisson", "poisson"),
                   ("rest_curvature_per_mm", "rest_curvature"))
 #: [solver] keys: the numeric ones of the schema and the model choice
-SOLVER_KEYS = set(PATTERN_NUMBERS["solver"]) | set(SOLVER_CHOICES)
+SOLVER_KEYS = set(PATTERN_NUMBERS["solver"]) | set(SOLVER_CHOICES) | {"metric_predictor"}
 SOLVER_MODELS = SOLVER_CHOICES["model"]
 TOP_LEVEL = {"fabric", "plastic", "region", "ribbon", "stars", "support", "mesh", "solver", "print", "meta", "contact",
              "ground"}
@@ -97,6 +97,10 @@ class Pattern:
     seed's chapter-3 model: rods on the centre lines of stars and ribbons on a bare fabric,
     shellfem.rods). source: file path or "<dict>". raw: the parsed TOML
     (unknown [solver] and [meta] keys are kept here for the solver).
+    metric_predictor: solve with the printed layers' truncated metric first ([solver]
+    metric_predictor, default true; forward.simulate.simulate_sheet). contact_exclusion: the
+    printed distance (mm) within which parts of the sheet are never in contact ([contact]
+    exclusion_mm; None: the mesh's own, shellfem.contact.Contact).
     contact: self-contact on ([contact] enabled, default true; shellfem.contact). ground: the
     height (mm) of the ground plane under the sheet ([ground] height_mm, default 0), or None
     without a ground ([ground] enabled; default: on when a support stands the sheet on the
@@ -117,6 +121,8 @@ class Pattern:
     solver_model: str = "shell"
     contact: bool = True
     ground: float | None = None
+    metric_predictor: bool = True
+    contact_exclusion: float | None = None
     source: str = "<dict>"
     raw: dict = field(default_factory=dict)
 
@@ -202,6 +208,13 @@ def contact_options(raw: dict, src: str, fabric, supports) -> tuple[bool, float 
                                      f"z = {s.position[k, 2]:.4g} mm, below the [ground] at height_mm = {height:g}: "
                                      f"a post cannot hold the sheet under the ground")
     return contact, (height if on else None)
+
+
+def contact_exclusion(raw: dict, src: str) -> float | None:
+    """[contact] exclusion_mm (mm) or None when absent (the mesh's own; shellfem.contact.Contact
+    raises a value below the mesh's minimum to it)."""
+    c = raw.get("contact", {})
+    return _num(c, "exclusion_mm", f"{src}: [contact]", section="contact") if "exclusion_mm" in c else None
 
 
 def check_rods_contact(raw: dict, src: str) -> None:
@@ -556,6 +569,7 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".", from_file
     levels = coarse_levels_option(solver, f"{src}: [solver]")
     release_steps = _num(solver, "release_steps", f"{src}: [solver]", 1, "solver")
     model = _choice(solver, "model", f"{src}: [solver]", SOLVER_MODELS, "shell")
+    predictor = _flag(solver, "metric_predictor", f"{src}: [solver]", True)
     _table(raw.get("meta", {}), f"{src}: [meta]", None)
     fabric, outline = _fabric(raw, src, mesh_size)
     plastic = _plastic(raw, src)
@@ -574,7 +588,8 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".", from_file
     return Pattern(fabric=fabric, plastic=plastic, outline=outline, elements=elements, supports=supports,
                    mesh_size=mesh_size, seed=seed, mesh_across=across, max_iterations=cap,
                    metric_floor=floor, coarse_levels=levels, release_steps=release_steps, solver_model=model,
-                   contact=contact, ground=ground,
+                   contact=contact, ground=ground, metric_predictor=predictor,
+                   contact_exclusion=contact_exclusion(raw, src),
                    source=src,
                    raw=raw)
 

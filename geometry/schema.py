@@ -183,6 +183,10 @@ PATTERN_NUMBERS: dict[str, dict[str, Num]] = {
     "ground": {
         "height_mm": Num(-COORD_MAX_MM, COORD_MAX_MM, _LEN, "the plane z = height under the sheet's mid-surface"),
     },
+    "contact": {
+        "exclusion_mm": Num(0.0, COORD_MAX_MM, _LEN, "printed distance within which parts never touch; "
+                            "raised to the mesh's minimum (0: the minimum)"),
+    },
 }
 #: [solver] keys that are choices, not numbers: key -> allowed values (first = default).
 #: model: "shell" (printed areas as bilayer shell regions) or "rods" (the seed's chapter-3

@@ -132,7 +132,8 @@ class Contact:
     (mm, the largest total thickness); stretch_max: largest pre-stretch of the fabric;
     self_contact: build the self-contact barrier; ground: None or the plane's height z (mm);
     held_z: (n,) bool, vertices whose z is held (kept out of the ground barrier);
-    exclusion_mm: a smaller printed-state exclusion than this mesh's own (see __init__), or None.
+    exclusion_mm: another printed-state exclusion than this mesh's own (mm; see __init__; a smaller
+    one is raised to the neighbours' minimum), or None.
     kappa is set by :meth:`set_stiffness` (N/mm^3 for self-contact, N/mm for the ground).
     """
 
@@ -174,6 +175,10 @@ class Contact:
             # (none: every evaluation builds its collisions)
             self.exclusion_mm = max(float(exclusion_mm), 2.0 * (1.3 * stretch_max * delta + 2.0 * L))
             self.patch_reach = int(np.floor((self.exclusion_mm / 2.0 - 4.0 / 3.0 * L) / h)) - 1
+        elif exclusion_mm is not None:
+            # a larger one (a pattern's [contact] exclusion_mm): more pairs excluded, the skip
+            # test's reach kept (its patches then hold only excluded pairs a fortiori)
+            self.exclusion_mm = float(exclusion_mm)
         self._edge_printed = L
         self._tri_printed = P[self.faces].mean(1)          # printed triangle centroids (the second stage)
         origin = P.min(0)

@@ -620,6 +620,10 @@ def test_contact_disabled_gives_the_answer_without_contact():
     ({"ground": {"height_mm": float("nan")}}, "[ground]: height_mm must be a finite number"),
     ({"ground": {"hight_mm": 0.0}}, "did you mean 'height_mm'?"),
     ({"ground": 3}, "[ground] must be a table"),
+    ({"contact": {"exclusion_mm": -1.0}}, "[contact]: exclusion_mm"),
+    ({"contact": {"exclusion_mm": "min"}}, "[contact]: exclusion_mm must be a number"),
+    ({"contact": {"exclusion": 0.0}}, "did you mean 'exclusion_mm'?"),
+    ({"solver": {"metric_predictor": "no"}}, "[solver]: metric_predictor must be true or false"),
 ])
 def test_contact_keys_bad_input_is_one_line(table, message):
     raw = {"fabric": {"rectangle": [20.0, 8.0]},
@@ -627,6 +631,51 @@ def test_contact_keys_bad_input_is_one_line(table, message):
     with pytest.raises(SelfshapeError) as e:
         parse_pattern(raw, src="p.toml")
     assert message in str(e.value) and "\n" not in str(e.value)
+
+
+def test_exclusion_key_sets_the_exclusion_raised_to_its_minimum_on_every_level():
+    """[contact] exclusion_mm: 0 asks for the mesh's minimum 2 (1.3 s_max (offset + band) + 2 L),
+    a value between that and the mesh's own is taken as it is, a larger one too (more excluded);
+    absent: the mesh's own. Coarse levels of nested iteration take the same value."""
+    pat = _strip(L=30.0, W=4.0, size=1.0)
+    sheet = mesh_pattern(pat)
+    own = make_contact(sheet, pat.fabric, np.zeros(0, np.int64), True, None)
+    c0 = make_contact(sheet, pat.fabric, np.zeros(0, np.int64), True, None, 0.0)
+    L = float(np.linalg.norm(np.diff(sheet.points[own.edges], axis=1)[:, 0], axis=1).max())
+    assert c0.exclusion_mm == pytest.approx(2 * (1.3 * 1.2 * (c0.offset + c0.dhat) + 2 * L))
+    assert c0.exclusion_mm < own.exclusion_mm
+    mid = 0.5 * (c0.exclusion_mm + own.exclusion_mm)
+    assert make_contact(sheet, pat.fabric, np.zeros(0, np.int64), True, None, mid).exclusion_mm == mid
+    big = make_contact(sheet, pat.fabric, np.zeros(0, np.int64), True, None, 3 * own.exclusion_mm)
+    assert big.exclusion_mm == 3 * own.exclusion_mm and big.patch_reach == own.patch_reach
+    raw = {"fabric": {"rectangle": [20.0, 8.0]}, "contact": {"exclusion_mm": 0.0},
+           "region": [{"polygon": [[0, 0], [20, 0], [20, 8], [0, 8]], "thickness_mm": 0.3}]}
+    assert parse_pattern(raw).contact_exclusion == 0.0
+    assert parse_pattern({**raw, "contact": {}}).contact_exclusion is None
+
+
+def test_without_the_metric_predictor_every_level_is_exact_and_lands_on_the_same_strip():
+    """[solver] metric_predictor = false: no truncated-metric level (timings' levels all "exact",
+    nested iteration included), and on a strip whose curl is far from the fold stop the same
+    equilibrium as with the predictor (the two energies differ only where the curl is tight)."""
+    raw = {"fabric": {"rectangle": [40.0, 6.0], "stretch": 1.2, "thickness_mm": 0.25},
+           "plastic": {"young_modulus_mpa": 72.3, "poisson": 0.5},
+           "region": [{"polygon": [[0, 0], [40, 0], [40, 6], [0, 6]], "thickness_mm": 0.3}],
+           "mesh": {"size_mm": 1.0}, "solver": {"coarse_levels": 1, "metric_predictor": False},
+           "contact": {"enabled": False}}
+    pat = parse_pattern(raw)
+    assert pat.metric_predictor is False and parse_pattern({**raw, "solver": {}}).metric_predictor is True
+    off = simulate(pat)
+    assert off.result.converged
+    assert [lv["metric"] for lv in off.result.timings["levels"]] == ["exact", "exact"]
+    pat.metric_predictor = True
+    on = simulate(pat)
+    assert [lv["metric"] for lv in on.result.timings["levels"]] == ["truncated", "truncated", "exact"]
+    assert off.result.energy == pytest.approx(on.result.energy, rel=1e-6)
+    a, b = off.positions - off.positions.mean(0), on.positions - on.positions.mean(0)
+    u, _, vt = np.linalg.svd(a.T @ b)                   # the best rotation of a onto b (Kabsch)
+    r = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    assert np.abs(a @ r - b).max() < 1e-4 * np.ptp(b, axis=0).max()
 
 
 def test_contact_key_defaults():
