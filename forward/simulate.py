@@ -361,10 +361,16 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
             guess = model.initial_state()
             guess[:3 * sh.n_vertices] = prolongate(psheet.points, psheet.triangles, px, sh.points).ravel()
             guess[fixed] = values
+            dropped = None
             if not np.isfinite(model.energy(guess)):
+                dropped = "its energy is not finite"
+            elif model.contact is not None:
+                dropped = model.contact.check_start(model.split(guess)[0])   # intersects, or within the offset
+            if dropped is not None:
                 guess = None
-            elif model.contact is not None and model.contact.check_start(model.split(guess)[0]) is not None:
-                guess = None           # the interpolation intersects or comes within the offset
+                if verbose:
+                    print(f"level {j + 1}/{len(sheets)}: the interpolated start is dropped ({dropped}); "
+                          f"the level starts from its flat sheet", flush=True)
         if guess is None:
             result, its = _release(sh, model, q, fixed, values, free, fabric, plastic, steps, opts, verbose, progress,
                                    factory=factory(last))
