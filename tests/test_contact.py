@@ -652,6 +652,8 @@ def test_exclusion_key_sets_the_exclusion_raised_to_its_minimum_on_every_level()
            "region": [{"polygon": [[0, 0], [20, 0], [20, 8], [0, 8]], "thickness_mm": 0.3}]}
     assert parse_pattern(raw).contact_exclusion == 0.0
     assert parse_pattern({**raw, "contact": {}}).contact_exclusion is None
+    small = load_pattern("examples/stars_tube_small.toml")        # the recipe the README row measures
+    assert (small.contact_exclusion, small.metric_predictor, small.release_steps, small.contact) == (0.0, False, 8, True)
 
 
 def test_without_the_metric_predictor_every_level_is_exact_and_lands_on_the_same_strip():
