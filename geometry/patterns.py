@@ -185,12 +185,15 @@ def on_the_table(supports, gravity: bool) -> bool:
     return any(s.fix == "z" or (gravity and s.fix == "xyz" and s.position is None) for s in supports)
 
 
-def contact_options(raw: dict, src: str, fabric, supports) -> tuple[bool, float | None]:
-    """([contact] enabled, ground height or None) of a pattern: see :class:`Pattern`. The
-    ground's default is :func:`on_the_table` (issue 20: on wherever a support holds the sheet
-    on the ground, or gravity pulls it onto the table it is pinned to)."""
+def contact_options(raw: dict, src: str, fabric, supports) -> tuple[bool, float | None, float | None]:
+    """([contact] enabled, ground height or None, [contact] exclusion_mm or None) of a pattern:
+    see :class:`Pattern`. The ground's default is :func:`on_the_table` (issue 20: on wherever a
+    support holds the sheet on the ground, or gravity pulls it onto the table it is pinned to).
+    exclusion_mm (mm) is None when absent: the mesh's own (shellfem.contact.Contact raises a
+    value below the mesh's minimum to it)."""
     c = _table(raw.get("contact", {}), f"{src}: [contact]", KEYS["contact"])
     contact = _flag(c, "enabled", f"{src}: [contact]", True)
+    exclusion = _num(c, "exclusion_mm", f"{src}: [contact]", section="contact") if "exclusion_mm" in c else None
     where = f"{src}: [ground]"
     g = _table(raw.get("ground", {}), where, KEYS["ground"])
     gravity = fabric.areal_weight > 0
@@ -207,14 +210,7 @@ def contact_options(raw: dict, src: str, fabric, supports) -> tuple[bool, float 
                 raise SelfshapeError(f"{src}: [[support]] #{s.label.split('#')[-1]} position {k + 1} is at "
                                      f"z = {s.position[k, 2]:.4g} mm, below the [ground] at height_mm = {height:g}: "
                                      f"a post cannot hold the sheet under the ground")
-    return contact, (height if on else None)
-
-
-def contact_exclusion(raw: dict, src: str) -> float | None:
-    """[contact] exclusion_mm (mm) or None when absent (the mesh's own; shellfem.contact.Contact
-    raises a value below the mesh's minimum to it)."""
-    c = raw.get("contact", {})
-    return _num(c, "exclusion_mm", f"{src}: [contact]", section="contact") if "exclusion_mm" in c else None
+    return contact, (height if on else None), exclusion
 
 
 def check_rods_contact(raw: dict, src: str) -> None:
@@ -579,7 +575,7 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".", from_file
     check_support_positions(supports, fabric, outline, src)
     if model == "rods":
         check_rods_model(elements, src)
-    contact, ground = contact_options(raw, src, fabric, supports)
+    contact, ground, exclusion = contact_options(raw, src, fabric, supports)
     if model == "rods":              # no contact in the rods model: say so, and record it
         check_rods_contact(raw, src)
         contact, ground = False, None
@@ -589,7 +585,7 @@ def parse_pattern(raw: dict, src: str = "<dict>", base_dir: str = ".", from_file
                    mesh_size=mesh_size, seed=seed, mesh_across=across, max_iterations=cap,
                    metric_floor=floor, coarse_levels=levels, release_steps=release_steps, solver_model=model,
                    contact=contact, ground=ground, metric_predictor=predictor,
-                   contact_exclusion=contact_exclusion(raw, src),
+                   contact_exclusion=exclusion,
                    source=src,
                    raw=raw)
 

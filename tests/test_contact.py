@@ -623,7 +623,6 @@ def test_contact_disabled_gives_the_answer_without_contact():
     ({"contact": {"exclusion_mm": -1.0}}, "[contact]: exclusion_mm"),
     ({"contact": {"exclusion_mm": "min"}}, "[contact]: exclusion_mm must be a number"),
     ({"contact": {"exclusion": 0.0}}, "did you mean 'exclusion_mm'?"),
-    ({"solver": {"metric_predictor": "no"}}, "[solver]: metric_predictor must be true or false"),
 ])
 def test_contact_keys_bad_input_is_one_line(table, message):
     raw = {"fabric": {"rectangle": [20.0, 8.0]},
@@ -654,30 +653,6 @@ def test_exclusion_key_sets_the_exclusion_raised_to_its_minimum_on_every_level()
     assert parse_pattern({**raw, "contact": {}}).contact_exclusion is None
     small = load_pattern("examples/stars_tube_small.toml")        # the recipe the README row measures
     assert (small.contact_exclusion, small.metric_predictor, small.release_steps, small.contact) == (0.0, False, 8, True)
-
-
-def test_without_the_metric_predictor_every_level_is_exact_and_lands_on_the_same_strip():
-    """[solver] metric_predictor = false: no truncated-metric level (timings' levels all "exact",
-    nested iteration included), and on a strip whose curl is far from the fold stop the same
-    equilibrium as with the predictor (the two energies differ only where the curl is tight)."""
-    raw = {"fabric": {"rectangle": [40.0, 6.0], "stretch": 1.2, "thickness_mm": 0.25},
-           "plastic": {"young_modulus_mpa": 72.3, "poisson": 0.5},
-           "region": [{"polygon": [[0, 0], [40, 0], [40, 6], [0, 6]], "thickness_mm": 0.3}],
-           "mesh": {"size_mm": 1.0}, "solver": {"coarse_levels": 1, "metric_predictor": False},
-           "contact": {"enabled": False}}
-    pat = parse_pattern(raw)
-    assert pat.metric_predictor is False and parse_pattern({**raw, "solver": {}}).metric_predictor is True
-    off = simulate(pat)
-    assert off.result.converged
-    assert [lv["metric"] for lv in off.result.timings["levels"]] == ["exact", "exact"]
-    pat.metric_predictor = True
-    on = simulate(pat)
-    assert [lv["metric"] for lv in on.result.timings["levels"]] == ["truncated", "truncated", "exact"]
-    assert off.result.energy == pytest.approx(on.result.energy, rel=1e-6)
-    a, b = off.positions - off.positions.mean(0), on.positions - on.positions.mean(0)
-    u, _, vt = np.linalg.svd(a.T @ b)                   # the best rotation of a onto b (Kabsch)
-    r = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
-    assert np.abs(a @ r - b).max() < 1e-4 * np.ptp(b, axis=0).max()
 
 
 def test_contact_key_defaults():

@@ -163,6 +163,7 @@ BAD = [
     (lambda r: r.update(solver={"metric_floor": "high"}), "[solver]: metric_floor must be a number in [0, 1e+06], got the string"),
     (lambda r: r.update(solver={"metric_floor": True}), "[solver]: metric_floor must be a number in [0, 1e+06], got true/false"),
     (lambda r: r.update(solver={"metric_floor": float("nan")}), "[solver]: metric_floor must be a finite number"),
+    (lambda r: r.update(solver={"metric_predictor": "no"}), "[solver]: metric_predictor must be true or false"),
     (lambda r: r.update(print={"gcode": 3}), "[print]: gcode must be a file name"),
 ]
 
@@ -231,7 +232,9 @@ def _every_entry(model: str) -> dict:
                     {"points": [[30.0, 40.0]], "fix": "xyz", "position": [[20.0, 25.0, 1.0]]},
                     {"boundary": True, "fix": "xyz"}],
         "mesh": {"size_mm": 2.0, "across": 1.5},
-        "solver": {"seed": 7, "max_iterations": 50, "metric_floor": 3.0, "coarse_levels": 2},
+        "solver": {"seed": 7, "max_iterations": 50, "metric_floor": 3.0, "coarse_levels": 2,
+                   "metric_predictor": False},
+        "contact": {"exclusion_mm": 5.0},
         "meta": {"generator": "tests/test_patterns.py"},
     }
 
@@ -267,8 +270,9 @@ def test_every_field_round_trips_through_the_writer(tmp_path, model):
         assert (a.position is None) == (b.position is None)
         if a.position is not None:
             np.testing.assert_array_equal(a.position, b.position)
-    fields = ("mesh_size", "mesh_across", "seed", "max_iterations", "metric_floor", "coarse_levels")
-    assert [getattr(q, f) for f in fields] == [getattr(p, f) for f in fields] == [2.0, 1.5, 7, 50, 3.0, 2]
+    fields = ("mesh_size", "mesh_across", "seed", "max_iterations", "metric_floor", "coarse_levels",
+              "metric_predictor", "contact_exclusion")
+    assert [getattr(q, f) for f in fields] == [getattr(p, f) for f in fields] == [2.0, 1.5, 7, 50, 3.0, 2, False, 5.0]
     assert q.raw["meta"] == raw["meta"]
 
 

@@ -6,6 +6,7 @@ import meshio
 import numpy as np
 import pytest
 
+from geometry.patterns import parse_pattern
 from selfshape.cli import main
 from shellfem.errors import SelfshapeError
 from shellfem.materials import Fabric, Plastic
@@ -326,3 +327,28 @@ def test_nothing_to_release_converges_and_a_stop_says_why(tmp_path, capsys):
                  "--coarse-levels", "0"]) == 1
     out = capsys.readouterr().out.splitlines()
     assert len(out) == 1 and out[0].startswith("NOT converged (maximum number of iterations reached)"), out
+
+
+def test_without_the_metric_predictor_every_level_is_exact_and_lands_on_the_same_strip():
+    """[solver] metric_predictor = false: no truncated-metric level (timings' levels all "exact",
+    nested iteration included), and on a strip whose curl is far from the fold stop the same
+    equilibrium as with the predictor (the two energies differ only where the curl is tight)."""
+    from forward.simulate import simulate
+    raw = {"fabric": {"rectangle": [40.0, 6.0], "stretch": 1.2, "thickness_mm": 0.25},
+           "plastic": {"young_modulus_mpa": 72.3, "poisson": 0.5},
+           "region": [{"polygon": [[0, 0], [40, 0], [40, 6], [0, 6]], "thickness_mm": 0.3}],
+           "mesh": {"size_mm": 1.0}, "solver": {"coarse_levels": 1, "metric_predictor": False},
+           "contact": {"enabled": False}}
+    pat = parse_pattern(raw)
+    assert pat.metric_predictor is False and parse_pattern({**raw, "solver": {}}).metric_predictor is True
+    off = simulate(pat)
+    assert off.result.converged
+    assert [lv["metric"] for lv in off.result.timings["levels"]] == ["exact", "exact"]
+    pat.metric_predictor = True
+    on = simulate(pat)
+    assert [lv["metric"] for lv in on.result.timings["levels"]] == ["truncated", "truncated", "exact"]
+    assert off.result.energy == pytest.approx(on.result.energy, rel=1e-6)
+    a, b = off.positions - off.positions.mean(0), on.positions - on.positions.mean(0)
+    u, _, vt = np.linalg.svd(a.T @ b)                   # the best rotation of a onto b (Kabsch)
+    r = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    assert np.abs(a @ r - b).max() < 1e-4 * np.ptp(b, axis=0).max()
