@@ -50,7 +50,7 @@ def test_pattern_union_sums_and_keeps_its_pattern_across_calls(monkeypatch):
     blocks = [rng.standard_normal((20, 3, 3))]
     builds = []
     orig = PatternUnion._grow
-    monkeypatch.setattr(PatternUnion, "_grow", lambda self, A: (builds.append(1), orig(self, A)))
+    monkeypatch.setattr(PatternUnion, "_grow", lambda self, A, new=None: (builds.append(1), orig(self, A, new)))
     B = sp.triu(sp.random(n, n, density=0.05, random_state=3, format="csr") + sp.eye(n)).tocsr()
     u = PatternUnion()
     M1 = u.add(sc.matrix(blocks), B)
@@ -62,3 +62,28 @@ def test_pattern_union_sums_and_keeps_its_pattern_across_calls(monkeypatch):
     if (sc.matrix(blocks) + B)[0, n - 1] == 0:
         M3 = u.add(sc.matrix(blocks), C)
         assert len(builds) == 2 and M3.nnz > M1.nnz and M3[0, n - 1] == pytest.approx(sc.matrix(blocks)[0, n - 1] + 1)
+
+
+def test_pattern_union_grown_by_insertion_equals_a_fresh_union():
+    """A union grown call after call by contact patterns that come and go (new entries merged in
+    by insertion) holds exactly the sorted union of every pattern seen, and each sum is A + B."""
+    from shellfem.assembly import PatternUnion
+    rng = np.random.default_rng(5)
+    n = 60
+    sets = [rng.integers(0, n, (40, 3))]
+    sc = BlockScatter(sets, n, np.ones(n, bool), upper=True)
+    u = PatternUnion()
+    seen = set()
+    for k in range(12):
+        A = sc.matrix([rng.standard_normal((40, 3, 3))])
+        B = sp.triu(sp.random(n, n, density=0.02 + 0.01 * (k % 3), random_state=k, format="csr")).tocsr()
+        M = u.add(A, B)
+        assert np.abs(M.toarray() - (A + B).toarray()).max() < 1e-13
+        for X in (A, B):
+            C = X.tocoo()
+            seen |= set(zip(C.row.tolist(), C.col.tolist()))
+        Mc = M.tocoo()
+        assert set(zip(Mc.row.tolist(), Mc.col.tolist())) == seen
+        assert np.all(np.diff(M.indptr) >= 0) and M.indptr[-1] == M.nnz == len(seen)
+        for r in range(n):                              # sorted, unique columns in every row
+            assert np.all(np.diff(M.indices[M.indptr[r]:M.indptr[r + 1]]) > 0)
