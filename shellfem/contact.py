@@ -52,6 +52,8 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+from collections import deque
+
 from scipy.spatial import cKDTree
 
 from shellfem.errors import SelfshapeError
@@ -86,6 +88,12 @@ WITNESS_PAIRS = 64
 #: grid, LBVH, sweep and prune), and one 69 mm trial step on the tube itself (38,798 vertices)
 #: took the process past the machine's 23 GB.
 MAX_CCD_PIECES = 4
+
+#: States whose distance bound (the closest non-excluded pair, capped at offset + dhat) is kept
+#: for the step filter: a move in which no vertex travels farther than half of (bound - offset)
+#: cannot bring any pair to the offset, so it needs no CCD (:meth:`Contact.step_fraction`). The
+#: solver's iterate and its line search's last trials are enough.
+CERTIFIED_STATES = 4
 
 _IPCTK = None
 
@@ -207,6 +215,8 @@ class Contact:
         self.reuses = 0            # evaluations at the last state's positions (its collisions reused)
         self._last_state = None    # (positions (n, 3), their collisions or None)
         self._witness = None       # (k, 2) triangle pairs found within reach by the last exact stage
+        self._certificates = deque(maxlen=CERTIFIED_STATES)   # (positions, distance bound) of the last states
+        self.certified_moves = 0   # step-filter calls settled by a state's distance bound
 
     # --- set-up ----------------------------------------------------------------------------
     def set_stiffness(self, diag_positions: np.ndarray):
@@ -357,7 +367,26 @@ class Contact:
             c = ipctk.NormalCollisions()
             c.build(mesh, np.asfortranarray(x), self.dhat, dmin=self.offset)
         self._last_state = (np.array(x, float, copy=True), c)
+        self._certify(self._last_state[0], c)
         return c
+
+    def _certify(self, x, c):
+        """Keep a lower bound on the distance (mm) between any two non-excluded primitives at x:
+        offset + dhat when no pair is within it (the skip test, or no collision built), else the
+        smallest distance among the collisions c (for the step filter's skip, :meth:`step_fraction`)."""
+        bound = self.offset + self.dhat
+        if c is not None and len(c) > 0:
+            d2 = float(c.compute_minimum_distance(self._collision_mesh(), np.asfortranarray(x)))
+            bound = min(bound, float(np.sqrt(max(d2, 0.0))))
+        self._certificates.append((x, bound))
+
+    def _certified_gap(self, x) -> float | None:
+        """The distance bound of :meth:`_certify` minus the offset (mm) at positions x, if x is
+        one of the last CERTIFIED_STATES states evaluated, else None."""
+        for y, bound in reversed(self._certificates):
+            if y.shape == x.shape and np.array_equal(y, x):
+                return bound - self.offset
+        return None
 
     def _potential(self):
         return _ipctk().BarrierPotential(self.dhat, self.kappa)
@@ -458,9 +487,23 @@ class Contact:
             down = z1 < 0.05 * z0
             if down.any():        # stop at 5 % of the start height: the barrier is +inf at 0
                 t = min(t, float(np.min(0.95 * z0[down] / (z0[down] - z1[down]))))
-        if self.self_contact and self.maybe_close(x0, x1):
+        if self.self_contact and not self._certified_move(x0, x1) and self.maybe_close(x0, x1):
             t = min(t, self._ccd_pieces(x0, x1))
         return max(t, 0.0)
+
+    def _certified_move(self, x0, x1) -> bool:
+        """True when x0 is a recently evaluated state (:meth:`_certify`) and no vertex travels
+        farther than half of its distance bound less the offset: two points of different
+        primitives approach each other by at most the sum of their travels, so no non-excluded
+        pair reaches the offset along the straight move (no CCD needed)."""
+        gap = self._certified_gap(x0)
+        if gap is None or gap <= 0.0:
+            return False
+        dx = x1 - x0
+        if 2.0 * float(np.sqrt(np.einsum("ij,ij->i", dx, dx).max())) < gap:
+            self.certified_moves += 1
+            return True
+        return False
 
     def _ccd_pieces(self, x0, x1) -> float:
         """The self-contact part of :meth:`step_fraction`: the CCD on pieces of the move."""

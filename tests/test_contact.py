@@ -347,6 +347,38 @@ def test_step_filter_checks_a_long_move_in_pieces_of_half_the_exclusion(monkeypa
     assert len(travels) <= 1
 
 
+def test_a_move_shorter_than_half_the_certified_gap_needs_no_ccd(monkeypatch):
+    """Once a state is evaluated, its closest non-excluded pair bounds every pair's distance; a move
+    in which no vertex travels half of (that distance - offset) passes the step filter without CCD
+    (two points approach by at most the sum of their travels) and ends farther than the offset; a
+    longer move, or one from a state not evaluated, goes to the CCD."""
+    c, x = _near_contact_state(0)                   # turns 0.9 dhat above the offset
+    ipctk = _ipctk()
+    calls = []
+    ccd = ipctk.compute_collision_free_stepsize
+    monkeypatch.setattr(ipctk, "compute_collision_free_stepsize",
+                        lambda *a, **kw: (calls.append(1), ccd(*a, **kw))[1])
+    assert c._certified_gap(x) is None
+    c.evaluate(x, order=0)
+    gap = c._certified_gap(x)
+    assert 0 < gap < c.dhat and gap == pytest.approx(c.minimum_distance(x) - c.offset, rel=1e-9)
+    # the outer half of the roll pulled in towards the axis (the turns approach each other)
+    r = np.linalg.norm(x[:, [0, 2]] - np.median(x[:, [0, 2]], 0), axis=1)
+    outer = r > np.median(r)
+    radial = np.zeros_like(x)
+    radial[:, [0, 2]] = -(x[:, [0, 2]] - np.median(x[:, [0, 2]], 0)) / r[:, None]
+    radial[~outer] = 0.0
+    short = x + 0.49 * gap * radial
+    assert c.step_fraction(x, short) == 1.0 and not calls and c.certified_moves == 1
+    assert c.minimum_distance(short) > c.offset
+    long = x + 0.51 * gap * radial
+    c.step_fraction(x, long)
+    assert len(calls) == 1                           # beyond the bound: the CCD decides
+    calls.clear()
+    c.step_fraction(x + 1e-9, x + 1e-9 + 0.1 * gap * radial)
+    assert len(calls) == 1                           # a state never evaluated: the CCD decides
+
+
 # ----------------------------------------------------------------------------- the spiral
 
 
