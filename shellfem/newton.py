@@ -36,6 +36,16 @@ accepted state is reached from the last one without passing through the sheet. T
 relaxation moves no position and needs no check. A start that intersects or whose supports
 force penetration stops the solve at once with that reason.
 
+Creep: near a fold of the equilibrium path (a release step close to a snap-through) the
+Hessian's smallest eigenvalue is small and full Newton steps advance along that soft mode by a
+little each, the energy falling ever faster while the gradient does not fall (a 14k-vertex
+stars tube crept so for 150 iterations of its second release step). When the last CREEP_WINDOW
+accepted iterations were all full Newton steps, the gradient norm did not fall below half of
+where the window started and the energy fell by less than CREEP_ENERGY of itself, the accepted
+full step is extrapolated along the same path (2, 4, ... up to CREEP_MAX_FACTOR times, each
+trial through the collision filter) as long as the energy keeps falling. A solve converging
+quadratically never meets the test.
+
 Convergence: ||grad||_2 over the free DOFs <= max(atol, rtol * gradient_reference) (the
 reference defaults to the gradient norm at the start) AND the exact Hessian (lambda = 0)
 factorised, so the state is a local minimum, not a saddle. Anything else is reported as
@@ -63,6 +73,13 @@ START_ANGLE_ITERATIONS = 50
 #: by the collision filter on average, moved the sheet by less than STALL_MOVE x the offset in all
 STALL_ITERATIONS = 30
 STALL_MOVE = 0.01
+
+#: creep (see the module's docstring): CREEP_WINDOW full Newton steps that lowered the energy by
+#: less than CREEP_ENERGY x |E| in all and left the gradient norm above half of its value at the
+#: window's start; the full step is then extrapolated by factors 2, 4, ... <= CREEP_MAX_FACTOR
+CREEP_WINDOW = 10
+CREEP_ENERGY = 1e-4
+CREEP_MAX_FACTOR = 1024.0
 
 #: Default trust-region metric floor (see :func:`lm_metric`); [solver] metric_floor = 0 gives
 #: plain Marquardt scaling.
@@ -562,6 +579,8 @@ class _Newton:
             q2, E2 = self._stiff_relaxed(along(2 * a)) if model.step_fraction(q, along(2 * a)) >= 1.0 else (q, np.inf)
             if np.isfinite(E2) and E2 < E_new:
                 q_try, E_new, a = q2, E2, 2 * a
+        if accepted and a == 1.0 and self._creeping():
+            q_try, E_new, a = self._extrapolated(along, q_try, E_new)
         if accepted:
             return self._accept_newton(it, q_try, E_new, a, f"{a:.3g}")
         if not self.projected and gnorm <= self.tol and promise <= 1e3 * opts.energy_tolerance * self._energy_scale(E):
@@ -571,6 +590,35 @@ class _Newton:
         self.exact = False      # fall through to the trust region with this Hessian
         self.lam = max(self.lam, 1e-8)
         return None
+
+    def _creeping(self) -> bool:
+        """True when the last CREEP_WINDOW accepted iterations were full Newton steps that
+        lowered the energy by less than CREEP_ENERGY of itself and the gradient norm did not
+        fall below half of its value at the window's start (module docstring: creep)."""
+        window = self.history[-CREEP_WINDOW:]      # each entry: the iterate a step started from
+        if len(window) < CREEP_WINDOW or any(e["lam"] != 0.0 or e["step"] != 1.0 for e in window):
+            return False
+        fell = window[0]["energy"] - self.E
+        return (0.0 <= fell <= CREEP_ENERGY * abs(self.E)
+                and self.gnorm >= 0.5 * window[0]["gradient_norm"])
+
+    def _extrapolated(self, along, q_try, E_new):
+        """The accepted full step extrapolated along its path by 2, 4, ... (<= CREEP_MAX_FACTOR)
+        while the energy falls and (under contact) the straight move from the iterate is free of
+        contact: (q, E, factor)."""
+        t0 = time.perf_counter()
+        best = (q_try, E_new, 1.0)
+        b = 2.0
+        while b <= CREEP_MAX_FACTOR:
+            qb = along(b)
+            Eb = self.model.trial_energy(self.q, qb)
+            if not (np.isfinite(Eb) and Eb < best[1]):
+                break
+            best = (qb, Eb, b)
+            b *= 2.0
+        self.timings["creep_extrapolations"] = self.timings.get("creep_extrapolations", 0) + (best[2] > 1.0)
+        self.timings["line_search"] += time.perf_counter() - t0
+        return best
 
     def _lm_factor(self):
         """Factor of H + lam D, raising lam until positive definite: (factor or None, lam)."""
@@ -619,14 +667,17 @@ class _Newton:
         d[free] = d_free
         t0 = time.perf_counter()
         q_new = _path(self.rpath, q, d, self.n, free)(1.0) if self.rpath is not None else q + d
-        E_new = model.trial_energy(q, q_new)
+        blocked = self.contact is not None and model.step_fraction(q, q_new) < 1.0
+        E_new = np.inf if blocked else model.energy(q_new)
         timings["line_search"] += time.perf_counter() - t0
         t0 = time.perf_counter()
-        if not stable and self.fresh and (not (np.isfinite(E_new) and E_new < E) or lam_try > 1e-2):
+        if not stable and self.fresh and ((not (np.isfinite(E_new) and E_new < E) and not blocked) or lam_try > 1e-2):
             # strongly indefinite, or the regularised step fails: also try the direction of
             # most negative curvature (saddle escape). Not on every indefinite step: local
             # near-neutral modes (fabric flaps at free corners) make that search cost more
-            # than it gains.
+            # than it gains; nor where the step fails only because it would pass through a
+            # contact (a shorter step is the remedy, not another direction: on the 50 x 35 mm
+            # stars tube these searches were a third of the solve).
             v_nc, E_nc = _negative_curvature_step(model, q, free, H, D, g, factor, E, self.v_prev,
                                                   self.length_scale)
             if v_nc is not None:
@@ -696,9 +747,15 @@ def _negative_curvature_step(model, q, free, H, D, g, factor, E, v_prev, length_
         return None, np.inf
     full *= (length_scale / vmax) * (-1.0 if g @ v > 0 else 1.0)
     best_a, best_E = 0.0, E
+    # under contact one collision check of the whole search length: the steps within its
+    # collision-free fraction need none, those beyond it are inadmissible (skipped unevaluated)
+    t_free = model.step_fraction(q, q + full) if getattr(model, "contact", None) is not None else 1.0
     a = 1.0
     for _ in range(20):             # shrink until the energy decreases
-        Ea = model.trial_energy(q, q + a * full)
+        if a > t_free:
+            a *= 0.5
+            continue
+        Ea = model.energy(q + a * full)
         if np.isfinite(Ea) and Ea < best_E:
             best_a, best_E = a, Ea
             break
@@ -706,7 +763,7 @@ def _negative_curvature_step(model, q, free, H, D, g, factor, E, v_prev, length_
     if best_a == 0.0:
         return None, np.inf
     for _ in range(6):              # then expand while it keeps decreasing
-        Ea = model.trial_energy(q, q + 2 * best_a * full)
+        Ea = model.energy(q + 2 * best_a * full) if 2 * best_a <= t_free else model.trial_energy(q, q + 2 * best_a * full)
         if not (np.isfinite(Ea) and Ea < best_E):
             break
         best_a, best_E = 2 * best_a, Ea

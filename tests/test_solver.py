@@ -189,3 +189,85 @@ def test_newton_runs_with_one_openblas_thread_and_restores_the_count(monkeypatch
         after = counts()
     assert seen and all(n == 1 for n in seen)
     assert after == before
+
+
+def _solver_at(M, q, free):
+    """A _Newton at q with its energy and gradient assembled (no step taken)."""
+    from shellfem.newton import NewtonOptions, _Newton
+    s = _Newton(M, q, free, NewtonOptions(relax_angles=False, relax_printed=False, rotation_path=False))
+    s._start()
+    s._assemble()
+    return s
+
+
+def test_creep_is_recognised_only_after_a_window_of_full_steps_that_barely_lower_the_energy():
+    """_creeping: CREEP_WINDOW full Newton steps (lambda 0, step 1) whose energy fell by less than
+    CREEP_ENERGY |E| and whose gradient stayed above half of the window's first: creep; one cut
+    step, a shift, a gradient that fell to a third (quadratic or linear convergence) or an energy
+    that fell by more: not creep."""
+    from shellfem.newton import CREEP_ENERGY, CREEP_WINDOW
+    M, free_x, tip = _loaded_cantilever()
+    s = _solver_at(M, newton(M, M.initial_state(), free_x, max_iterations=3).q, free_x)
+    E, gn = s.E, s.gnorm
+    assert E != 0.0
+
+    def window(step=1.0, lam=0.0, dE=0.1 * CREEP_ENERGY * abs(E), g0=gn):
+        return [dict(iteration=k, energy=E + dE * (CREEP_WINDOW - k) / CREEP_WINDOW, gradient_norm=g0,
+                     lam=lam, step=step) for k in range(CREEP_WINDOW)]
+
+    s.history = window()
+    assert s._creeping()
+    s.history = window()[1:]
+    assert not s._creeping()                       # too few steps
+    h = window()
+    h[3]["step"] = 0.5
+    s.history = h
+    assert not s._creeping()                       # one step cut by the line search
+    s.history = window(lam=1e-6)
+    assert not s._creeping()                       # trust-region steps
+    s.history = window(g0=3.0 * gn)
+    assert not s._creeping()                       # the gradient fell to a third
+    s.history = window(dE=2.0 * CREEP_ENERGY * abs(E))
+    assert not s._creeping()                       # the energy fell by more than CREEP_ENERGY
+
+
+def test_creep_extrapolation_follows_the_step_while_the_energy_falls_and_never_through_a_contact():
+    """_extrapolated doubles the accepted full step along its path while the energy falls (on a
+    quadratic energy whose minimum lies 5.3 steps out: factor 4, the best of 1, 2, 4, 8), never
+    returns a higher energy than the full step's, and stops where the trial energy is +inf (a
+    contact the collision filter finds on the straight move)."""
+    from shellfem.newton import CREEP_MAX_FACTOR
+    M, free_x, tip = _loaded_cantilever()
+    q0 = M.initial_state()
+    s = _solver_at(M, q0, free_x)
+    d = np.zeros_like(q0)
+    d[np.flatnonzero(free_x)[:6]] = 1e-3
+
+    class Quadratic:
+        """E(q) = (a - 5.3)^2 along q0 + a d, the straight path's parameter a."""
+        def __init__(self, wall=np.inf):
+            self.wall = wall
+
+        def trial_energy(self, q_from, q):
+            a = float((q - q0) @ d / (d @ d))
+            return np.inf if a > self.wall else (a - 5.3) ** 2
+
+    along = lambda a: q0 + a * d
+    s.model = Quadratic()
+    q, E_new, a = s._extrapolated(along, along(1.0), (1.0 - 5.3) ** 2)
+    assert a == 4.0 and E_new == pytest.approx(1.3 ** 2) and np.allclose(q, along(4.0))
+    s.model = Quadratic(wall=3.0)                  # a contact between 2 and 4 steps out
+    q, E_new, a = s._extrapolated(along, along(1.0), (1.0 - 5.3) ** 2)
+    assert a == 2.0
+    s.model = Quadratic()
+    q, E_new, a = s._extrapolated(along, along(1.0), -1.0)    # nothing beats the full step
+    assert a == 1.0 and E_new == -1.0
+    assert s.timings["creep_extrapolations"] == 2
+    assert CREEP_MAX_FACTOR >= 4
+
+
+def test_converging_solves_never_extrapolate():
+    """A solve that converges (Sze's loaded cantilever, 20 elements) never meets the creep test."""
+    M, free_x, tip = _loaded_cantilever()
+    r = newton(M, M.initial_state(), free_x, max_iterations=200)
+    assert r.converged and r.timings.get("creep_extrapolations", 0) == 0
