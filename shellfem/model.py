@@ -161,10 +161,15 @@ class ShellModel:
         psi = topo.face_sign * theta[topo.face_edges] + np.where(interior, 0.5 * phi[np.maximum(fh, 0)], 0.0)
         return psi, gphi
 
-    def energy(self, q) -> float:
-        return float(self._evaluate(q, order=0)[0])
+    def energy(self, q, below: float | None = None) -> float:
+        """Total energy at q (N mm). ``below``: the value the caller will compare it against
+        (accepting only a smaller one): when the energy without the contact barriers (which are
+        >= 0) is already not below it, that part is returned, a lower bound that the caller
+        rejects as it would the total, and no collisions are built (a build costs ~0.3 s on a
+        10k-vertex sheet in contact, about half of such a solve's time)."""
+        return float(self._evaluate(q, order=0, below=below)[0])
 
-    def _evaluate(self, q, order=2, out=None):
+    def _evaluate(self, q, order=2, out=None, below=None):
         x, theta = self.split(q)
         t = self.sheet.triangles
         m = len(t)
@@ -185,6 +190,8 @@ class ShellModel:
         if self.external_force is not None:
             E -= float(np.sum(self.external_force * x))
         contact_g = None
+        if order == 0 and below is not None and not E <= below:
+            return E, None, None         # the contact barriers (>= 0) cannot bring it below
         if self.contact is not None:
             Ec, contact_g, self.contact_hessian = self.contact.evaluate(x, order=order)
             E += Ec                      # +inf when inadmissible (callers test E first)
@@ -216,12 +223,24 @@ class ShellModel:
         n = self.n_vertices
         return self.contact.step_fraction(q0[:3 * n].reshape(n, 3), q1[:3 * n].reshape(n, 3))
 
-    def trial_energy(self, q0, q1) -> float:
+    def trial_energy(self, q0, q1, below: float | None = None) -> float:
         """Energy at q1 (N mm), +inf if the straight move from q0 to q1 passes through a contact
-        (:meth:`step_fraction` < 1): how the solver and its relaxations judge trial points."""
-        if self.contact is not None and self.step_fraction(q0, q1) < 1.0:
+        (:meth:`step_fraction` < 1): how the solver and its relaxations judge trial points.
+        ``below`` as for :meth:`energy`: a trial whose energy without the contact barriers is
+        not below it is rejected on that lower bound, before any collision check."""
+        if self.contact is None:
+            return self.energy(q1)
+        E0 = None
+        if below is not None:
+            E0 = float(self._evaluate(q1, order=0, below=-np.inf)[0])      # without the barriers
+            if not E0 <= below:
+                return E0
+        if self.step_fraction(q0, q1) < 1.0:
             return np.inf
-        return self.energy(q1)
+        if E0 is None:
+            return self.energy(q1)
+        n = self.n_vertices
+        return E0 + float(self.contact.evaluate(q1[:3 * n].reshape(n, 3), order=0)[0])
 
     def hessian_blocks(self, q, out=None):
         """(E, gradient, (face blocks (m, 21, 21), hinge blocks (k, 12, 12))) at q (N mm, N, N/mm

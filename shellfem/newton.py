@@ -568,7 +568,7 @@ class _Newton:
                     a *= min(0.5, max(0.9 * t, 0.01))
                     E_new = np.inf
                     continue
-            E_new = model.energy(q_try)
+            E_new = model.energy(q_try, below=E + 1e-4 * a * slope)     # Armijo's bound
             if np.isfinite(E_new) and E_new <= E + 1e-4 * a * slope:
                 break
             a *= 0.5
@@ -611,7 +611,7 @@ class _Newton:
         b = 2.0
         while b <= CREEP_MAX_FACTOR:
             qb = along(b)
-            Eb = self.model.trial_energy(self.q, qb)
+            Eb = self.model.trial_energy(self.q, qb, below=best[1])
             if not (np.isfinite(Eb) and Eb < best[1]):
                 break
             best = (qb, Eb, b)
@@ -668,7 +668,9 @@ class _Newton:
         t0 = time.perf_counter()
         q_new = _path(self.rpath, q, d, self.n, free)(1.0) if self.rpath is not None else q + d
         blocked = self.contact is not None and model.step_fraction(q, q_new) < 1.0
-        E_new = np.inf if blocked else model.energy(q_new)
+        # the bound it is judged by: the printed relaxation takes trials up to E + 10 pred
+        below = E + 10.0 * pred if (self.stiff is not None and pred > 0) else E
+        E_new = np.inf if blocked else model.energy(q_new, below=below)
         timings["line_search"] += time.perf_counter() - t0
         t0 = time.perf_counter()
         if not stable and self.fresh and ((not (np.isfinite(E_new) and E_new < E) and not blocked) or lam_try > 1e-2):
@@ -678,6 +680,7 @@ class _Newton:
             # than it gains; nor where the step fails only because it would pass through a
             # contact (a shorter step is the remedy, not another direction: on the 50 x 35 mm
             # stars tube these searches were a third of the solve).
+            timings["negative_curvature_searches"] = timings.get("negative_curvature_searches", 0) + 1
             v_nc, E_nc = _negative_curvature_step(model, q, free, H, D, g, factor, E, self.v_prev,
                                                   self.length_scale)
             if v_nc is not None:
@@ -755,7 +758,7 @@ def _negative_curvature_step(model, q, free, H, D, g, factor, E, v_prev, length_
         if a > t_free:
             a *= 0.5
             continue
-        Ea = model.energy(q + a * full)
+        Ea = model.energy(q + a * full, below=best_E)
         if np.isfinite(Ea) and Ea < best_E:
             best_a, best_E = a, Ea
             break
@@ -763,7 +766,8 @@ def _negative_curvature_step(model, q, free, H, D, g, factor, E, v_prev, length_
     if best_a == 0.0:
         return None, np.inf
     for _ in range(6):              # then expand while it keeps decreasing
-        Ea = model.energy(q + 2 * best_a * full) if 2 * best_a <= t_free else model.trial_energy(q, q + 2 * best_a * full)
+        Ea = (model.energy(q + 2 * best_a * full, below=best_E) if 2 * best_a <= t_free
+              else model.trial_energy(q, q + 2 * best_a * full, below=best_E))
         if not (np.isfinite(Ea) and Ea < best_E):
             break
         best_a, best_E = 2 * best_a, Ea

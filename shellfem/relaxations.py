@@ -121,7 +121,7 @@ class StiffRegionRelaxation:
             for _ in range(20):
                 trial = q.copy()
                 trial[P] += t * d
-                E_try = model.trial_energy(q, trial)      # +inf through a contact (step filter)
+                E_try = model.trial_energy(q, trial, below=E + 1e-4 * t * slope)   # +inf through a contact
                 if np.isfinite(E_try) and E_try <= E + 1e-4 * t * slope:
                     break
                 t *= 0.5

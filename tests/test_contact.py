@@ -379,6 +379,31 @@ def test_a_move_shorter_than_half_the_certified_gap_needs_no_ccd(monkeypatch):
     assert len(calls) == 1                           # a state never evaluated: the CCD decides
 
 
+def test_an_energy_judged_against_a_bound_builds_no_collisions_it_does_not_need():
+    """ShellModel.energy / trial_energy with ``below``: exact when the total can be below the
+    bound; when the energy without the barriers (>= 0) is already above it, that lower bound is
+    returned and no collision is built nor any CCD run (the solver rejects such trials either way)."""
+    sim = simulate(load_pattern("examples/strip_narrow.toml"))        # its ends touch: in contact
+    M, q = sim.model, sim.result.q
+    c, n = M.contact, M.n_vertices
+    rng = np.random.default_rng(0)
+    states = [q + 1e-6 * rng.standard_normal(q.shape) for _ in range(3)]
+    barrier = [c.evaluate(y[:3 * n].reshape(n, 3))[0] for y in states]
+    assert min(barrier) > 0
+    total = [M.energy(y) for y in states]
+    assert M.energy(states[0], below=total[0] + 1.0) == total[0]          # exact: may be below
+    builds = c.builds
+    lower = M.energy(states[1], below=total[1] - 2 * barrier[1])
+    assert lower == pytest.approx(total[1] - barrier[1], rel=1e-12) and c.builds == builds
+    checks = []
+    step_fraction = c.step_fraction
+    c.step_fraction = lambda *a: (checks.append(1), step_fraction(*a))[1]
+    t = M.trial_energy(q, states[2], below=total[2] - 2 * barrier[2])
+    assert t == pytest.approx(total[2] - barrier[2], rel=1e-12) and c.builds == builds and not checks
+    assert M.trial_energy(q, states[2], below=total[2] + 1.0) == pytest.approx(total[2], rel=1e-12)
+    assert len(checks) == 1
+
+
 # ----------------------------------------------------------------------------- the spiral
 
 

@@ -248,7 +248,7 @@ def test_creep_extrapolation_follows_the_step_while_the_energy_falls_and_never_t
         def __init__(self, wall=np.inf):
             self.wall = wall
 
-        def trial_energy(self, q_from, q):
+        def trial_energy(self, q_from, q, below=None):
             a = float((q - q0) @ d / (d @ d))
             return np.inf if a > self.wall else (a - 5.3) ** 2
 

@@ -37,7 +37,7 @@ class RodShellModel:
         """1.0: no contact filters the solver's steps (ShellModel.step_fraction)."""
         return 1.0
 
-    def trial_energy(self, q0, q1) -> float:
+    def trial_energy(self, q0, q1, below=None) -> float:
         """The energy at q1 (N mm; ShellModel.trial_energy without contact)."""
         return self.energy(q1)
 
@@ -86,7 +86,8 @@ class RodShellModel:
         return mask
 
     # --- energy ---------------------------------------------------------------------------
-    def energy(self, q) -> float:
+    def energy(self, q, below=None) -> float:
+        """Shell + rods energy at q (N mm); ``below`` is ShellModel.energy's (no contact here)."""
         x, _ = self.split(q)
         return self.shell.energy(q) + self.rods.energy(x)
 
