@@ -50,10 +50,10 @@ diagonal, stiff enough to stop a layer within the band and soft enough not to do
 """
 from __future__ import annotations
 
-import numpy as np
-import scipy.sparse as sp
 from collections import deque
 
+import numpy as np
+import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from shellfem.errors import SelfshapeError

@@ -32,7 +32,9 @@ collision-free fraction of the move), the LM step, the negative-curvature search
 relaxation's inner steps - is judged by ``model.trial_energy(q, q_try)``: +inf unless the straight
 move from the current iterate is free of contact (continuous collision detection); along a
 rotation-corrected path the check is on the straight segment to the trial point, so every
-accepted state is reached from the last one without passing through the sheet. The edge-angle
+accepted state is reached from the last one without passing through the sheet. Each trial passes
+the bound it is judged by (``below``): one whose energy without the barriers (>= 0) is already
+above it is rejected without a collision build or check. The edge-angle
 relaxation moves no position and needs no check. A start that intersects or whose supports
 force penetration stops the solve at once with that reason.
 
