@@ -227,8 +227,8 @@ def _release(sheet, model, q, fixed, values, free, fabric, plastic, steps, newto
         opts = dict(newton_options)
         if not last:
             opts["rtol"] = 1e-5
-            opts["max_iterations"] = min(opts.get("max_iterations", 300),
-                                         max(INTERMEDIATE_STEP_ITERATIONS, opts.get("max_iterations", 300) // steps))
+            cap = opts["max_iterations"]
+            opts["max_iterations"] = min(cap, max(INTERMEDIATE_STEP_ITERATIONS, cap // steps))
         result = newton(model_k, guess, free, **opts)
         total_it += result.iterations
         if not result.converged and not last:

@@ -213,7 +213,7 @@ class Contact:
         self.skips = 0             # evaluations the skip test settled
         self.witness_hits = 0      # skip tests decided by the last close pairs alone
         self.reuses = 0            # evaluations at the last state's positions (its collisions reused)
-        self._last_state = None    # (positions (n, 3), their collisions or None)
+        self._last_state = None    # (positions (n, 3), their collisions or None, closest pair's squared distance)
         self._witness = None       # (k, 2) triangle pairs found within reach by the last exact stage
         self._certificates = deque(maxlen=CERTIFIED_STATES)   # (positions, distance bound) of the last states
         self.certified_moves = 0   # step-filter calls settled by a state's distance bound
@@ -366,22 +366,23 @@ class Contact:
             self.builds += 1
             c = ipctk.NormalCollisions()
             c.build(mesh, np.asfortranarray(x), self.dhat, dmin=self.offset)
-        self._last_state = (np.array(x, float, copy=True), c)
-        self._certify(self._last_state[0], c)
+        # the closest pair's squared distance (mm^2; inf: none in the band), measured once per
+        # state for the barrier's admissibility, the reports and the step filter's certificate
+        d2 = (float(c.compute_minimum_distance(self._collision_mesh(), np.asfortranarray(x)))
+              if c is not None and len(c) > 0 else np.inf)
+        self._last_state = (np.array(x, float, copy=True), c, d2)
+        # a lower bound on the distance (mm) between any two non-excluded primitives at x, for the
+        # step filter's skip (:meth:`step_fraction`): offset + dhat when no pair is within it (the
+        # skip test, or no collision built), else the closest collision's
+        self._certificates.append((self._last_state[0], min(self.offset + self.dhat, float(np.sqrt(max(d2, 0.0))))))
         return c
 
-    def _certify(self, x, c):
-        """Keep a lower bound on the distance (mm) between any two non-excluded primitives at x:
-        offset + dhat when no pair is within it (the skip test, or no collision built), else the
-        smallest distance among the collisions c (for the step filter's skip, :meth:`step_fraction`)."""
-        bound = self.offset + self.dhat
-        if c is not None and len(c) > 0:
-            d2 = float(c.compute_minimum_distance(self._collision_mesh(), np.asfortranarray(x)))
-            bound = min(bound, float(np.sqrt(max(d2, 0.0))))
-        self._certificates.append((x, bound))
+    def _closest2(self) -> float:
+        """Squared distance (mm^2) of the closest pair at the state of the last :meth:`_collisions`."""
+        return self._last_state[2]
 
     def _certified_gap(self, x) -> float | None:
-        """The distance bound of :meth:`_certify` minus the offset (mm) at positions x, if x is
+        """The distance bound kept by :meth:`_collisions` minus the offset (mm) at positions x, if x is
         one of the last CERTIFIED_STATES states evaluated, else None."""
         for y, bound in reversed(self._certificates):
             if y.shape == x.shape and np.array_equal(y, x):
@@ -412,7 +413,7 @@ class Contact:
                 ipctk = _ipctk()
                 mesh, pot = self._collision_mesh(), self._potential()
                 X = np.asfortranarray(x)
-                if c.compute_minimum_distance(mesh, X) <= self.offset ** 2:
+                if self._closest2() <= self.offset ** 2:
                     return np.inf, g, None          # at or through the offset: inadmissible
                 E += float(pot(c, mesh, X))
                 if order >= 1:
@@ -492,7 +493,7 @@ class Contact:
         return max(t, 0.0)
 
     def _certified_move(self, x0, x1) -> bool:
-        """True when x0 is a recently evaluated state (:meth:`_certify`) and no vertex travels
+        """True when x0 is a recently evaluated state (its bound kept by :meth:`_collisions`) and no vertex travels
         farther than half of its distance bound less the offset: two points of different
         primitives approach each other by at most the sum of their travels, so no non-excluded
         pair reaches the offset along the straight move (no CCD needed)."""
@@ -560,7 +561,7 @@ class Contact:
         c = self._collisions(np.asarray(x, float).reshape(self.n, 3)) if self.self_contact else None
         if c is None or len(c) == 0:
             return float("inf")
-        return float(np.sqrt(max(c.compute_minimum_distance(self._collision_mesh(), np.asfortranarray(x)), 0.0)))
+        return float(np.sqrt(max(self._closest2(), 0.0)))
 
     def report(self, x) -> dict:
         """{"min_distance_mm", "active_pairs", "ground_min_height_mm", "in_contact" (m,) bool}:
@@ -575,8 +576,7 @@ class Contact:
             c = self._collisions(x)
             if c is not None and len(c) > 0:
                 active = len(c)
-                dmin = float(np.sqrt(max(c.compute_minimum_distance(self._collision_mesh(), np.asfortranarray(x)),
-                                         0.0)))
+                dmin = float(np.sqrt(max(self._closest2(), 0.0)))
                 for k in range(len(c)):          # output only: one pass over the active pairs
                     ids = np.asarray(c[k].vertex_ids(self.edges, self.faces))
                     in_contact_v[ids[ids >= 0]] = True

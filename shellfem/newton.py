@@ -83,6 +83,10 @@ CREEP_WINDOW = 10
 CREEP_ENERGY = 1e-4
 CREEP_MAX_FACTOR = 1024.0
 
+#: an LM trial that raised the energy by less than this many times the model's predicted decrease
+#: is relaxed over the printed regions before it is judged (beyond, it is rejected as it is)
+STIFF_TRIAL_RISE = 10.0
+
 #: Default trust-region metric floor (see :func:`lm_metric`); [solver] metric_floor = 0 gives
 #: plain Marquardt scaling.
 DEFAULT_METRIC_FLOOR = 10.0
@@ -670,8 +674,8 @@ class _Newton:
         t0 = time.perf_counter()
         q_new = _path(self.rpath, q, d, self.n, free)(1.0) if self.rpath is not None else q + d
         blocked = self.contact is not None and model.step_fraction(q, q_new) < 1.0
-        # the bound it is judged by: the printed relaxation takes trials up to E + 10 pred
-        below = E + 10.0 * pred if (self.stiff is not None and pred > 0) else E
+        # the bound it is judged by: the printed relaxation takes trials up to E + STIFF_TRIAL_RISE pred
+        below = E + STIFF_TRIAL_RISE * pred if (self.stiff is not None and pred > 0) else E
         E_new = np.inf if blocked else model.energy(q_new, below=below)
         timings["line_search"] += time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -695,7 +699,7 @@ class _Newton:
             timings["negative_curvature_search"] = timings.get("negative_curvature_search", 0.0) + time.perf_counter() - t0
         actual = E - E_new
         rho = actual / pred if pred > 0 else (1.0 if actual > 0 else -1.0)
-        if self.stiff is not None and rho < 0.75 and pred > 0 and np.isfinite(E_new) and E_new < E + 10 * pred:
+        if self.stiff is not None and rho < 0.75 and pred > 0 and np.isfinite(E_new) and E_new < E + STIFF_TRIAL_RISE * pred:
             # the step strained the stiff printed regions more than the model foresaw: relax
             # them at the trial point before judging it (rho capped at 1: the model stays the
             # model of the unrelaxed step)
@@ -754,7 +758,7 @@ def _negative_curvature_step(model, q, free, H, D, g, factor, E, v_prev, length_
     best_a, best_E = 0.0, E
     # under contact one collision check of the whole search length: the steps within its
     # collision-free fraction need none, those beyond it are inadmissible (skipped unevaluated)
-    t_free = model.step_fraction(q, q + full) if getattr(model, "contact", None) is not None else 1.0
+    t_free = model.step_fraction(q, q + full)          # 1.0 without contact
     a = 1.0
     for _ in range(20):             # shrink until the energy decreases
         if a > t_free:
