@@ -169,7 +169,9 @@ class ShellModel:
         10k-vertex sheet in contact, about half of such a solve's time)."""
         return float(self._evaluate(q, order=0, below=below)[0])
 
-    def _evaluate(self, q, order=2, out=None, below=None):
+    def _evaluate(self, q, order=2, out=None, below=None, barriers=True):
+        """(E, gradient or None, Hessian blocks or None) up to ``order``; ``below`` as for
+        :meth:`energy`; ``barriers=False``: without the contact barriers (order 0 only)."""
         x, theta = self.split(q)
         t = self.sheet.triangles
         m = len(t)
@@ -192,7 +194,7 @@ class ShellModel:
         contact_g = None
         if order == 0 and below is not None and not E <= below:
             return E, None, None         # the contact barriers (>= 0) cannot bring it below
-        if self.contact is not None:
+        if self.contact is not None and barriers:
             Ec, contact_g, self.contact_hessian = self.contact.evaluate(x, order=order)
             E += Ec                      # +inf when inadmissible (callers test E first)
         if order == 0:
@@ -232,7 +234,7 @@ class ShellModel:
             return self.energy(q1)
         E0 = None
         if below is not None:
-            E0 = float(self._evaluate(q1, order=0, below=-np.inf)[0])      # without the barriers
+            E0 = float(self._evaluate(q1, order=0, barriers=False)[0])
             if not E0 <= below:
                 return E0
         if self.step_fraction(q0, q1) < 1.0:
