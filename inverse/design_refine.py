@@ -65,7 +65,8 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     ``progress``: called with {"stage": "outer", "iteration", "rms_mm"} at each accepted outer
     iterate (the CLI's status line). ``layer_rounds_max``: rounds of one-layer moves after the
     rounding (inverse.refine.refine_layers; 0: none; they end at the first round none of whose
-    moves lowers the objective), recorded as "layer_rounds". Why several: each round is
+    moves lowers the objective, or whose move lowers it by less than the options' ftol), recorded
+    as "layer_rounds". Why several: each round is
     linearised where the previous one left the design, and thin ribbons rounded to 0.1 mm layers
     start far from the continuous optimum, so later rounds still gain (docs/notes.md, session 26)."""
     from inverse.refine import (RefineOptions, ThicknessProblem, finite_or_none, follow_thickness, linear_rounding,
@@ -131,7 +132,8 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
         p_round, rr.q, _, layer_rounds = refine_layers(prob, p_round, rr.q, h, (first, top), rounds=layer_rounds_max,
                                                        newton_iterations=2 * opts.trial_iterations, verbose=verbose,
                                                        leave_factor=opts.leave_factor, shifted_run=opts.shifted_run,
-                                                       shifted_grace=opts.shifted_grace, margin=res.margin)
+                                                       shifted_grace=opts.shifted_grace, margin=res.margin,
+                                                       ftol=opts.ftol)
         model_r = prob.model_at(p_round)
     block = {
         "start": start, "outer_iterations": len(res.history) - 1, "reason": res.reason,

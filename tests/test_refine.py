@@ -150,6 +150,29 @@ def test_layer_refinement_returns_layer_counts_that_are_one_layer_off(deployed):
     assert all(h["lambda_min"] > 0.5 * lam0 for h in hist_low if h["accepted"])
 
 
+def test_layer_rounds_end_when_a_round_gains_less_than_ftol(deployed):
+    """Started two layers off on every ribbon, the first round moves each by one layer (J falls
+    by most of itself) and the second returns them; with ftol above the first round's relative
+    gain the rounds end after it, one layer short, with the first round's thicknesses."""
+    from inverse.refine import refine_layers
+    base, param, X = deployed
+    p0 = np.round(TRUE + 0.2 * np.array([1, -1, 1, -1, -1, 1, 1, -1, 1]), 6)
+    prob = ThicknessProblem(sheet_at(base, param, p0), FABRIC, PLASTIC, param, X, None, smoothness=0.0)
+    prob.free = np.ones(3 * base.n_vertices + prob.model_at(p0).n_edges, bool)
+    prob.free[gauge_dofs(X, np.zeros(0, int))] = False
+    r0 = prob.solve(prob.model_at(p0), np.concatenate([X.ravel(), np.zeros(len(prob.free) - X.size)]), 400)
+    assert r0.converged
+    J0 = prob.objective(prob.model_at(p0).split(r0.q)[0], p0)[0]
+    p, _, J, hist = refine_layers(prob, p0, r0.q, 0.1, (0.1, 1.6), rounds=4, ftol=0.5)
+    np.testing.assert_allclose(p, TRUE, atol=1e-9)
+    assert [h["round"] for h in hist if h["accepted"]] == [1, 2]
+    J1 = hist[0]["objective"]
+    assert 0.5 * J0 > J1 > 0.01 * J0                       # the first round's gain: between 50 and 99 %
+    p, _, J, hist = refine_layers(prob, p0, r0.q, 0.1, (0.1, 1.6), rounds=4, ftol=0.999)
+    assert [h["round"] for h in hist] == [1] and J == J1
+    np.testing.assert_allclose(np.abs(p - TRUE), 0.1, atol=1e-9)
+
+
 def test_following_the_thicknesses_in_steps_reaches_the_direct_equilibrium(deployed):
     """Where no other state is near, the equilibrium followed in 4 thickness steps is the one a
     single solve finds (mm)."""
