@@ -565,8 +565,11 @@ def _fmt(x) -> str:
 
 
 #: (posts, release steps) of the jig releases tried in turn: more posts hold more of the shape,
-#: continuation steps move them from flat in smaller increments
-JIG_TRIALS = ((4, 1), (8, 1), (8, 4))
+#: continuation steps move them from flat in smaller increments. Always in steps: a one-step
+#: release drags the sheet from flat to the posts' positions at once, and on the 110 mm vault and
+#: hemisphere it ran into the Newton cap or a degenerate state where the stepped one converged
+#: (docs/notes.md, sessions 28, 31, 34)
+JIG_TRIALS = ((4, 4), (8, 4))
 #: Newton cap per mesh level of a jig release: the posts start the sheet near the refined state,
 #: a release that needs more is not reaching it (a 110 mm hat on 4 posts ran > 25 min uncapped)
 JIG_MAX_ITERATIONS = 600

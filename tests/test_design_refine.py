@@ -181,6 +181,6 @@ def test_a_jig_that_cannot_be_simulated_is_recorded_and_the_next_one_tried():
     design_module._try_jig(block, rep, candidates, g, tris, np.column_stack([g, np.zeros(len(g))]), {}, "t",
                            write_and_verify, lambda r: r.get("verify_converged", False))
     first, second = block["jig"]["tried"]
-    assert first == {"posts": 4, "release_steps": 1, "reached": False,
+    assert first == {"posts": 4, "release_steps": 4, "reached": False,
                      "error": "pattern.toml: [[support]] #1: point 3 (1, 2) is outside the fabric"}
     assert second["posts"] == 8 and second["reached"] and block["jig"]["posts"] == 8 and "jig" in candidates
