@@ -3,7 +3,8 @@
     design(V, F)            arrays in, a Design record out (no files)
     design_file(path, dir)  the CLI verb: writes pattern.toml, flat.vtu, front/back.gcode,
                             pattern.png, pattern.dxf/.svg, index.html, report.json (and with
-                            verify deployed.vtu/.obj/.stl/.ply, verify.png)
+                            verify deployed.vtu/.obj/.stl/.ply, verify.png; with refine
+                            refine.png)
 
 Stages (times in Design.times / report.json "stages_s"):
  1. check (disk topology, one-line errors), centre and scale to a bounding-box diagonal
@@ -48,14 +49,15 @@ from inverse.record import Design
 from inverse.report import report_dict
 from inverse.separation import separate_ribbons, simplify_paths
 from inverse.to_pattern import pattern_dict
-from inverse.verify import verify_design
+from inverse.verify import deviation_both_ways, verify_design
 from inverse.vtu import write_flat_vtu
 from shellfem.errors import SelfshapeError
 
 RIBBON_LENGTH_MM, RIBBON_WIDTH_MM = 15.0, 1.5
 #: Every file design_file may write (removed from the output directory before a new run writes).
 OUTPUTS = ("report.json", "pattern.toml", "flat.vtu", "front.gcode", "back.gcode", "pattern.png", "pattern.dxf",
-           "pattern.svg", "deployed.vtu", "deployed.obj", "deployed.stl", "deployed.ply", "verify.png", "index.html")
+           "pattern.svg", "deployed.vtu", "deployed.obj", "deployed.stl", "deployed.ply", "verify.png", "refine.png",
+           "index.html")
 
 
 # ----------------------------------------------------------------------------- stages
@@ -612,6 +614,24 @@ def _try_jig(block, rep, candidates, printed_points, triangles, near_x, refined_
                             + ") selected the refined state"}
 
 
+def _write_before_after(out, d, before, after, label, name):
+    """refine.png (inverse.plots.plot_before_after): the open-loop simulation ``before`` and the
+    refined one ``after`` (forward.simulate.Simulation, either None or not converged: left out),
+    each registered to the target as the verification does; nothing when neither converged."""
+    from inverse.plots import plot_before_after
+    from inverse.registration import flat_to_target
+
+    states = []
+    for lab, sim in (("open loop", before), (label, after)):
+        if sim is None or not sim.summary()["converged"]:
+            continue
+        Y0 = flat_to_target(sim.sheet.points, d.flat.uv, d.F, d.V)
+        Xr, pct, back, _ = deviation_both_ways(d, sim.positions, sim.sheet.triangles, Y0)
+        states.append((lab, Xr, sim.sheet.triangles, pct, back))
+    if states:
+        out.write("refine.png", lambda tmp: plot_before_after(d, states, tmp, title=f"{name}: --refine"))
+
+
 def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smoothness, verbose, pattern_kw,
                         raw, progress=None):
     """The --refine stage of design_file: refine, then rewrite pattern.toml, G-code, pattern.png
@@ -646,8 +666,13 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
     rep["open_loop"] = {k: rep[k] for k in VERIFY_KEYS if k in rep}
     rep["open_loop"]["thickness_histogram"] = rep.get("thickness_histogram")
 
+    verified = {}
+
     def write_and_verify(raw_, title, sims_=None):
-        """Write the design files of ``raw_`` and replace the report's verification by its own."""
+        """Write the design files of ``raw_`` and replace the report's verification by its own;
+        verified["last"]: its simulation (None if it could not run)."""
+        sims_ = [] if sims_ is None else sims_
+        verified["last"] = None
         p_toml = out.file("pattern.toml")
         _write_design_files(out, d, raw_, o.printer, title)
         rep.update(report_dict(d))
@@ -657,8 +682,10 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
             progress({"stage": "verify"})
         rep.update(verify_design(d, parse_pattern(raw_, p_toml, os.path.dirname(os.path.abspath(p_toml))), out,
                                  sims=sims_, progress=progress))
+        verified["last"] = sims_[-1] if sims_ else None
     refined_raw = pattern_dict(d, seed=o.seed, target_name=name, **pattern_kw)
     write_and_verify(refined_raw, name + " (refined)")
+    verified["refined"] = verified["last"]
     near = block.get("rounded", {})
 
     def reaches_near(rep_):
@@ -703,6 +730,13 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
                               + "): the open-loop design is kept and written")
         if block.get("release_reaches_refined_state") is False and "jig" not in candidates:
             block["release_note"] = "release from flat lands in another equilibrium than the one nearest the target"
+    if block["kept"] == "open loop":
+        after, label = verified.get("refined"), "refined, released from flat (not kept)"
+    else:
+        after = verified.get("last")
+        label = "refined, released from flat" if block["kept"] == "refined" else \
+            f"refined, released on {block['jig']['posts']} jig posts"
+    _write_before_after(out, d, sims[0], after, label, name)
     if oob is not None and max(oob) > 1.0:
         block["feasibility"] = (f"the flattening is out of the stretch bounds on {oob[0]:.1f} % / {oob[1]:.1f} % "
                                 f"of the area (sigma1 / sigma2): the fabric cannot reach the target there; "
@@ -718,7 +752,7 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
     """`selfshape design TARGET -o DIR`: writes DIR/pattern.toml, flat.vtu, front.gcode (and
     back.gcode when a ribbon is on the back), pattern.png and report.json (last); with
     ``verify`` also deployed.vtu, deployed.obj/.stl/.ply, verify.png and the deviation in
-    report.json; pattern.dxf/.svg (the flat pattern for CAD and laser cutting) and index.html
+    report.json; with ``refine`` refine.png (the open-loop and the refined deployment); pattern.dxf/.svg (the flat pattern for CAD and laser cutting) and index.html
     (forward.view: deployed surface, target ghost and flat pattern in a browser) always.
 
     ``options``/``overrides``: the design's DesignOptions, as for `design`. mesh_size_mm,

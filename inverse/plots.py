@@ -43,6 +43,24 @@ def plot_pattern(d: Design, path: str, title: str = ""):
     plt.close(fig)
 
 
+def _draw_state(fig, row, rows, d: Design, X, T, pct, vmax):
+    """One row of two views: the registered sheet X (n, 3) mm coloured by its distance to the
+    target pct (n,) % (colour scale 0..vmax), the target as a grey wireframe."""
+    col = pct[T].mean(axis=1)
+    surf = None
+    for k, (elev, azim) in enumerate(((25, -60), (70, 30))):
+        ax = fig.add_subplot(rows, 2, 2 * row + k + 1, projection="3d")
+        surf = ax.plot_trisurf(X[:, 0], X[:, 1], X[:, 2], triangles=T, cmap="viridis", linewidth=0)
+        surf.set_array(col)
+        surf.set_clim(0, max(float(vmax), 1e-9))
+        ax.plot_trisurf(d.V_input[:, 0], d.V_input[:, 1], d.V_input[:, 2], triangles=d.F_input,
+                        color=(0.5, 0.5, 0.5, 0.08), edgecolor=(0.3, 0.3, 0.3, 0.15), linewidth=0.2)
+        ax.view_init(elev, azim)
+        ax.set_box_aspect(np.ptp(np.vstack([X, d.V_input]), axis=0))
+        ax.set_axis_off()
+    return surf
+
+
 def plot_verify(d: Design, X, T, pct, path: str):
     """verify.png: the registered simulated surface coloured by distance to the target (%),
     the target as a grey wireframe, two views."""
@@ -51,18 +69,32 @@ def plot_verify(d: Design, X, T, pct, path: str):
     import matplotlib.pyplot as plt
 
     fig = plt.figure(figsize=(11, 5))
-    col = pct[T].mean(axis=1)
-    for k, (elev, azim) in enumerate(((25, -60), (70, 30))):
-        ax = fig.add_subplot(1, 2, k + 1, projection="3d")
-        surf = ax.plot_trisurf(X[:, 0], X[:, 1], X[:, 2], triangles=T, cmap="viridis", linewidth=0)
-        surf.set_array(col)
-        surf.set_clim(0, max(float(pct.max()), 1e-9))
-        ax.plot_trisurf(d.V_input[:, 0], d.V_input[:, 1], d.V_input[:, 2], triangles=d.F_input,
-                        color=(0.5, 0.5, 0.5, 0.08), edgecolor=(0.3, 0.3, 0.3, 0.15), linewidth=0.2)
-        ax.view_init(elev, azim)
-        ax.set_box_aspect(np.ptp(np.vstack([X, d.V_input]), axis=0))
-        ax.set_axis_off()
+    surf = _draw_state(fig, 0, 1, d, X, T, pct, pct.max())
     fig.colorbar(surf, ax=fig.axes, shrink=0.6, label="distance to target (% of bbox diagonal)")
     fig.suptitle(f"simulated (colour) vs target (grey): mean {pct.mean():.2f} %, max {pct.max():.2f} %")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_before_after(d: Design, states, path: str, title: str = ""):
+    """refine.png: the open-loop and the refined deployment one above the other, each coloured by
+    its distance to the target (% of the bounding-box diagonal, one colour scale for both) with
+    the target as a grey wireframe, two views each. ``states``: [(label, X registered (n, 3) mm,
+    triangles (m, 3), deployed -> target % (n,), target -> deployed % (k,))] in drawing order."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    vmax = max(float(pct.max()) for _, _, _, pct, _ in states)
+    fig = plt.figure(figsize=(11, 4.6 * len(states) + 0.4))
+    surf = None
+    for i, (label, X, T, pct, back) in enumerate(states):
+        surf = _draw_state(fig, i, len(states), d, X, T, pct, vmax)
+        fig.text(0.02, 1 - (i + 0.08) / len(states) * (1 - 0.4 / fig.get_figheight()) - 0.4 / fig.get_figheight(),
+                 f"{label}\ndeployed -> target mean {pct.mean():.2f} %, max {pct.max():.2f} %; "
+                 f"target -> deployed mean {back.mean():.2f} %, max {back.max():.2f} %", fontsize=9, va="top")
+    fig.colorbar(surf, ax=fig.axes, shrink=0.5, label="distance to target (% of bbox diagonal)")
+    if title:
+        fig.suptitle(title)
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -127,6 +127,8 @@ def test_a_jig_that_selects_the_refined_state_is_written_as_supports(tmp_path, m
                                np.linalg.norm(at[:, None] - at[None], axis=2), atol=1e-3)
     assert {e.thickness_mm for e in pat.elements if e.thickness_mm > 0} == {0.6}
     assert json.loads((tmp_path / "out" / "report.json").read_text())["refine"]["kept"] == "refined, on a jig"
+    # refine.png: the open loop above the kept (jig) deployment, and the jig's simulation was the last
+    assert box["supports"][-1] == 1 and (tmp_path / "out" / "refine.png").stat().st_size > 10_000
 
 
 def _nearest(P, p):
