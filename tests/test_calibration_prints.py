@@ -266,6 +266,8 @@ def test_law_gcode_reads_back_to_the_patches(tmp_path, capsys):
 @pytest.mark.parametrize("stretch, grid, rows_json", [
     ("1.3", (["0.2", "0.3", "0.4"], ["3.9", "6.5"]), "thickness_law_s1.3_sim_rows.json"),
     ("1.6", (["0.2", "0.25", "0.3", "0.35", "0.4"], ["3.9", "6.5"]), "thickness_law_s1.6_rows.json"),
+    ("1.1", (["0.2", "0.3", "0.4", "0.5"], ["3.9", "6.5"]), "thickness_law_s1.1_sim_rows.json"),
+    ("1.05", (["0.2", "0.3", "0.4", "0.5"], ["3.9", "6.5"]), "thickness_law_s1.05_sim_rows.json"),
 ])
 def test_law_from_rows_then_build_is_the_shipped_law(tmp_path, capsys, stretch, grid, rows_json):
     """The shipped laws were built from these rows JSONs (front rows, back = front): the

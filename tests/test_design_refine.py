@@ -38,7 +38,7 @@ def test_failed_refinement_keeps_the_open_loop_design(tmp_path, monkeypatch):
             r.thickness_mm = 9.9
         raise SelfshapeError("refine: no equilibrium near the start (test)")
     monkeypatch.setattr(inverse.design_refine, "refine_design", fail)
-    rep = design_file(target, tmp_path / "out", refine=True, edge_mm=None)
+    rep = design_file(target, tmp_path / "out", refine=True, edge_mm=None, stretch=1.3)
     assert rep["refine"]["ok"] is False and "no equilibrium" in rep["refine"]["reason"]
     assert "open_loop" not in rep and rep["deviation_pct_bbox"][1] < 1e-6
     pat = load_pattern(tmp_path / "out" / "pattern.toml")
@@ -77,7 +77,7 @@ def _refine_with_fake_release(tmp_path, monkeypatch, z_scale, refine):
     monkeypatch.setattr(design_module, "design", keep)
     monkeypatch.setattr(forward.simulate, "simulate", fake)
     monkeypatch.setattr(inverse.design_refine, "refine_design", refine)
-    return design_file(target, tmp_path / "out", refine=True, edge_mm=None), box
+    return design_file(target, tmp_path / "out", refine=True, edge_mm=None, stretch=1.3), box
 
 
 def test_a_refinement_that_deploys_worse_keeps_the_open_loop_design(tmp_path, monkeypatch):
