@@ -55,8 +55,28 @@ def _vault():
     return cylinder_patch(radius=70.0, arc_mm=80.0, length_mm=100.0, n_arc=32, n_len=40)
 
 
+def _hypar(size_mm: float = 100.0, c_mm: float = 250.0, n: int = 40):
+    """A gentle hyperbolic paraboloid z = x y / c over a size x size square (mm): negative
+    Gaussian curvature everywhere, principal curvatures ~ 1 / c at the centre (0.004 1/mm)."""
+    from geometry.target import plane_patch
+    V, F = plane_patch(size_mm, size_mm, n, n)
+    V[:, 2] = V[:, 0] * V[:, 1] / c_mm
+    return V, F
+
+
+def _ellipsoid_cap(length_mm: float = 120.0, width_mm: float = 70.0, height_mm: float = 15.0):
+    """A shallow cap of the ellipsoid with semi-axes 90 x 60 x 15 mm over a 120 x 70 mm
+    rectangle (mm): positive Gaussian curvature, curvatures 0.002-0.004 1/mm at the top."""
+    import numpy as np
+
+    from geometry.target import plane_patch
+    V, F = plane_patch(length_mm, width_mm, 50, 30)
+    V[:, 2] = height_mm * np.sqrt(np.clip(1 - (V[:, 0] / 90.0) ** 2 - (V[:, 1] / 60.0) ** 2, 0.0, None))
+    return V, F
+
+
 #: analytic targets outside meshes/ (the classes the shipped scans do not cover), by name
-ANALYTIC_TARGETS = {"vault": _vault, "wave": _wave}
+ANALYTIC_TARGETS = {"vault": _vault, "wave": _wave, "hypar": _hypar, "ellipsoid": _ellipsoid_cap}
 
 
 def analytic_target(name: str, out_dir: str) -> str:

@@ -101,3 +101,22 @@ def test_the_readme_table_is_built_from_the_json_lines(tmp_path, capsys):
     assert len(out) == 3 and out[0].startswith("| target |")
     assert out[2] == ("| saddle | 1.2 | 7.25 / 11.20 | 2.05 / 7.54 (2.10 / 7.22) | 0.96 / 4.03 (1.09 / 4.71) | 6 | "
                       "refined, on a jig (release from flat misses the refined state) | 1720 / 1790 |")
+
+
+def test_analytic_targets_are_disks_with_the_curvature_they_state():
+    """Each analytic target (study_cli.ANALYTIC_TARGETS) is a disk the designer accepts; the
+    hypar z = x y / 250 mm has K = -1/250^2 at its centre, the ellipsoid cap K > 0 at its top
+    (angle defect per area within 8 mm of the centre), the vault and the wave K = 0."""
+    import igl
+    from geometry.target import check_disk
+    from study_cli import ANALYTIC_TARGETS
+    K0 = {}
+    for name, make in ANALYTIC_TARGETS.items():
+        V, F = make()
+        check_disk(V, F, name)
+        near = np.linalg.norm(V[:, :2] - V[:, :2].mean(0), axis=1) < 8.0        # mm around the centre
+        area = igl.massmatrix(V, F, igl.MASSMATRIX_TYPE_BARYCENTRIC).diagonal()
+        K0[name] = igl.gaussian_curvature(V, F)[near].sum() / area[near].sum()
+    assert K0["hypar"] == pytest.approx(-1 / 250.0 ** 2, rel=0.1)
+    assert K0["ellipsoid"] == pytest.approx(15.0 ** 2 / (90.0 ** 2 * 60.0 ** 2), rel=0.1)   # c^2 / (a^2 b^2)
+    assert abs(K0["vault"]) < 1e-3 * abs(K0["hypar"]) and abs(K0["wave"]) < 1e-3 * abs(K0["hypar"])
