@@ -120,18 +120,24 @@ def test_layer_descent_moves_each_parameter_at_most_one_layer_inside_the_bounds(
     np.testing.assert_allclose(layer_descent(M, np.zeros(3), p, 0.1, 0.1, 1.6), p)   # nothing to gain
 
 
+def layers_off(deployed, layers: int):
+    """(problem, p0, r0): the basket's thicknesses ``layers`` 0.1 mm layers off on every ribbon
+    (alternating signs) and the equilibrium r0 at p0 solved from the deployed shape X."""
+    base, param, X = deployed
+    p0 = np.round(TRUE + 0.1 * layers * np.array([1, -1, 1, -1, -1, 1, 1, -1, 1]), 6)
+    prob = ThicknessProblem(sheet_at(base, param, p0), FABRIC, PLASTIC, param, X, None, smoothness=0.0)
+    prob.free = np.ones(3 * base.n_vertices + prob.model_at(p0).n_edges, bool)
+    prob.free[gauge_dofs(X, np.zeros(0, int))] = False
+    r0 = prob.solve(prob.model_at(p0), np.concatenate([X.ravel(), np.zeros(len(prob.free) - X.size)]), 400)
+    return prob, p0, r0
+
+
 def test_layer_refinement_returns_layer_counts_that_are_one_layer_off(deployed):
     """The thicknesses the shape was deployed with lie on a 0.1 mm grid; started one layer off
     on every ribbon (at the equilibrium nearest the shape), the re-linearised layer moves return
     to them, and the objective falls to round-off."""
     from inverse.refine import refine_layers
-    base, param, X = deployed
-    p0 = np.round(TRUE + 0.1 * np.array([1, -1, 1, -1, -1, 1, 1, -1, 1]), 6)
-    prob = ThicknessProblem(sheet_at(base, param, p0), FABRIC, PLASTIC, param, X, None, smoothness=0.0)
-    prob.free = np.ones(3 * base.n_vertices + prob.model_at(p0).n_edges, bool)
-    prob.free[gauge_dofs(X, np.zeros(0, int))] = False
-    q0 = np.concatenate([X.ravel(), np.zeros(len(prob.free) - X.size)])
-    r0 = prob.solve(prob.model_at(p0), q0, 400)
+    prob, p0, r0 = layers_off(deployed, 1)
     assert r0.converged
     J0 = prob.objective(prob.model_at(p0).split(r0.q)[0], p0)[0]
     p, q, J, hist = refine_layers(prob, p0, r0.q, 0.1, (0.1, 1.6), rounds=4)
@@ -155,12 +161,7 @@ def test_layer_rounds_end_when_a_round_gains_less_than_ftol(deployed):
     by most of itself) and the second returns them; with ftol above the first round's relative
     gain the rounds end after it, one layer short, with the first round's thicknesses."""
     from inverse.refine import refine_layers
-    base, param, X = deployed
-    p0 = np.round(TRUE + 0.2 * np.array([1, -1, 1, -1, -1, 1, 1, -1, 1]), 6)
-    prob = ThicknessProblem(sheet_at(base, param, p0), FABRIC, PLASTIC, param, X, None, smoothness=0.0)
-    prob.free = np.ones(3 * base.n_vertices + prob.model_at(p0).n_edges, bool)
-    prob.free[gauge_dofs(X, np.zeros(0, int))] = False
-    r0 = prob.solve(prob.model_at(p0), np.concatenate([X.ravel(), np.zeros(len(prob.free) - X.size)]), 400)
+    prob, p0, r0 = layers_off(deployed, 2)
     assert r0.converged
     J0 = prob.objective(prob.model_at(p0).split(r0.q)[0], p0)[0]
     p, _, J, hist = refine_layers(prob, p0, r0.q, 0.1, (0.1, 1.6), rounds=4, ftol=0.5)
@@ -250,12 +251,7 @@ def test_a_layer_trial_that_does_not_converge_is_recorded_without_an_objective(d
 
     from inverse.refine import refine_layers
     from shellfem.newton import SolveResult
-    base, param, X = deployed
-    p0 = np.round(TRUE + 0.1 * np.array([1, -1, 1, -1, -1, 1, 1, -1, 1]), 6)
-    prob = ThicknessProblem(sheet_at(base, param, p0), FABRIC, PLASTIC, param, X, None, smoothness=0.0)
-    prob.free = np.ones(3 * base.n_vertices + prob.model_at(p0).n_edges, bool)
-    prob.free[gauge_dofs(X, np.zeros(0, int))] = False
-    r0 = prob.solve(prob.model_at(p0), np.concatenate([X.ravel(), np.zeros(len(prob.free) - X.size)]), 400)
+    prob, p0, r0 = layers_off(deployed, 1)
 
     def stopped(self, model, q_guess, q, max_iterations, p, limit, shifted=None):
         return SolveResult(q=q_guess, converged=False, iterations=7, energy=np.nan, gradient_norm=np.nan,
