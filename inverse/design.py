@@ -752,8 +752,9 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
     """`selfshape design TARGET -o DIR`: writes DIR/pattern.toml, flat.vtu, front.gcode (and
     back.gcode when a ribbon is on the back), pattern.png and report.json (last); with
     ``verify`` also deployed.vtu, deployed.obj/.stl/.ply, verify.png and the deviation in
-    report.json; with ``refine`` refine.png (the open-loop and the refined deployment); pattern.dxf/.svg (the flat pattern for CAD and laser cutting) and index.html
-    (forward.view: deployed surface, target ghost and flat pattern in a browser) always.
+    report.json; with ``refine`` refine.png (the open-loop and the refined deployment);
+    pattern.dxf/.svg (the flat pattern for CAD and laser cutting) and index.html (forward.view:
+    deployed surface, target ghost and flat pattern in a browser) always.
 
     ``options``/``overrides``: the design's DesignOptions, as for `design`. mesh_size_mm,
     mesh_across: pattern.toml's [mesh]. verify_iterations: Newton cap of the verification,

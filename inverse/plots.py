@@ -86,11 +86,13 @@ def plot_before_after(d: Design, states, path: str, title: str = ""):
     import matplotlib.pyplot as plt
 
     vmax = max(float(pct.max()) for _, _, _, pct, _ in states)
-    fig = plt.figure(figsize=(11, 4.6 * len(states) + 0.4))
+    top, row_h = 0.4, 4.6                                   # inches: title band, one state's row
+    height = top + row_h * len(states)
+    fig = plt.figure(figsize=(11, height))
     surf = None
     for i, (label, X, T, pct, back) in enumerate(states):
         surf = _draw_state(fig, i, len(states), d, X, T, pct, vmax)
-        fig.text(0.02, 1 - (i + 0.08) / len(states) * (1 - 0.4 / fig.get_figheight()) - 0.4 / fig.get_figheight(),
+        fig.text(0.02, 1 - (top + row_h * i + 0.1) / height,          # the label at the top of its row
                  f"{label}\ndeployed -> target mean {pct.mean():.2f} %, max {pct.max():.2f} %; "
                  f"target -> deployed mean {back.mean():.2f} %, max {back.max():.2f} %", fontsize=9, va="top")
     fig.colorbar(surf, ax=fig.axes, shrink=0.5, label="distance to target (% of bbox diagonal)")

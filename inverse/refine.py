@@ -405,8 +405,8 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
     ``ftol``: the rounds also end after a round whose accepted move lowered the objective (with
     the margin's penalty) by less than this fraction, as the outer iteration ends
     (RefineOptions.ftol; 0: only a round without an accepted move ends them). Why: past that the
-    moves trade a fraction of a per cent of J, below what the next release's state moves it, at a
-    trial solve each (the 110 mm hat's rounds 4-6 took nine solves for 1.6 % of J)."""
+    moves trade a fraction of a per cent of J, less than the release from flat moves the state,
+    at a trial solve each."""
     from shellfem.linalg import NotPositiveDefinite
     from shellfem.sensitivity import equilibrium_factor
     from shellfem.stability import lowest_mode
