@@ -49,7 +49,7 @@ from inverse.record import Design
 from inverse.report import report_dict
 from inverse.separation import separate_ribbons, simplify_paths
 from inverse.to_pattern import pattern_dict
-from inverse.verify import deviation_both_ways, verify_design
+from inverse.verify import register_simulation, verify_design
 from inverse.vtu import write_flat_vtu
 from shellfem.errors import SelfshapeError
 
@@ -619,14 +619,12 @@ def _write_before_after(out, d, before, after, label, name):
     refined one ``after`` (forward.simulate.Simulation, either None or not converged: left out),
     each registered to the target as the verification does; nothing when neither converged."""
     from inverse.plots import plot_before_after
-    from inverse.registration import flat_to_target
 
     states = []
     for lab, sim in (("open loop", before), (label, after)):
         if sim is None or not sim.summary()["converged"]:
             continue
-        Y0 = flat_to_target(sim.sheet.points, d.flat.uv, d.F, d.V)
-        Xr, pct, back, _ = deviation_both_ways(d, sim.positions, sim.sheet.triangles, Y0)
+        Xr, pct, back, _ = register_simulation(d, sim)
         states.append((lab, Xr, sim.sheet.triangles, pct, back))
     if states:
         out.write("refine.png", lambda tmp: plot_before_after(d, states, tmp, title=f"{name}: --refine"))

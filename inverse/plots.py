@@ -47,7 +47,6 @@ def _draw_state(fig, row, rows, d: Design, X, T, pct, vmax):
     """One row of two views: the registered sheet X (n, 3) mm coloured by its distance to the
     target pct (n,) % (colour scale 0..vmax), the target as a grey wireframe."""
     col = pct[T].mean(axis=1)
-    surf = None
     for k, (elev, azim) in enumerate(((25, -60), (70, 30))):
         ax = fig.add_subplot(rows, 2, 2 * row + k + 1, projection="3d")
         surf = ax.plot_trisurf(X[:, 0], X[:, 1], X[:, 2], triangles=T, cmap="viridis", linewidth=0)

@@ -26,6 +26,15 @@ def deviation_both_ways(d: Design, X: np.ndarray, triangles: np.ndarray, Y0: np.
     return Xr, 100.0 * dist / diag, 100.0 * back / diag, icp_it
 
 
+def register_simulation(d: Design, sim):
+    """:func:`deviation_both_ways` of a simulation of the design d (forward.simulate.Simulation),
+    its correspondences from the flattening: (registered positions (n, 3) mm, deployed -> target
+    % (n,), target -> deployed %, ICP iterations)."""
+    from inverse.registration import flat_to_target
+    Y0 = flat_to_target(sim.sheet.points, d.flat.uv, d.F, d.V)
+    return deviation_both_ways(d, sim.positions, sim.sheet.triangles, Y0)
+
+
 def verify_design(d: Design, pattern, out_dir: str | None = None, written: list | None = None,
                   sims: list | None = None, progress=None) -> dict:
     """Simulate ``pattern`` (the geometry.patterns.Pattern of the design d), register the deployed
@@ -40,7 +49,6 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
     (forward.simulate.simulate_sheet)."""
     from forward.simulate import simulate
     from inverse.plots import plot_verify
-    from inverse.registration import flat_to_target
     from inverse.vtu import write_deployed_vtu
 
     t0 = time.perf_counter()
@@ -60,8 +68,7 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
         out["deviation_pct_bbox"] = None
         out["verify_note"] = f"simulation did not converge ({s['reason']}); no deviation reported"
         return out
-    Y0 = flat_to_target(sim.sheet.points, d.flat.uv, d.F, d.V)
-    Xr, pct, back, icp_it = deviation_both_ways(d, sim.positions, sim.sheet.triangles, Y0)
+    Xr, pct, back, icp_it = register_simulation(d, sim)
     out.update({"deviation_pct_bbox": [float(pct.mean()), float(pct.max())],
                 "deviation_target_to_deployed_pct_bbox": [float(back.mean()), float(back.max())],
                 "deviation_p99_pct_bbox": float(np.percentile(pct, 99)), "icp_iterations": int(icp_it),
