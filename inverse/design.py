@@ -79,6 +79,17 @@ def normal_curvature_along(curv, dirs: np.ndarray) -> np.ndarray:
     return curv.face_k1 * c2 + curv.face_k2 * (1.0 - c2)
 
 
+def bend_share(k1: np.ndarray, kappa_along: np.ndarray, areas: np.ndarray) -> float:
+    """The share of the target's bending that the ribbon directions follow: the area-weighted
+    |normal curvature along the field| over the area-weighted largest |principal curvature|.
+    k1 (m,): each face's principal curvature of larger |k|; kappa_along (m,): the normal
+    curvature along the ribbon field; areas (m,) (1/mm, 1/mm, mm^2). 1 on a field along the principal direction of larger |k| or on an umbilic surface; near 0
+    where the field runs along asymptotic directions, as on a minimal surface, where the
+    target twists under the ribbons instead of bending along them). 1.0 for a flat target."""
+    top = float(np.sum(areas * np.abs(k1)))
+    return float(np.sum(areas * np.abs(kappa_along)) / top) if top > 0 else 1.0
+
+
 def boundary_polygon(uv: np.ndarray, F: np.ndarray, simplify_mm: float = 0.02) -> np.ndarray:
     """The flat mesh's boundary loop as a simple polygon (k, 2), counter-clockwise, simplified
     within ``simplify_mm``; SelfshapeError if it self-intersects (a flipped flattening)."""
@@ -453,6 +464,7 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
                             [r.length_mm for r in ribbons],
                             printer.layer_height_mm, diagonal_mm=float(np.linalg.norm(np.ptp(V0, axis=0))),
                             min_diagonal_mm=4.0 * ribbon_length)
+    reach["bend_share"] = round(bend_share(curv.face_k1, kappa1, area), 4)
     reach["warning"] = reach_warning(reach)
     lap("thickness")
     return Design(V=Vf, F=Ff, V_input=V0, F_input=F0, curvature=curv, field=lf, flat=flat, kappa1=kappa1,
@@ -481,7 +493,7 @@ def reach_score(d: Design) -> dict:
     ex = ex / wsum if wsum else 0.0
     oob = float(np.mean(d.flat.sigma_out_of_bounds_pct)) / 100.0
     return {"stretch": d.stretch, "log_excess": round(ex, 4), "out_of_bounds": round(oob, 4),
-            "score": round(ex + oob, 4)}
+            "score": round(ex + oob, 4), "bend_share": reach.get("bend_share")}
 
 
 def choose_stretch(V, F, options: DesignOptions | None = None, *, where: str = "target", progress=None,

@@ -164,6 +164,17 @@ def _cmd_simulate(a):
     return 0 if s["converged"] else 1
 
 
+def _curvature_fit(row) -> str:
+    """A stretch candidate's curvature fit for the `design --stretch auto` line: the law's mean
+    factor off, unless the ribbons follow directions the target hardly bends along (then that
+    factor measures nothing; inverse.thickness_law.reach_warning)."""
+    from inverse.thickness_law import TWIST_SHARE
+    share = row.get("bend_share")
+    if share is not None and share < TWIST_SHARE:
+        return f"ribbons along twist directions ({100 * share:.0f} % of the bending)"
+    return f"curvature off by x{math.exp(row['log_excess']):.2f}"
+
+
 def _cmd_design(a):
     from inverse.design import design_file
     from inverse.printer import load_printer
@@ -185,7 +196,7 @@ def _cmd_design(a):
     if r.get("stretch_choice"):
         c = r["stretch_choice"]
         print("stretch auto: " + ", ".join(
-            f"s {row['stretch']:g}: " + (f"curvature off by x{math.exp(row['log_excess']):.2f}, "
+            f"s {row['stretch']:g}: " + (f"{_curvature_fit(row)}, "
                                          f"{100 * row['out_of_bounds']:.1f} % out of bounds" if "error" not in row
                                          else "cannot be designed")
             for row in c["candidates"]) + f" -> {c['chosen']:g}")

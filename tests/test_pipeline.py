@@ -615,3 +615,50 @@ def test_bed_precheck_never_refuses_a_target_that_fits(stretch, monkeypatch):
                                                   mod.RIBBON_LENGTH_MM, 2.5 * fit, name)
 
 
+
+
+def _twisted_strip(length=200.0, width=20.0, turn=np.pi / 2, nx=60, ny=8):
+    """A helicoid strip (a minimal surface): (x, y cos(a x), y sin(a x)), a = turn / length."""
+    x, y = np.meshgrid(np.linspace(0, length, nx + 1), np.linspace(-width / 2, width / 2, ny + 1), indexing="ij")
+    a = turn / length
+    V = np.column_stack([x.ravel(), (y * np.cos(a * x)).ravel(), (y * np.sin(a * x)).ravel()])
+    i = np.arange(nx)[:, None] * (ny + 1) + np.arange(ny)[None, :]
+    i = i.ravel()
+    F = np.concatenate([np.column_stack([i, i + ny + 1, i + ny + 2]), np.column_stack([i, i + ny + 2, i + 1])])
+    return V, F
+
+
+def test_bend_share_tells_principal_from_asymptotic_ribbons():
+    from geometry.curvature import principal_curvature
+    from geometry.meshops import face_areas
+    from inverse.design import bend_share, normal_curvature_along
+
+    V, F = _twisted_strip()
+    curv = principal_curvature(V, F)
+    A = face_areas(V, F)
+    inner = np.abs(V[F].mean(1)[:, 0] - 100.0) < 80.0         # away from the fit's one-sided ends
+    a = (np.pi / 2) / 200.0
+    # the helicoid's curvatures: k = +-a / (1 + a^2 y^2) (K = -a^2 / (1 + a^2 y^2)^2, H = 0)
+    yc = np.linalg.norm(V[F].mean(1)[:, 1:], axis=1)
+    assert np.abs(curv.face_k1[inner]) == pytest.approx(a / (1 + (a * yc[inner]) ** 2), rel=0.05)
+    # along the principal directions the ribbons follow all of the bending
+    assert bend_share(curv.face_k1, normal_curvature_along(curv, curv.face_d1), A) == pytest.approx(1.0, abs=1e-9)
+    # along the rulings (0, cos a x, sin a x) and the helices (x direction) it does not bend at all
+    xc = V[F].mean(1)[:, 0]
+    ruling = np.column_stack([np.zeros_like(xc), np.cos(a * xc), np.sin(a * xc)])
+    helix = np.cross(curv.face_normals, ruling)
+    for d in (ruling, helix):
+        k = normal_curvature_along(curv, d)
+        assert bend_share(curv.face_k1[inner], k[inner], A[inner]) < 0.05
+    # a sphere bends the same way in every direction
+    Vs, Fs = sphere_cap(radius=40.0, half_angle_deg=30.0, n_radial=6)
+    cs = principal_curvature(Vs, Fs)
+    any_dir = np.cross(cs.face_normals, [0.3, 0.5, 0.8])
+    assert bend_share(cs.face_k1, normal_curvature_along(cs, any_dir), face_areas(Vs, Fs)) == pytest.approx(1.0, abs=0.02)
+
+
+def test_stretch_auto_line_names_twist_ribbons_instead_of_a_curvature_factor():
+    from selfshape.cli import _curvature_fit
+    assert _curvature_fit({"log_excess": np.log(2.5), "bend_share": 0.98}) == "curvature off by x2.50"
+    assert _curvature_fit({"log_excess": 7.8, "bend_share": 0.004}) == "ribbons along twist directions (0 % of the bending)"
+    assert _curvature_fit({"log_excess": 0.0}) == "curvature off by x1.00"     # a row without the share

@@ -367,3 +367,19 @@ def test_curvature_reach_fractions_and_size_hint():
                         min_diagonal_mm=60.0)
     assert r["front"]["law_thickness_mm"][1] == 1.0 and r["front"]["printable_thickness_mm"][1] < 1.0
     assert "the law's 1 mm row is not a multiple of the printer's layers" in reach_warning(r)
+
+
+def test_reach_warning_does_not_predict_a_curl_for_ribbons_along_twist_directions():
+    from inverse.thickness_law import curvature_reach, reach_warning
+    law = parse_thickness_law(table_text())
+    length = np.array([10.0, 30.0, 40.0, 20.0])
+    # ribbons asking for almost no curvature: the law's lowest is far above, a curl is predicted...
+    r = curvature_reach(law, np.full(4, 1e-7), [6.0] * 4, ["front"] * 4, length, 0.2, diagonal_mm=100.0)
+    assert "will curl more than the target" in reach_warning(r)
+    # ...unless they run where the target hardly bends (a minimal surface's asymptotic lines)
+    r["bend_share"] = 0.01
+    w = reach_warning(r)
+    assert "hardly bends (1 % of its largest principal curvature" in w and "--verify" in w
+    assert "curl" not in w
+    r["bend_share"] = 0.9                                         # a principal field: the law's statement
+    assert "will curl more than the target" in reach_warning(r)
