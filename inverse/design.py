@@ -541,7 +541,8 @@ def choose_stretch(V, F, options: DesignOptions | None = None, *, where: str = "
 # ----------------------------------------------------------------------------- the verb
 VERIFY_KEYS = ("verify_converged", "verify_reason", "verify_newton_iterations", "verify_n_triangles",
                "verify_simulation_s", "deviation_pct_bbox", "deviation_target_to_deployed_pct_bbox",
-               "deviation_p99_pct_bbox", "icp_iterations", "verify_note")
+               "deviation_p99_pct_bbox", "icp_iterations", "verify_note", "flat_deviation_pct_bbox",
+               "flat_deviation_target_to_flat_pct_bbox", "verify_warning")
 
 
 def _write_design_files(out, d, raw, printer, title):

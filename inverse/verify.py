@@ -35,13 +35,34 @@ def register_simulation(d: Design, sim):
     return deviation_both_ways(d, sim.positions, sim.sheet.triangles, Y0)
 
 
+#: a verification warns when its two mean deviations sum to more than this times the flat sheet's
+FLAT_MARGIN = 0.95
+
+
+def flat_sheet_deviation(d: Design):
+    """The deviations both ways (% of the target's bounding-box diagonal, as a verification's)
+    of the nearest flat sheet: the design's flattening scaled to the target's area and
+    registered like a deployed sheet (Kabsch on the flattening's correspondences, then ICP).
+    The reference a verification is read against: a design whose deployed sheet is not nearer
+    to the target than this has not shaped the sheet towards it. Returns (flat -> target (n,),
+    target -> flat (one per target vertex))."""
+    from geometry.meshops import face_areas
+    uv = np.asarray(d.flat.uv, float)
+    X = np.column_stack([uv, np.zeros(len(uv))])
+    c = float(np.sqrt(face_areas(d.V, d.F).sum() / face_areas(X, d.F).sum()))
+    _, pct, back, _ = deviation_both_ways(d, c * X, d.F, d.V)
+    return pct, back
+
+
 def verify_design(d: Design, pattern, out_dir: str | None = None, written: list | None = None,
                   sims: list | None = None, progress=None) -> dict:
     """Simulate ``pattern`` (the geometry.patterns.Pattern of the design d), register the deployed
     surface to the target and return the report entries: verify_converged, verify_reason,
     Newton iterations, deviation_pct_bbox [mean, max] (deployed -> target),
-    deviation_target_to_deployed_pct_bbox [mean, max], deviation_p99_pct_bbox. A simulation
-    that fails or does not converge reports no deviation. With ``out_dir`` (a folder or the
+    deviation_target_to_deployed_pct_bbox [mean, max], deviation_p99_pct_bbox, and the same two
+    of the nearest flat sheet (flat_deviation_pct_bbox, flat_deviation_target_to_flat_pct_bbox:
+    flat_sheet_deviation) with a verify_warning when the deployed sheet is no nearer than it
+    (sum of the two means) by more than 1 - FLAT_MARGIN. A simulation that fails or does not converge reports no deviation. With ``out_dir`` (a folder or the
     design's shellfem.outfiles.OutputDir), deployed.vtu, deployed.obj/.stl/.ply (registered, mm)
     and verify.png are written there
     atomically and their paths appended to ``written``; the Simulation is appended to ``sims``
@@ -73,6 +94,14 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
                 "deviation_target_to_deployed_pct_bbox": [float(back.mean()), float(back.max())],
                 "deviation_p99_pct_bbox": float(np.percentile(pct, 99)), "icp_iterations": int(icp_it),
                 "bbox_diagonal_mm": float(np.linalg.norm(d.V_input.max(0) - d.V_input.min(0)))})
+    f_pct, f_back = flat_sheet_deviation(d)
+    out["flat_deviation_pct_bbox"] = [float(f_pct.mean()), float(f_pct.max())]
+    out["flat_deviation_target_to_flat_pct_bbox"] = [float(f_back.mean()), float(f_back.max())]
+    if pct.mean() + back.mean() >= FLAT_MARGIN * (f_pct.mean() + f_back.mean()):
+        out["verify_warning"] = (f"the deployed sheet is not clearly nearer to the target than a flat sheet of its area "
+                                 f"({pct.mean():.2f} / {back.mean():.2f} % against {f_pct.mean():.2f} / "
+                                 f"{f_back.mean():.2f} %, mean both ways): this design does not shape the sheet "
+                                 f"towards the target")
     if out_dir is not None:
         from shellfem.outfiles import OutputDir
         from geometry.cad import write_surface

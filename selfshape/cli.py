@@ -207,6 +207,12 @@ def _cmd_design(a):
         dev, back = r["deviation_pct_bbox"], r["deviation_target_to_deployed_pct_bbox"]
         print(f"deployed -> target {dev[0]:.2f} / {dev[1]:.2f} %, target -> deployed {back[0]:.2f} / {back[1]:.2f} % "
               f"(mean / max, % of the bounding-box diagonal)")
+        flat = r.get("flat_deviation_pct_bbox")
+        if flat:
+            fb = r["flat_deviation_target_to_flat_pct_bbox"]
+            print(f"a flat sheet of the target's area: {flat[0]:.2f} / {flat[1]:.2f} %, {fb[0]:.2f} / {fb[1]:.2f} %")
+        if r.get("verify_warning"):
+            print(f"warning: {r['verify_warning']}")
     elif "verify_converged" in r:
         print(f"verification: {r.get('verify_note', r.get('verify_reason'))}")
     ref = r.get("refine")

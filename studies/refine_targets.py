@@ -55,6 +55,8 @@ def run_target(path, out_dir, args) -> dict:
         "refined": {"deployed_to_target_pct": rep.get("deviation_pct_bbox"),
                     "target_to_deployed_pct": rep.get("deviation_target_to_deployed_pct_bbox"),
                     "nearest_target": ref.get("rounded")} if ref.get("ok") else None,
+        "flat_sheet": {"flat_to_target_pct": rep.get("flat_deviation_pct_bbox"),
+                       "target_to_flat_pct": rep.get("flat_deviation_target_to_flat_pct_bbox")},
         "refine_ok": bool(ref.get("ok")), "refine_reason": ref.get("reason"),
         "outer_iterations": ref.get("outer_iterations"), "start": ref.get("start"),
         "release_reaches_refined_state": ref.get("release_reaches_refined_state"), "kept": ref.get("kept"),

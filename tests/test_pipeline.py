@@ -266,6 +266,7 @@ def test_verify_deviation_zero_for_an_exact_deployment_and_nonconvergence_report
     assert rep["verify_converged"] is converged
     if converged:
         assert rep["deviation_pct_bbox"][1] < 1e-6
+        assert rep["flat_deviation_pct_bbox"][0] > 1.0 and "verify_warning" not in rep   # nearer than flat
         assert (tmp_path / "out" / "deployed.vtu").is_file() and (tmp_path / "out" / "verify.png").is_file()
         import meshio
         from geometry.cad import read_surface
@@ -282,6 +283,38 @@ def test_verify_deviation_zero_for_an_exact_deployment_and_nonconvergence_report
         assert '"target": null' in (tmp_path / "out" / "index.html").read_text()     # the target drawn alone
     on_disk = json.loads((tmp_path / "out" / "report.json").read_text())
     assert on_disk["verify_converged"] is converged
+
+
+def test_verify_warns_when_the_deployed_sheet_is_no_nearer_than_a_flat_one(tmp_path, monkeypatch):
+    import forward.simulate
+    from inverse.verify import flat_sheet_deviation
+
+    V, F = cylinder_patch(n_arc=40, n_len=32)
+    target = write_obj(tmp_path / "c.obj", V, F)
+    real_design = design_module.design
+
+    def keep(*args, **kw):
+        _fake_simulation.design = real_design(*args, **kw)
+        return _fake_simulation.design
+    monkeypatch.setattr(design_module, "design", keep)
+
+    def flat(d):          # the sheet stays flat, at the target's area, turned and moved
+        X = np.column_stack([d.flat.uv, np.zeros(len(d.flat.uv))])
+        X *= np.sqrt(face_areas(d.V, d.F).sum() / face_areas(X, d.F).sum())
+        a = 1.1
+        return X @ np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]).T - 7.0
+    monkeypatch.setattr(forward.simulate, "simulate", _fake_simulation(True, flat))
+    rep = design_file(target, tmp_path / "out", verify=True, edge_mm=None, stretch=1.3)
+    # the flat deployment is the flat reference itself: the same numbers, and the warning
+    assert rep["deviation_pct_bbox"] == pytest.approx(rep["flat_deviation_pct_bbox"], rel=1e-6)
+    assert rep["deviation_target_to_deployed_pct_bbox"] == pytest.approx(
+        rep["flat_deviation_target_to_flat_pct_bbox"], rel=1e-6)
+    assert "not clearly nearer to the target than a flat sheet" in rep["verify_warning"]
+    # a 30 mm-radius arc: its flat sheet is a few per cent of the diagonal away, both ways
+    pct, back = flat_sheet_deviation(_fake_simulation.design)
+    assert 1.0 < pct.mean() < 10.0 and 1.0 < back.mean() < 10.0
+    on_disk = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert on_disk["verify_warning"] == rep["verify_warning"]
 
 
 def _sag(X):
