@@ -29,10 +29,18 @@ def deviation_both_ways(d: Design, X: np.ndarray, triangles: np.ndarray, Y0: np.
 def register_simulation(d: Design, sim):
     """:func:`deviation_both_ways` of a simulation of the design d (forward.simulate.Simulation),
     its correspondences from the flattening: (registered positions (n, 3) mm, deployed -> target
-    % (n,), target -> deployed %, ICP iterations)."""
+    % (n,), target -> deployed %, ICP iterations). Made once per simulation and target: the
+    result is kept on the simulation (refine.png draws simulations the verification registered)."""
     from inverse.registration import flat_to_target
+    state = sim.result.q if hasattr(sim, "result") else sim.positions
+    key = (id(d.V_input), id(d.flat.uv), id(state))
+    hit = getattr(sim, "_registration", None)
+    if hit is not None and hit[0] == key:
+        return hit[1]
     Y0 = flat_to_target(sim.sheet.points, d.flat.uv, d.F, d.V)
-    return deviation_both_ways(d, sim.positions, sim.sheet.triangles, Y0)
+    result = deviation_both_ways(d, sim.positions, sim.sheet.triangles, Y0)
+    sim._registration = (key, result)
+    return result
 
 
 #: a verification warns when its two mean deviations sum to more than this times the flat sheet's

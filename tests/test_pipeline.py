@@ -317,6 +317,22 @@ def test_verify_warns_when_the_deployed_sheet_is_no_nearer_than_a_flat_one(tmp_p
     assert on_disk["verify_warning"] == rep["verify_warning"]
 
 
+def test_a_simulation_is_registered_once(cylinder_design, monkeypatch):
+    from types import SimpleNamespace
+
+    import inverse.verify as verify
+    d = cylinder_design
+    sim = SimpleNamespace(sheet=SimpleNamespace(points=d.flat.uv, triangles=d.F), positions=d.V + 3.0)
+    calls = []
+    real = verify.deviation_both_ways
+    monkeypatch.setattr(verify, "deviation_both_ways", lambda *a: calls.append(1) or real(*a))
+    first = verify.register_simulation(d, sim)
+    assert first[1].max() < 1e-6                                   # the target itself, moved
+    assert verify.register_simulation(d, sim) is first and len(calls) == 1
+    sim.positions = d.V - 2.0                                      # another state: registered again
+    assert verify.register_simulation(d, sim) is not first and len(calls) == 2
+
+
 def _sag(X):
     """Height range (mm) of points X (k, 3) across their best-fit plane."""
     h = (X - X.mean(0)) @ np.linalg.svd(X - X.mean(0), full_matrices=False)[2][2]
