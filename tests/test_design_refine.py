@@ -10,7 +10,7 @@ from geometry.patterns import load_pattern
 from inverse.design import design_file
 from inverse.design_refine import rounded
 from shellfem.errors import SelfshapeError
-from test_pipeline import _fake_simulation, cylinder_patch, write_obj
+from test_pipeline import _fake_simulation, cylinder_patch, cylinder_target_deployed_by, write_obj
 
 
 def test_rounding_to_layers_inside_the_bounds():
@@ -20,18 +20,9 @@ def test_rounding_to_layers_inside_the_bounds():
 
 
 def test_failed_refinement_keeps_the_open_loop_design(tmp_path, monkeypatch):
-    import forward.simulate
     import inverse.design_refine
 
-    V, F = cylinder_patch(n_arc=40, n_len=32)
-    target = write_obj(tmp_path / "c.obj", V, F)
-    real_design = design_module.design
-
-    def keep(*args, **kw):
-        _fake_simulation.design = real_design(*args, **kw)
-        return _fake_simulation.design
-    monkeypatch.setattr(design_module, "design", keep)
-    monkeypatch.setattr(forward.simulate, "simulate", _fake_simulation(True, lambda d: d.V))
+    target = cylinder_target_deployed_by(tmp_path, monkeypatch, True, lambda d: d.V)
 
     def fail(d, *a, **k):
         for r in d.ribbons:                 # a half-done refinement must not leak into the files

@@ -245,23 +245,31 @@ def _fake_simulation(converged, positions_fn):
     return fake
 
 
-@pytest.mark.parametrize("converged", [True, False])
-def test_verify_deviation_zero_for_an_exact_deployment_and_nonconvergence_reported(tmp_path, monkeypatch,
-                                                                                  converged):
+def cylinder_target_deployed_by(tmp_path, monkeypatch, converged, positions_fn):
+    """A cylinder-patch target file (fine enough for the stripes without refinement) whose
+    designs are 'simulated' by _fake_simulation(converged, positions_fn): the design made last
+    is recorded for it. Returns the target's path."""
     import forward.simulate
 
-    V, F = cylinder_patch(n_arc=40, n_len=32)     # fine enough for the stripes without refinement
+    V, F = cylinder_patch(n_arc=40, n_len=32)
     target = write_obj(tmp_path / "c.obj", V, F)
-    a = 0.7
-    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
     real_design = design_module.design
 
     def keep(*args, **kw):
         _fake_simulation.design = real_design(*args, **kw)
         return _fake_simulation.design
     monkeypatch.setattr(design_module, "design", keep)
+    monkeypatch.setattr(forward.simulate, "simulate", _fake_simulation(converged, positions_fn))
+    return target
+
+
+@pytest.mark.parametrize("converged", [True, False])
+def test_verify_deviation_zero_for_an_exact_deployment_and_nonconvergence_reported(tmp_path, monkeypatch,
+                                                                                  converged):
+    a = 0.7
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
     # the deployed sheet lands exactly on the target, in another rigid placement
-    monkeypatch.setattr(forward.simulate, "simulate", _fake_simulation(converged, lambda d: d.V @ R.T + 5.0))
+    target = cylinder_target_deployed_by(tmp_path, monkeypatch, converged, lambda d: d.V @ R.T + 5.0)
     rep = design_file(target, tmp_path / "out", verify=True, edge_mm=None, stretch=1.3)
     assert rep["verify_converged"] is converged
     if converged:
@@ -286,24 +294,14 @@ def test_verify_deviation_zero_for_an_exact_deployment_and_nonconvergence_report
 
 
 def test_verify_warns_when_the_deployed_sheet_is_no_nearer_than_a_flat_one(tmp_path, monkeypatch):
-    import forward.simulate
     from inverse.verify import flat_sheet_deviation
-
-    V, F = cylinder_patch(n_arc=40, n_len=32)
-    target = write_obj(tmp_path / "c.obj", V, F)
-    real_design = design_module.design
-
-    def keep(*args, **kw):
-        _fake_simulation.design = real_design(*args, **kw)
-        return _fake_simulation.design
-    monkeypatch.setattr(design_module, "design", keep)
 
     def flat(d):          # the sheet stays flat, at the target's area, turned and moved
         X = np.column_stack([d.flat.uv, np.zeros(len(d.flat.uv))])
         X *= np.sqrt(face_areas(d.V, d.F).sum() / face_areas(X, d.F).sum())
         a = 1.1
         return X @ np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]).T - 7.0
-    monkeypatch.setattr(forward.simulate, "simulate", _fake_simulation(True, flat))
+    target = cylinder_target_deployed_by(tmp_path, monkeypatch, True, flat)
     rep = design_file(target, tmp_path / "out", verify=True, edge_mm=None, stretch=1.3)
     # the flat deployment is the flat reference itself: the same numbers, and the warning
     assert rep["deviation_pct_bbox"] == pytest.approx(rep["flat_deviation_pct_bbox"], rel=1e-6)
