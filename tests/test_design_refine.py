@@ -10,7 +10,7 @@ from geometry.patterns import load_pattern
 from inverse.design import design_file
 from inverse.design_refine import rounded
 from shellfem.errors import SelfshapeError
-from test_pipeline import _fake_simulation, cylinder_patch, cylinder_target_deployed_by, write_obj
+from test_pipeline import cylinder_patch, cylinder_target_deployed_by, write_obj
 
 
 def test_rounding_to_layers_inside_the_bounds():
