@@ -83,9 +83,10 @@ def bend_share(k1: np.ndarray, kappa_along: np.ndarray, areas: np.ndarray) -> fl
     """The share of the target's bending that the ribbon directions follow: the area-weighted
     |normal curvature along the field| over the area-weighted largest |principal curvature|.
     k1 (m,): each face's principal curvature of larger |k|; kappa_along (m,): the normal
-    curvature along the ribbon field; areas (m,) (1/mm, 1/mm, mm^2). 1 on a field along the principal direction of larger |k| or on an umbilic surface; near 0
-    where the field runs along asymptotic directions, as on a minimal surface, where the
-    target twists under the ribbons instead of bending along them). 1.0 for a flat target."""
+    curvature along the ribbon field; areas (m,) (1/mm, 1/mm, mm^2). 1 on a field along the
+    principal direction of larger |k| or on an umbilic surface; near 0 where the field runs
+    along asymptotic directions, as on a minimal surface, where the target twists under the
+    ribbons instead of bending along them. 1.0 for a flat target."""
     top = float(np.sum(areas * np.abs(k1)))
     return float(np.sum(areas * np.abs(kappa_along)) / top) if top > 0 else 1.0
 

@@ -370,16 +370,22 @@ def curvature_reach(law: ThicknessLaw, kappa, spacing_mm, side, length_mm, layer
 TWIST_SHARE = 0.25     # bend_share below which the ribbons are taken to follow twist directions
 
 
-def reach_warning(reach: dict, threshold: float = 0.5, twist_share: float = TWIST_SHARE) -> str | None:
+def along_twist(bend_share: float | None) -> bool:
+    """The ribbons follow directions the target hardly bends along: a design's ``bend_share``
+    (inverse.design.bend_share) below TWIST_SHARE (False when it was not measured)."""
+    return bend_share is not None and bend_share < TWIST_SHARE
+
+
+def reach_warning(reach: dict, threshold: float = 0.5) -> str | None:
     """One sentence when more than ``threshold`` of a side's ribbon length asks for curvature
     outside the law's range (the deployed shape then curls more, or less, than the target), with
     the size at which it would not; None otherwise. Where the ribbons follow directions along
-    which the target hardly bends (``reach["bend_share"]`` below ``twist_share``: the asymptotic
+    which the target hardly bends (``reach["bend_share"]``, :func:`along_twist`: the asymptotic
     directions of a minimal surface, where it twists instead) the asked curvature is near zero
     by construction and says nothing about the deployment; the sentence says so instead of
     predicting a curl."""
     share = reach.get("bend_share")
-    if share is not None and share < twist_share:
+    if along_twist(share):
         return (f"the ribbons run where the target hardly bends ({100 * share:.0f} % of its largest principal "
                 f"curvature, e.g. the asymptotic directions of a minimal surface, where it twists instead): "
                 f"the thickness law's bending range does not predict this deployment; check it with --verify")

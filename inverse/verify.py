@@ -69,13 +69,13 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
     Newton iterations, deviation_pct_bbox [mean, max] (deployed -> target),
     deviation_target_to_deployed_pct_bbox [mean, max], deviation_p99_pct_bbox, and the same two
     of the nearest flat sheet (flat_deviation_pct_bbox, flat_deviation_target_to_flat_pct_bbox:
-    flat_sheet_deviation) with a verify_warning when the deployed sheet is no nearer than it
-    (sum of the two means) by more than 1 - FLAT_MARGIN. A simulation that fails or does not converge reports no deviation. With ``out_dir`` (a folder or the
-    design's shellfem.outfiles.OutputDir), deployed.vtu, deployed.obj/.stl/.ply (registered, mm)
-    and verify.png are written there
-    atomically and their paths appended to ``written``; the Simulation is appended to ``sims``
-    if given (the refinement starts from it). ``progress``: the simulation's progress callback
-    (forward.simulate.simulate_sheet)."""
+    flat_sheet_deviation) with a verify_warning when the deployed sheet is not nearer than it
+    (sum of the two means) by more than 1 - FLAT_MARGIN. A simulation that fails or does not
+    converge reports no deviation. With ``out_dir`` (a folder or the design's
+    shellfem.outfiles.OutputDir), deployed.vtu, deployed.obj/.stl/.ply (registered, mm) and
+    verify.png are written there atomically and their paths appended to ``written``; the
+    Simulation is appended to ``sims`` if given (the refinement starts from it). ``progress``:
+    the simulation's progress callback (forward.simulate.simulate_sheet)."""
     from forward.simulate import simulate
     from inverse.plots import plot_verify
     from inverse.vtu import write_deployed_vtu
@@ -106,8 +106,8 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
     out["flat_deviation_pct_bbox"] = [float(f_pct.mean()), float(f_pct.max())]
     out["flat_deviation_target_to_flat_pct_bbox"] = [float(f_back.mean()), float(f_back.max())]
     if pct.mean() + back.mean() >= FLAT_MARGIN * (f_pct.mean() + f_back.mean()):
-        out["verify_warning"] = (f"the deployed sheet is not clearly nearer to the target than a flat sheet of its area "
-                                 f"({pct.mean():.2f} / {back.mean():.2f} % against {f_pct.mean():.2f} / "
+        out["verify_warning"] = (f"the deployed sheet is not clearly nearer to the target than a flat sheet of its "
+                                 f"area ({pct.mean():.2f} / {back.mean():.2f} % against {f_pct.mean():.2f} / "
                                  f"{f_back.mean():.2f} %, mean both ways): this design does not shape the sheet "
                                  f"towards the target")
     if out_dir is not None:

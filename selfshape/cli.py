@@ -168,10 +168,9 @@ def _curvature_fit(row) -> str:
     """A stretch candidate's curvature fit for the `design --stretch auto` line: the law's mean
     factor off, unless the ribbons follow directions the target hardly bends along (then that
     factor measures nothing; inverse.thickness_law.reach_warning)."""
-    from inverse.thickness_law import TWIST_SHARE
-    share = row.get("bend_share")
-    if share is not None and share < TWIST_SHARE:
-        return f"ribbons along twist directions ({100 * share:.0f} % of the bending)"
+    from inverse.thickness_law import along_twist
+    if along_twist(row.get("bend_share")):
+        return f"ribbons along twist directions ({100 * row['bend_share']:.0f} % of the bending)"
     return f"curvature off by x{math.exp(row['log_excess']):.2f}"
 
 

@@ -662,8 +662,6 @@ def test_bed_precheck_never_refuses_a_target_that_fits(stretch, monkeypatch):
                                                   mod.RIBBON_LENGTH_MM, 2.5 * fit, name)
 
 
-
-
 def _twisted_strip(length=200.0, width=20.0, turn=np.pi / 2, nx=60, ny=8):
     """A helicoid strip (a minimal surface): (x, y cos(a x), y sin(a x)), a = turn / length."""
     x, y = np.meshgrid(np.linspace(0, length, nx + 1), np.linspace(-width / 2, width / 2, ny + 1), indexing="ij")
@@ -677,7 +675,6 @@ def _twisted_strip(length=200.0, width=20.0, turn=np.pi / 2, nx=60, ny=8):
 
 def test_bend_share_tells_principal_from_asymptotic_ribbons():
     from geometry.curvature import principal_curvature
-    from geometry.meshops import face_areas
     from inverse.design import bend_share, normal_curvature_along
 
     V, F = _twisted_strip()
