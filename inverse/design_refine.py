@@ -4,8 +4,10 @@ in the loop (inverse.refine) so that the simulated sheet lands on the target (mm
 The simulation mesh of the design's pattern (the verification's), each printed region one
 parameter (the design keeps ribbons apart, so a region is a ribbon); target positions of the
 mesh vertices through the flattening's correspondence (inverse.registration.flat_to_target).
-The equilibrium is sought nearest the target: the first solve starts from the target itself
-(edge angles 0), falling back to the verification's released state if that does not converge.
+The equilibrium is sought nearest the target: one refinement starts from the target itself
+(edge angles 0), another from the verification's released state when the first solve settled
+elsewhere, and the one with the lower objective is kept (these multistable sheets refine to
+different ends from different states).
 The refined thicknesses are rounded to layer multiples of the printer, then moved by single
 layers where the objective linearised at the rounded design says so (inverse.refine.refine_layers),
 and the rounded design is what is written and reported; whether release from flat reaches the same state is checked
@@ -51,8 +53,77 @@ def rounded(p, layer_mm: float, bounds) -> np.ndarray:
     return np.clip(np.round(np.asarray(p) / layer_mm), max(k_lo, 1), k_hi) * layer_mm
 
 
+#: The states a refinement starts from: the target itself (the equilibrium nearest it), then the
+#: verification's released state. These sheets are multistable and soft: the two starts often
+#: settle in different states, and which one refines further depends on where the stability
+#: margin binds, not on which starts nearer (docs/notes.md, session 36).
+STARTS = ("target", "released")
+#: Two first equilibria closer than this (weighted RMS after the best rigid motion, mm) are one state.
+SAME_STATE_MM = 0.05
+
+
+def _refine_from_starts(prob, p0, q_target, sim, T, opts, measure, starts):
+    """Run inverse.refine.refine_thickness from each of ``starts`` ("target": the target's
+    positions, edge angles 0; "released": the verification's released state moved onto the
+    target by the best rigid motion, so that the gauge holds a rigid motion of it). The released
+    start is skipped when the verification did not converge, or when the solve from the target
+    settled in the released state (weighted RMS apart below SAME_STATE_MM after the best rigid
+    motion): the two refinements would be one. Returns ([(label, RefineResult), ...], the
+    per-start records for the report); raises SelfshapeError when no start gives an equilibrium."""
+    from inverse.refine import refine_thickness
+    from inverse.registration import kabsch
+
+    for s in starts:
+        if s not in ("target", "released"):
+            raise ValueError(f"refine: unknown start {s!r} (target, released)")
+    runs, records, first_states = [], [], {}
+    q_rel = None
+    if sim.result.converged:
+        q_rel = sim.result.q.copy()
+        x = sim.model.split(q_rel)[0]
+        R, c = kabsch(x, T, prob.w)
+        q_rel[:x.size] = (x @ R.T + c).ravel()
+    for s in starts:
+        label = "target" if s == "target" else "released state"
+        if s == "released":
+            if q_rel is None:
+                records.append({"start": label, "skipped": "the verification's release did not converge"})
+                continue
+            x0 = first_states.get("target")
+            if x0 is not None:
+                x = sim.model.split(q_rel)[0]
+                R, c = kabsch(x0, x, prob.w)
+                apart = float(np.sqrt(prob.w @ np.sum((x0 @ R.T + c - x) ** 2, 1) / prob.w.sum()))
+                if apart < SAME_STATE_MM:
+                    records.append({"start": label, "skipped": f"the solve from the target settled in it "
+                                                               f"({apart:.2g} mm apart)"})
+                    continue
+        t0 = time.perf_counter()
+
+        def callback(it, p, q, model, s=s):
+            if it == 0:
+                first_states[s] = model.split(q)[0].copy()
+            return measure(it, p, q, model)
+        try:
+            res = refine_thickness(prob, p0, q_target if s == "target" else q_rel, opts, callback=callback)
+        except SelfshapeError as e:
+            records.append({"start": label, "converged": False, "reason": str(e),
+                            "seconds": round(time.perf_counter() - t0, 2)})
+            continue
+        runs.append((label, res))
+        records.append({"start": label, "converged": True, "outer_iterations": len(res.history) - 1,
+                        "rms_mm_start": res.history[0]["rms_mm"], "rms_mm": res.rms_mm,
+                        "objective": res.objective, "reason": res.reason,
+                        "seconds": round(time.perf_counter() - t0, 2)})
+    if not runs:
+        raise SelfshapeError("refine: no equilibrium near the target: "
+                             + "; ".join(f"from the {r['start']}: {r.get('reason') or r.get('skipped')}" for r in records))
+    return runs, records
+
+
+
 def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.05, verbose: bool = False,
-                  progress=None, layer_rounds_max: int = 8) -> tuple:
+                  progress=None, layer_rounds_max: int = 8, starts=STARTS) -> tuple:
     """Refine the thicknesses of the design ``d`` (whose pattern is ``pattern`` and whose
     verification simulation is ``sim``, forward.simulate.Simulation). Sets the ribbons'
     thickness_mm to the rounded refined values and returns (block, positions): the report block
@@ -68,7 +139,9 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     moves lowers the objective, or whose move lowers it by less than the options' ftol), recorded
     as "layer_rounds". Why several: each round is
     linearised where the previous one left the design, and thin ribbons rounded to 0.1 mm layers
-    start far from the continuous optimum, so later rounds still gain (docs/notes.md, session 26)."""
+    start far from the continuous optimum, so later rounds still gain (docs/notes.md, session 26).
+    ``starts``: the first states of the refinement, tried in turn (see _refine_from_starts); the
+    refinement with the lowest objective is rounded and kept, and "starts" records each."""
     from inverse.refine import (RefineOptions, ThicknessProblem, finite_or_none, follow_thickness, linear_rounding,
                                 refine_layers, refine_thickness)
     from inverse.registration import flat_to_target
@@ -93,20 +166,8 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
             progress({"stage": "outer", "iteration": int(it), "rms_mm": prob.objective(model.split(q)[0], p)[1] ** 0.5})
         return out
 
-    start = "target"
-    try:
-        res = refine_thickness(prob, p0, q_target, opts, callback=measure)
-    except SelfshapeError:
-        if not sim.result.converged:
-            raise
-        start = "released state (the solve from the target did not converge)"
-        q_rel = sim.result.q.copy()
-        # the released state in the target's frame, so that the gauge holds a rigid motion of it
-        from inverse.registration import kabsch
-        x = sim.model.split(q_rel)[0]
-        R, c = kabsch(x, T, prob.w)
-        q_rel[:x.size] = (x @ R.T + c).ravel()
-        res = refine_thickness(prob, p0, q_rel, opts, callback=measure)
+    runs, starts_block = _refine_from_starts(prob, p0, q_target, sim, T, opts, measure, starts)
+    start, res = min(runs, key=lambda r: r[1].objective)
     h = printer.layer_height_mm
     p_round = rounded(res.thickness, h, opts.bounds)
     first, top = rounded(list(opts.bounds), h, opts.bounds)       # the thinnest / thickest printable layer counts
@@ -136,7 +197,7 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
                                                        ftol=opts.ftol)
         model_r = prob.model_at(p_round)
     block = {
-        "start": start, "outer_iterations": len(res.history) - 1, "reason": res.reason,
+        "start": start, "starts": starts_block, "outer_iterations": len(res.history) - 1, "reason": res.reason,
         "smoothness": smoothness, "bounds_mm": list(opts.bounds), "layer_height_mm": printer.layer_height_mm,
         "n_parameters": len(groups), "iterations": res.history,
         "thickness_start_mm": p0.round(4).tolist(), "thickness_continuous_mm": res.thickness.round(4).tolist(),

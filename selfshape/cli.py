@@ -214,20 +214,32 @@ def _cmd_design(a):
             print(f"warning: {r['verify_warning']}")
     elif "verify_converged" in r:
         print(f"verification: {r.get('verify_note', r.get('verify_reason'))}")
+    for line in _refine_lines(r):
+        print(line)
+
+
+def _refine_lines(r) -> list:
+    """The lines `selfshape design --refine` prints about the refinement of the report ``r``."""
     ref = r.get("refine")
-    if ref is not None:
-        if ref.get("ok"):
-            o = ref and r.get("open_loop", {}).get("deviation_pct_bbox")
-            if ref.get("kept") == "open loop":
-                print(f"refined in {ref['outer_iterations']} outer iterations, {ref['seconds']:.0f} s, not kept: "
-                      f"{ref['kept_note']}")
-            else:
-                print(f"refined in {ref['outer_iterations']} outer iterations, {ref['seconds']:.0f} s ({ref['reason']})"
-                      + (f"; open loop was {o[0]:.2f} / {o[1]:.2f} %" if o else ""))
-                if ref.get("kept") == "refined, on a jig":
-                    print(ref["release_note"])
-        else:
-            print(f"refinement failed, open-loop design kept: {ref['reason']}")
+    if ref is None:
+        return []
+    if not ref.get("ok"):
+        return [f"refinement failed, open-loop design kept: {ref['reason']}"]
+    o = r.get("open_loop", {}).get("deviation_pct_bbox")
+    if ref.get("kept") == "open loop":
+        lines = [f"refined in {ref['outer_iterations']} outer iterations, {ref['seconds']:.0f} s, not kept: "
+                 f"{ref['kept_note']}"]
+    else:
+        lines = [f"refined in {ref['outer_iterations']} outer iterations, {ref['seconds']:.0f} s ({ref['reason']})"
+                 + (f"; open loop was {o[0]:.2f} / {o[1]:.2f} %" if o else "")]
+    ran = [x for x in ref.get("starts", []) if x.get("converged")]
+    if len(ran) > 1:
+        lines.append("refined from " + " and from ".join(
+            f"the {x['start']} (rms {x['rms_mm_start']:.2f} -> {x['rms_mm']:.2f} mm)" for x in ran)
+            + f"; kept the one from the {ref['start']}")
+    if ref.get("kept") == "refined, on a jig":
+        lines.append(ref["release_note"])
+    return lines
 
 
 def _cmd_calibrate(a):

@@ -59,6 +59,7 @@ def run_target(path, out_dir, args) -> dict:
                        "target_to_flat_pct": rep.get("flat_deviation_target_to_flat_pct_bbox")},
         "refine_ok": bool(ref.get("ok")), "refine_reason": ref.get("reason"),
         "outer_iterations": ref.get("outer_iterations"), "start": ref.get("start"),
+        "starts": ref.get("starts"),
         "release_reaches_refined_state": ref.get("release_reaches_refined_state"), "kept": ref.get("kept"),
         "jig": ref.get("jig"), "refined_released": ref.get("refined_released"),
         "feasibility": ref.get("feasibility"), "n_triangles": rep.get("verify_n_triangles"),

@@ -19,6 +19,82 @@ def test_rounding_to_layers_inside_the_bounds():
     np.testing.assert_allclose(rounded([0.14, 0.26], 0.1, (0.1, 1.2)), [0.1, 0.3])
 
 
+class _Split:
+    """A stand-in for a shell model's split(q) -> (positions, angles) on n vertices."""
+    def __init__(self, n):
+        self.n = n
+
+    def split(self, q):
+        return q[:3 * self.n].reshape(-1, 3), q[3 * self.n:]
+
+
+def _starts_case(monkeypatch, released, first_state, objectives, fails=()):
+    """Run inverse.design_refine._refine_from_starts with refine_thickness replaced: the solve
+    from start s settles in first_state(s, q0) (positions) and ends at objectives[s], or raises
+    for s in fails. ``released``: the verification's positions (None: it did not converge)."""
+    import types
+
+    import inverse.design_refine as dr
+    import inverse.refine
+    from inverse.refine import RefineResult
+
+    rng = np.random.default_rng(3)
+    T = rng.normal(size=(12, 3)) * 10
+    split = _Split(len(T))
+    prob = types.SimpleNamespace(w=np.full(len(T), 1 / len(T)))
+    q_sim = np.concatenate([(T if released is None else released).ravel(), np.zeros(4)])
+    sim = types.SimpleNamespace(model=split, result=types.SimpleNamespace(converged=released is not None, q=q_sim))
+    q_target = np.concatenate([T.ravel(), np.zeros(4)])
+    calls = []
+
+    def fake(problem, p0, q0, opts, callback=None):
+        s = "target" if q0 is q_target else "released"
+        calls.append(s)
+        if s in fails:
+            raise SelfshapeError("refine: no equilibrium near the start (test)")
+        q = np.concatenate([first_state(s, split.split(q0)[0]).ravel(), np.zeros(4)])
+        callback(0, p0, q, split)
+        return RefineResult(thickness=np.asarray(p0), q=q, objective=objectives[s], rms_mm=objectives[s] ** 0.5,
+                            history=[dict(iteration=0, rms_mm=2.0), dict(iteration=1, rms_mm=1.0)], reason="ftol")
+
+    monkeypatch.setattr(inverse.refine, "refine_thickness", fake)
+    out = dr._refine_from_starts(prob, np.ones(3), q_target, sim, T, None, lambda *a: {}, dr.STARTS)
+    return out, calls, T
+
+
+def test_the_refinement_from_the_released_state_is_kept_when_it_ends_lower(monkeypatch):
+    rot = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    released = np.random.default_rng(5).normal(size=(12, 3)) * 10 @ rot + 7.0     # another state, moved rigidly
+    (runs, records), calls, T = _starts_case(monkeypatch, released, lambda s, x0: x0, {"target": 4.0, "released": 1.0})
+    assert calls == ["target", "released"]
+    label, res = min(runs, key=lambda r: r[1].objective)
+    assert label == "released state" and res.objective == 1.0
+    assert [r["start"] for r in records] == ["target", "released state"]
+    assert [r["objective"] for r in records] == [4.0, 1.0] and all(r["outer_iterations"] == 1 for r in records)
+    # the released start was moved onto the target by the best rigid motion before its solve
+    (runs, _), _, T = _starts_case(monkeypatch, T @ rot.T + 7.0, lambda s, x0: x0 * (1.1 if s == "target" else 1.0),
+                                   {"target": 4.0, "released": 1.0})
+    np.testing.assert_allclose(runs[1][1].q[:T.size].reshape(-1, 3), T, atol=1e-9)
+
+
+def test_the_released_start_is_skipped_when_the_target_settles_in_it(monkeypatch):
+    released = np.random.default_rng(5).normal(size=(12, 3)) * 10
+    (runs, records), calls, _ = _starts_case(monkeypatch, released, lambda s, x0: released + 0.01,
+                                             {"target": 2.0, "released": 1.0})
+    assert calls == ["target"] and [r[0] for r in runs] == ["target"]
+    assert "settled in it" in records[1]["skipped"]
+
+
+def test_a_start_whose_solve_fails_is_recorded_and_the_other_kept(monkeypatch):
+    released = np.random.default_rng(5).normal(size=(12, 3)) * 10
+    (runs, records), calls, _ = _starts_case(monkeypatch, released, lambda s, x0: x0,
+                                             {"target": 2.0, "released": 3.0}, fails=("target",))
+    assert calls == ["target", "released"] and [r[0] for r in runs] == ["released state"]
+    assert records[0]["converged"] is False and "no equilibrium" in records[0]["reason"]
+    with pytest.raises(SelfshapeError, match="from the target: .*from the released state: the verification's release"):
+        _starts_case(monkeypatch, None, lambda s, x0: x0, {"target": 2.0}, fails=("target",))
+
+
 def test_failed_refinement_keeps_the_open_loop_design(tmp_path, monkeypatch):
     import inverse.design_refine
 
@@ -177,3 +253,21 @@ def test_a_jig_that_cannot_be_simulated_is_recorded_and_the_next_one_tried():
     assert first == {"posts": 4, "release_steps": 4, "reached": False,
                      "error": "pattern.toml: [[support]] #1: point 3 (1, 2) is outside the fabric"}
     assert second["posts"] == 8 and second["reached"] and block["jig"]["posts"] == 8 and "jig" in candidates
+
+
+def test_the_cli_names_both_starts_and_the_one_kept():
+    from selfshape.cli import _refine_lines
+
+    starts = [{"start": "target", "converged": True, "rms_mm_start": 2.61, "rms_mm": 1.99},
+              {"start": "released state", "converged": True, "rms_mm_start": 3.38, "rms_mm": 1.21}]
+    r = {"open_loop": {"deviation_pct_bbox": [2.2, 8.8]},
+         "refine": {"ok": True, "kept": "refined", "outer_iterations": 15, "seconds": 600, "reason": "ftol",
+                    "start": "released state", "starts": starts}}
+    lines = _refine_lines(r)
+    assert lines[0].startswith("refined in 15 outer iterations") and "open loop was 2.20 / 8.80 %" in lines[0]
+    assert lines[1] == ("refined from the target (rms 2.61 -> 1.99 mm) and from the released state "
+                        "(rms 3.38 -> 1.21 mm); kept the one from the released state")
+    r["refine"]["starts"] = [starts[0], {"start": "released state", "skipped": "the solve from the target settled in it"}]
+    assert len(_refine_lines(r)) == 1
+    assert _refine_lines({"refine": {"ok": False, "reason": "no equilibrium"}}) == [
+        "refinement failed, open-loop design kept: no equilibrium"]
