@@ -100,10 +100,10 @@ def _refine_from_starts(prob, p0, q_target, sim, T, opts, measure, starts):
                     continue
         t0 = time.perf_counter()
 
-        def callback(it, p, q, model, s=s):
+        def callback(it, p, q, model, s=s, label=label):
             if it == 0:
                 first_states[s] = model.split(q)[0].copy()
-            return measure(it, p, q, model)
+            return measure(it, p, q, model, label)
         try:
             res = refine_thickness(prob, p0, q_target if s == "target" else q_rel, opts, callback=callback)
         except SelfshapeError as e:
@@ -160,10 +160,11 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     prob = ThicknessProblem(sheet, pattern.fabric, pattern.plastic, param, T, free, smoothness=smoothness)
     q_target = np.concatenate([T.ravel(), np.zeros(sim.model.n_edges)])
 
-    def measure(it, p, q, model):
+    def measure(it, p, q, model, start=None):
         out = deviations(d, model.split(q)[0], sheet.triangles, T)
         if progress is not None:
-            progress({"stage": "outer", "iteration": int(it), "rms_mm": prob.objective(model.split(q)[0], p)[1] ** 0.5})
+            progress({"stage": "outer", "iteration": int(it), "start": start,
+                      "rms_mm": prob.objective(model.split(q)[0], p)[1] ** 0.5})
         return out
 
     runs, starts_block = _refine_from_starts(prob, p0, q_target, sim, T, opts, measure, starts)

@@ -164,7 +164,9 @@ class StatusLine:
             lv = s["level"]
             parts.append(f"level {lv['level']}/{lv['levels']} ({lv['n_vertices']} vertices)")
         if s.get("outer"):
-            parts.append(f"outer iteration {s['outer']['iteration']} (rms {s['outer']['rms_mm']:.3f} mm)")
+            o = s["outer"]
+            parts.append(f"outer iteration {o['iteration']}" + (f" from the {o['start']}" if o.get("start") else "")
+                         + f" (rms {o['rms_mm']:.3f} mm)")
         if s.get("release"):
             parts.append(f"release step {s['release']['step']}/{s['release']['steps']}")
         if s.get("newton"):

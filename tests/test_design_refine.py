@@ -58,7 +58,7 @@ def _starts_case(monkeypatch, released, first_state, objectives, fails=()):
                             history=[dict(iteration=0, rms_mm=2.0), dict(iteration=1, rms_mm=1.0)], reason="ftol")
 
     monkeypatch.setattr(inverse.refine, "refine_thickness", fake)
-    out = dr._refine_from_starts(prob, np.ones(3), q_target, sim, T, None, lambda *a: {}, dr.STARTS)
+    out = dr._refine_from_starts(prob, np.ones(3), q_target, sim, T, None, lambda *a, **k: {}, dr.STARTS)
     return out, calls, T
 
 

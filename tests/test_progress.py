@@ -134,7 +134,8 @@ def test_wanted_and_the_line_text():
         for e in ({"stage": "design", "step": "flattening", "index": 4, "steps": 6},
                   {"stage": "verify"}, {"stage": "level", "level": 1, "levels": 2, "n_vertices": 120},
                   {"stage": "newton", "iteration": 3, "energy": 12.5, "gradient_norm": 3e-4},
-                  {"stage": "refine"}, {"stage": "outer", "iteration": 2, "rms_mm": 0.4321}):
+                  {"stage": "refine"}, {"stage": "outer", "iteration": 2, "rms_mm": 0.4321},
+                  {"stage": "outer", "iteration": 1, "start": "released state", "rms_mm": 1.5}):
             line(e)
             line.last = 0.0                                  # no throttling in the test
         line.close()
@@ -142,6 +143,7 @@ def test_wanted_and_the_line_text():
         assert "design 0 s: flattening (4/6)" in got
         assert "design 0 s: verify, level 1/2 (120 vertices), Newton 3: E 1.2500e+01 N mm, |g| 3.0e-04" in got
         assert "design 0 s: refine, outer iteration 2 (rms 0.432 mm)" in got
+        assert "design 0 s: refine, outer iteration 1 from the released state (rms 1.500 mm)" in got
         assert got.endswith("\r\x1b[2K")
         assert line.fd is None
         StatusLine("x", None)({"stage": "newton"})           # inactive: a no-op
