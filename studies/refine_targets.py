@@ -41,7 +41,7 @@ def run_target(path, out_dir, args) -> dict:
 
     printer = load_printer(args.printer) if args.printer else Printer(layer_height_mm=args.layer)
     opts = RefineOptions(bounds=(printer.layer_height_mm, args.max_thickness), max_outer=args.max_outer, verbose=args.verbose,
-                         stability=args.stability)
+                         stability=args.stability, start_iterations=args.start_iterations)
     t0 = time.perf_counter()
     rep = design_file(path, out_dir, refine=True, mesh_size_mm=args.mesh_size, mesh_across=args.across,
                       verify_iterations=args.verify_iterations, refine_options=opts, printer=printer,
@@ -145,6 +145,8 @@ def main(argv=None) -> int:
     ap.add_argument("--across", type=float, default=1.0, help="[mesh] across: triangle rows across a ribbon")
     ap.add_argument("--verify-iterations", type=int, default=3000, help="Newton cap of the release from flat")
     ap.add_argument("--max-outer", type=int, default=RefineOptions.max_outer, help="outer (Gauss-Newton) iterations")
+    ap.add_argument("--start-iterations", type=int, default=RefineOptions.start_iterations,
+                    help="Newton cap of the first solve from the target")
     ap.add_argument("--stability", type=float, default=RefineOptions.stability,
                     help="stability margin: keep the lowest eigenvalue above this fraction of the start's (0: off)")
     ap.add_argument("--layer", type=float, default=0.2, help="printer layer height (mm), without --printer")
@@ -163,6 +165,8 @@ def main(argv=None) -> int:
     if args.table:
         print(table(read_rows(args.table)))
         return 0
+    if args.start_iterations < 1:
+        ap.error(f"--start-iterations {args.start_iterations}: a Newton cap, at least 1")
     if not 0.0 <= args.stability < 1.0:
         ap.error(f"--stability {args.stability:g}: a fraction of the start's lowest eigenvalue in [0, 1) (0: off)")
     workers = args.workers if args.workers is not None or args.scheduler else 0

@@ -76,13 +76,13 @@ def test_main_prints_a_json_line_per_target_and_the_summary(tmp_path, monkeypatc
 
 @pytest.mark.parametrize("extra", [["--workers", "-1"], ["--workers", "2", "--scheduler", "tcp://127.0.0.1:1"],
                                    ["--scheduler", "not an address"], ["--stability", "nan"], ["--stability", "1"],
-                                   ["--stability", "-0.5"]])
+                                   ["--stability", "-0.5"], ["--start-iterations", "0"]])
 def test_bad_workers_or_scheduler_are_refused_before_any_work(extra, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(refine_targets, "run_target", lambda *a: pytest.fail("ran a target"))
     with pytest.raises(SystemExit) as e:
         refine_targets.main(["saddle", "--out", str(tmp_path)] + extra)
     err = capsys.readouterr().err.splitlines()[-1]
-    assert e.value.code == 2 and any(f"error: --{o}" in err for o in ("workers", "scheduler", "stability")), err
+    assert e.value.code == 2 and any(f"error: --{o}" in err for o in ("workers", "scheduler", "stability", "start-iterations")), err
 
 
 def test_the_readme_table_is_built_from_the_json_lines(tmp_path, capsys):
