@@ -121,7 +121,6 @@ def _refine_from_starts(prob, p0, q_target, sim, T, opts, measure, starts):
     return runs, records
 
 
-
 def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.05, verbose: bool = False,
                   progress=None, layer_rounds_max: int = 8, starts=STARTS) -> tuple:
     """Refine the thicknesses of the design ``d`` (whose pattern is ``pattern`` and whose
@@ -143,7 +142,7 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     ``starts``: the first states of the refinement, tried in turn (see _refine_from_starts); the
     refinement with the lowest objective is rounded and kept, and "starts" records each."""
     from inverse.refine import (RefineOptions, ThicknessProblem, finite_or_none, follow_thickness, linear_rounding,
-                                refine_layers, refine_thickness)
+                                refine_layers)
     from inverse.registration import flat_to_target
     from shellfem.boundary import gauge_dofs
 
