@@ -39,8 +39,9 @@ class RefineOptions:
     of J is 0.5 % of the RMS distance, below what the rounding to layers moves; each further
     outer iteration costs a sensitivity and a trial solve). newton_iterations: cap of each
     equilibrium solve; start_iterations: cap of the first one (from the caller's start, e.g. the
-    target itself), which the caller may retry from another start. max_step: largest thickness
-    change of one outer iteration (mm): the warm-started solves stay short and the Gauss-Newton
+    target itself, from which the soft sheets relax in 100-300 iterations), which the caller may
+    retry from another start. max_step: largest thickness change of one outer iteration (mm):
+    the warm-started solves stay short and the Gauss-Newton
     model valid; it is also the largest trust radius: a rejected trial halves the radius to half
     its step's largest change (the damping alone does not shorten a step whose changes sit at
     the radius: the bounded least-squares step keeps them there until the damping outweighs the
@@ -69,7 +70,7 @@ class RefineOptions:
     ftol: float = 1e-2
     newton_iterations: int = 400
     trial_iterations: int = 100
-    start_iterations: int = 150
+    start_iterations: int = 300
     max_step: float = 0.2
     damping: float = 1e-3
     leave_factor: float = 1.25
