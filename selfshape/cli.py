@@ -237,6 +237,10 @@ def _refine_lines(r) -> list:
         lines.append("refined from " + " and from ".join(
             f"the {x['start']} (rms {x['rms_mm_start']:.2f} -> {x['rms_mm']:.2f} mm)" for x in ran)
             + f"; kept the one from the {ref['start']}")
+    failed = [x for x in ref.get("starts", []) if x.get("converged") is False]
+    if ran and failed:
+        lines.append(f"refined from the {ref['start']} only; " + "; ".join(
+            f"from the {x['start']}: {x['reason'].removeprefix('refine: ')}" for x in failed))
     if ref.get("kept") == "refined, on a jig":
         lines.append(ref["release_note"])
     return lines

@@ -269,5 +269,9 @@ def test_the_cli_names_both_starts_and_the_one_kept():
                         "(rms 3.38 -> 1.21 mm); kept the one from the released state")
     r["refine"]["starts"] = [starts[0], {"start": "released state", "skipped": "the solve from the target settled in it"}]
     assert len(_refine_lines(r)) == 1
+    r["refine"]["starts"] = [{"start": "target", "converged": False,
+                              "reason": "refine: no equilibrium near the start (iteration cap; 300 iterations)"}, starts[1]]
+    assert _refine_lines(r)[1] == ("refined from the released state only; from the target: no equilibrium near the start "
+                                   "(iteration cap; 300 iterations)")
     assert _refine_lines({"refine": {"ok": False, "reason": "no equilibrium"}}) == [
         "refinement failed, open-loop design kept: no equilibrium"]
