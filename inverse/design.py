@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -48,7 +48,7 @@ from inverse.plots import plot_pattern
 from inverse.record import Design
 from inverse.report import report_dict
 from inverse.separation import separate_ribbons, simplify_paths
-from inverse.to_pattern import pattern_dict
+from inverse.to_pattern import VERIFY_ITERATIONS, VERIFY_MESH_ACROSS, VERIFY_MESH_SIZE_MM, pattern_dict
 from inverse.verify import register_simulation, verify_design
 from inverse.vtu import write_flat_vtu
 from shellfem.errors import SelfshapeError
@@ -757,7 +757,8 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
     rep["refine"] = block
     rep["stages_s"]["refine"] = round(time.perf_counter() - t, 3)
 def design_file(target_path, out_dir, options: DesignOptions | None = None, *, verify: bool = False,
-                mesh_size_mm: float = 2.0, mesh_across: float | None = None, verify_iterations: int | None = None,
+                mesh_size_mm: float = VERIFY_MESH_SIZE_MM, mesh_across: float | None = VERIFY_MESH_ACROSS,
+                verify_iterations: int | None = VERIFY_ITERATIONS,
                 metric_floor: float | None = None, refine: bool = False, refine_options=None,
                 refine_smoothness: float = 0.05, verbose: bool = False, inputs=(), progress=None,
                 **overrides) -> dict:
@@ -769,8 +770,10 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
     deployed surface, target ghost and flat pattern in a browser) always.
 
     ``options``/``overrides``: the design's DesignOptions, as for `design`. mesh_size_mm,
-    mesh_across: pattern.toml's [mesh]. verify_iterations: Newton cap of the verification,
-    written to pattern.toml's [solver] max_iterations (default: the simulator's 300);
+    mesh_across: pattern.toml's [mesh] (default: inverse.to_pattern.VERIFY_MESH_SIZE_MM / _ACROSS,
+    the laws' own discretisation; None: the pattern defaults). verify_iterations: Newton cap of
+    the verification, written to pattern.toml's [solver] max_iterations (default
+    inverse.to_pattern.VERIFY_ITERATIONS; None: the simulator's 300);
     metric_floor: [solver] metric_floor (default: the simulator's 10). The verification
     simulates the written pattern from memory (`inverse.verify.verify_design`). ``refine``
     (implies verify): the thicknesses are then refined with the shell in the loop

@@ -416,6 +416,7 @@ def _add_sweep_verb(sub):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from inverse.to_pattern import VERIFY_ITERATIONS, VERIFY_MESH_ACROSS, VERIFY_MESH_SIZE_MM
     p = _Parser(prog="selfshape", description="Self-shaping textiles: simulate, design, calibrate.")
     sub = p.add_subparsers(dest="verb", required=True)
 
@@ -442,13 +443,15 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("target")
     d.add_argument("-o", "--output", required=True)
     d.add_argument("--verify", action="store_true", help="simulate the design and report its deviation")
-    d.add_argument("--verify-iterations", type=_COUNT, default=None,
-                   help="Newton iteration cap of --verify, also written to pattern.toml [solver] (default 300)")
+    d.add_argument("--verify-iterations", type=_COUNT, default=VERIFY_ITERATIONS,
+                   help=f"Newton iteration cap of --verify, also written to pattern.toml [solver] (default {VERIFY_ITERATIONS})")
     d.add_argument("--refine", action="store_true",
                    help="refine the ribbon thicknesses with the shell in the loop (implies --verify)")
-    d.add_argument("--mesh-size", type=_POSITIVE, default=2.0, help="pattern.toml [mesh] size_mm of the verification, mm")
-    d.add_argument("--mesh-across", type=_POSITIVE, default=None,
-                   help="pattern.toml [mesh] across: triangle rows across a ribbon (default 2)")
+    d.add_argument("--mesh-size", type=_POSITIVE, default=VERIFY_MESH_SIZE_MM,
+                   help=f"pattern.toml [mesh] size_mm of the verification, mm (default {VERIFY_MESH_SIZE_MM:g})")
+    d.add_argument("--mesh-across", type=_POSITIVE, default=VERIFY_MESH_ACROSS,
+                   help=f"pattern.toml [mesh] across: triangle rows across a ribbon (default {VERIFY_MESH_ACROSS:g}; "
+                        "2, the thickness laws' own, moves a design's deviation by ~0.05 %% mean at 3x the time)")
     d.add_argument("-v", "--verbose", action="store_true")
     d.add_argument("-q", "--quiet", action="store_true", help="no progress line on a terminal")
     d.add_argument("--diagonal", type=_schema_number("DESIGN_NUMBERS", "diagonal_mm"), default=110.0,
