@@ -102,12 +102,19 @@ def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ----------------------------------------------------------------------------- topology
-def check_disk(V: np.ndarray, F: np.ndarray, where: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
-    """Validate a disk-topology triangle mesh; return it without unreferenced vertices.
+def check_disk(V: np.ndarray, F: np.ndarray, where: str = "mesh", repairs: list | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Validate a disk-topology triangle mesh; return it without unreferenced vertices, with its
+    faces consistently oriented.
 
+    Two defects of exported meshes are repaired, since each has one right answer: faces stored
+    apart (a polygon soup, or an exporter's seams) are welded at identical positions when that
+    makes the mesh one piece with one boundary (:func:`weld_coincident`); and faces whose
+    orientation disagrees with their neighbours' are flipped to agree, keeping the orientation
+    of the majority (which side is the front). Each repair appends a sentence to ``repairs``.
     Raises SelfshapeError (one line starting with ``where``) on: no faces, non-finite
     coordinates, bad indices, degenerate or zero-area faces, non-manifold edges or
-    vertices, inconsistent orientation, several components, no or several boundary loops,
+    vertices, a non-orientable surface, several components, no or several boundary loops,
     or a non-disk Euler characteristic.
     """
     V = np.asarray(V, dtype=float)
@@ -138,6 +145,7 @@ def check_disk(V: np.ndarray, F: np.ndarray, where: str = "mesh") -> tuple[np.nd
     if out.any():
         f = int(np.flatnonzero(out.any(axis=1))[0])
         raise SelfshapeError(f"{where}: face {f} references a vertex index outside 0..{len(V) - 1}")
+    V, F = _welded_if_disk(V, F, repairs)
     rep = (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 2] == F[:, 0])
     if rep.any():
         f = int(np.flatnonzero(rep)[0])
@@ -153,12 +161,12 @@ def check_disk(V: np.ndarray, F: np.ndarray, where: str = "mesh") -> tuple[np.nd
     if (counts > 2).any():
         a, b = E[np.flatnonzero(counts > 2)[0]]
         raise SelfshapeError(f"{where}: non-manifold edge ({a}, {b}) shared by {int(counts.max())} faces")
-    H = halfedges(F)
-    _, first, dc = np.unique(H[:, 0] * len(V) + H[:, 1], return_index=True, return_counts=True)
-    if (dc > 1).any():
-        he = int(first[np.flatnonzero(dc > 1)[0]])
-        raise SelfshapeError(f"{where}: faces are not consistently oriented "
-                             f"(edge ({H[he, 0]}, {H[he, 1]}) runs the same way in two faces)")
+    if _clashing_edge(F, len(V)) is not None:
+        F = _oriented(F, repairs)
+        clash = _clashing_edge(F, len(V))
+        if clash is not None:
+            raise SelfshapeError(f"{where}: the surface is not orientable (a Moebius band: no orientation of "
+                                 f"the faces agrees along edge ({clash[0]}, {clash[1]}))")
     n = len(V)
     ncomp, _ = connected_components(
         sp.coo_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(n, n)), directed=False)
@@ -177,6 +185,83 @@ def check_disk(V: np.ndarray, F: np.ndarray, where: str = "mesh") -> tuple[np.nd
     if chi != 1:
         raise SelfshapeError(f"{where}: Euler characteristic {chi} (genus {(1 - chi) // 2}); a disk has 1")
     return V, F
+
+
+def _clashing_edge(F: np.ndarray, n: int):
+    """An edge (a, b) that two faces run the same way (their orientations disagree), or None."""
+    H = halfedges(F)
+    _, first, dc = np.unique(H[:, 0] * n + H[:, 1], return_index=True, return_counts=True)
+    if not (dc > 1).any():
+        return None
+    he = int(first[np.flatnonzero(dc > 1)[0]])
+    return int(H[he, 0]), int(H[he, 1])
+
+
+def _oriented(F: np.ndarray, repairs: list | None) -> np.ndarray:
+    """F with every face oriented as its neighbours (libigl's breadth-first orientation of a
+    manifold mesh), then all flipped if that turned more faces than it kept: the majority's
+    orientation (the side the user called the front) stays."""
+    import igl
+
+    G = np.asarray(igl.bfs_orient(np.ascontiguousarray(F, dtype=np.int64))[0], dtype=np.int64)
+    same = _same_cycle(F, G)
+    if same.sum() < len(F) - same.sum():
+        G = G[:, ::-1].copy()
+        same = ~same
+    if repairs is not None:
+        repairs.append(f"{int(len(F) - same.sum())} of {len(F)} faces turned to agree with their neighbours' orientation")
+    return G
+
+
+def _same_cycle(F: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """True for faces whose vertex cycles agree (G[i] is a rotation of F[i])."""
+    return np.any([np.all(np.roll(G, k, axis=1) == F, axis=1) for k in range(3)], axis=0)
+
+
+def weld_coincident(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Merge vertices at identical positions (after rounding to 1e-9 of the bounding-box
+    diagonal, so that values printed and read back alike merge); returns (V, F) with the
+    first vertex of each position kept."""
+    diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    key = np.round(V / max(1e-9 * diag, np.finfo(float).tiny)).astype(np.int64) if diag > 0 else np.zeros_like(V, int)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)                     # keep the input order of the kept vertices
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return V[first[order]], rank[inverse.reshape(-1)][F]
+
+
+def _components_and_loops(F: np.ndarray, n: int) -> tuple[int, int]:
+    E, _, _ = unique_edges(F)
+    ncomp, labels = connected_components(
+        sp.coo_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(n, n)), directed=False)
+    used = np.unique(F)
+    return len(np.unique(labels[used])), boundary_loop_count(F, n)
+
+
+def _welded_if_disk(V: np.ndarray, F: np.ndarray, repairs: list | None):
+    """(V, F) welded (:func:`weld_coincident`) when it is in several pieces or has several
+    boundaries and welding joins some (the welded mesh manifold and without a degenerate face);
+    else (V, F) unchanged. The checks then name what is still wrong (two patches stored as a
+    soup are "2 connected components", not one per face)."""
+    pieces, loops = _components_and_loops(F, len(V))
+    if pieces == 1 and loops == 1:
+        return V, F
+    W, G = weld_coincident(V, F)
+    if len(W) == len(V):
+        return V, F
+    if ((G[:, 0] == G[:, 1]) | (G[:, 1] == G[:, 2]) | (G[:, 2] == G[:, 0])).any():
+        return V, F
+    E, _, counts = unique_edges(G)
+    if (counts > 2).any():
+        return V, F
+    pieces_w, loops_w = _components_and_loops(G, len(W))
+    if (pieces_w, loops_w) == (pieces, loops):
+        return V, F
+    if repairs is not None:
+        repairs.append(f"{len(V) - len(W)} vertices at the positions of others welded: the faces were stored "
+                       f"apart ({pieces} pieces and {loops} boundaries before, {pieces_w} and {loops_w} after)")
+    return W, G
 
 
 def _vertex_manifold(F: np.ndarray, n: int) -> np.ndarray:

@@ -391,7 +391,8 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     from inverse.contraction import contraction_for
     contraction = contraction_for(stretch, ribbon_length, ribbon_width, o.contraction)
     bounds = contraction.bounds() if bounds is None else bounds
-    V0, F0 = check_disk(V, F, where=where)
+    repairs: list = []
+    V0, F0 = check_disk(V, F, where=where, repairs=repairs)
     V0 = normalize(V0, o.diagonal_mm)
     total_area = float(face_areas(V0, F0).sum())
     if not total_area > 0:
@@ -473,7 +474,7 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
                   bounds=bounds if isinstance(bounds, np.ndarray) else tuple(bounds),
                   refine_levels=levels, layout_levels=lay_levels, lam=float(o.lam), stop=stop, thickness_info=tinfo,
                   law_source=law.source, law_plastic_mpa=law.plastic_young_modulus_mpa,
-                  times=times, cpu_times=cpu, separation=sep, curvature_reach=reach,
+                  times=times, cpu_times=cpu, separation=sep, curvature_reach=reach, target_repairs=repairs,
                   coarse_iterations=coarse.iterations if coarse is not None else 0,
                   contraction={**contraction.describe(), "check": check})
 

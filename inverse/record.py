@@ -40,3 +40,4 @@ class Design:
     contraction: dict | None = None      # the contraction model (inverse.contraction describe())
     separation: dict = field(default_factory=dict)
     curvature_reach: dict = field(default_factory=dict)   # inverse.thickness_law.curvature_reach
+    target_repairs: list = field(default_factory=list)    # what geometry.target.check_disk repaired, sentences

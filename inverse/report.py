@@ -45,6 +45,7 @@ def report_dict(d: Design) -> dict:
         "thickness_clamped": d.thickness_info, "thickness_law": d.law_source,
         "plastic_young_modulus_mpa": d.law_plastic_mpa,
         "curvature_reach": d.curvature_reach,
+        "target_repairs": d.target_repairs,
     }
 
 

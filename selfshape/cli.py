@@ -192,6 +192,8 @@ def _cmd_design(a):
                     progress=a.progress)
     a.progress.close()
     print(f"design written to {a.output} in {r['time_s']:.1f} s")
+    for note in r.get("target_repairs") or ():
+        print(f"note: {os.path.basename(a.target)}: {note}")
     if r.get("stretch_choice"):
         c = r["stretch_choice"]
         print("stretch auto: " + ", ".join(

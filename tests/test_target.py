@@ -6,6 +6,7 @@ import pytest
 
 from geometry.target import (check_disk, cylinder_patch, levels_for_faces, load_target, plane_patch,
                              read_mesh, refine, sphere_cap)
+from geometry.meshops import face_areas
 from shellfem.errors import SelfshapeError
 
 TARGETS = sorted((pathlib.Path(__file__).resolve().parents[1] / "meshes" / "targets").glob("*.obj"))
@@ -71,6 +72,59 @@ def test_synthetic_targets_are_disks():
         assert len(W) - len({tuple(e) for e in np.sort(np.r_[G[:, :2], G[:, 1:], G[:, ::2]], 1)}) + len(G) == 1
 
 
+def _moebius(n: int = 24):
+    """A Moebius band of n quads (two triangles each): one piece, one boundary, not orientable."""
+    t = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    V = []
+    for s in (-1.0, 1.0):
+        V.append(np.c_[(10 + s * np.cos(t / 2)) * np.cos(t), (10 + s * np.cos(t / 2)) * np.sin(t), s * np.sin(t / 2)])
+    V = np.r_[V[0], V[1]]                          # vertex i: side -1 at station i; n + i: side +1
+    F = []
+    for i in range(n):
+        a, b = i, n + i
+        if i < n - 1:
+            c, d = i + 1, n + i + 1
+        else:                                      # the half twist: side -1 meets side +1
+            c, d = n, 0
+        F += [[a, c, b], [b, c, d]]
+    return V, np.array(F)
+
+
+def test_orientation_is_repaired_keeping_the_majority():
+    """Faces oriented against their neighbours (an exporter's flips) are turned to agree with
+    the majority, so the front stays the front; the repair is named."""
+    V, F = plane_patch(4.0, 4.0, 3, 3)
+    Fo = F.copy()
+    Fo[[0, 5]] = Fo[[0, 5], ::-1]
+    repairs = []
+    W, G = check_disk(V, Fo, "x.obj", repairs)
+    np.testing.assert_array_equal(np.sort(G, axis=1), np.sort(F, axis=1))
+    assert np.all(np.any([np.all(np.roll(G, k, axis=1) == F, axis=1) for k in range(3)], axis=0))
+    assert repairs == ["2 of 18 faces turned to agree with their neighbours' orientation"]
+    repairs = []
+    W, G = check_disk(V, Fo[:, ::-1], "x.obj", repairs)        # the majority flipped: the other front
+    assert np.all(np.any([np.all(np.roll(G, k, axis=1) == F[:, ::-1], axis=1) for k in range(3)], axis=0))
+    repairs = []
+    check_disk(V, F, "x.obj", repairs)
+    assert repairs == []
+
+
+def test_a_polygon_soup_is_welded_into_one_disk(tmp_path):
+    """An OBJ whose faces each carry their own corners (as some exporters write) is welded at
+    identical positions; two separate patches stay two pieces (welding never joins them)."""
+    V, F = plane_patch(4.0, 4.0, 3, 3)
+    V[:, 2] = 0.1 * V[:, 0] ** 2
+    soup = write_obj(tmp_path / "soup.obj", V[F].reshape(-1, 3), np.arange(3 * len(F)).reshape(-1, 3))
+    repairs = []
+    W, G = check_disk(*read_mesh(soup), "soup.obj", repairs)
+    assert len(W) == len(V) and len(G) == len(F)
+    np.testing.assert_allclose(np.sort(face_areas(W, G)), np.sort(face_areas(V, F)))
+    assert repairs[0].startswith(f"{3 * len(F) - len(V)} vertices at the positions of others welded")
+    two = np.r_[V, V + [10, 0, 0]]
+    with pytest.raises(SelfshapeError, match="2 connected components"):
+        check_disk(two[np.r_[F, F + len(V)]].reshape(-1, 3), np.arange(6 * len(F)).reshape(-1, 3), "two.obj")
+
+
 def _bad_cases():
     V, F = plane_patch(4.0, 4.0, 2, 2)           # 9 vertices, 8 faces
     cases = {}
@@ -85,9 +139,7 @@ def _bad_cases():
     cases["degenerate"] = (V, np.r_[F, [[0, 0, 1]]])
     Vz = np.r_[V, [0.5 * (V[0] + V[3])]]          # collinear with vertices 0 and 3
     cases["zero area"] = (Vz, np.r_[F[:1], [[0, len(V), 3]]])
-    Fo = F.copy()
-    Fo[0] = Fo[0, ::-1]
-    cases["not consistently oriented"] = (V, Fo)
+    cases["not orientable"] = _moebius()
     # two fans sharing one vertex (bow tie)
     bow = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [-1, 0, 0], [-1, -1, 0.0]])
     cases["non-manifold vertex"] = (bow, np.array([[0, 1, 2], [0, 3, 4]]))
@@ -108,7 +160,7 @@ def test_bad_input_one_line_naming_file_and_problem(tmp_path, problem):
     assert "\n" not in msg and msg.startswith("bad.obj:")
     key = {"closed surface": "closed", "degenerate": "degenerate", "zero area": "zero area",
            "non-manifold edge": "non-manifold edge", "non-manifold vertex": "non-manifold vertex",
-           "not consistently oriented": "not consistently oriented",
+           "not orientable": "not orientable",
            "2 connected components": "2 connected components", "2 boundary loops": "2 boundary loops"}[problem]
     assert key in msg
 
