@@ -446,6 +446,27 @@ def test_cli_design_uses_the_printer_file(tmp_path):
     assert not (tmp_path / "out3").exists()
 
 
+def test_cli_design_names_the_repairs_and_writes_the_verification_defaults(tmp_path, capsys):
+    """A target stored as a polygon soup with a face flipped designs as the disk it is, and
+    the CLI names both repairs; the pattern carries the verification's default mesh and cap
+    (inverse.to_pattern), those of the README's figures."""
+    from inverse.to_pattern import VERIFY_ITERATIONS, VERIFY_MESH_ACROSS, VERIFY_MESH_SIZE_MM
+    from selfshape.cli import main
+    V, F = cylinder_patch()
+    F = F.copy()
+    F[3] = F[3, ::-1]
+    target = write_obj(tmp_path / "soup.obj", V[F].reshape(-1, 3), np.arange(3 * len(F)).reshape(-1, 3))
+    out = tmp_path / "out"
+    assert main(["design", target, "-o", str(out), "--stretch", "1.1", "-q"]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("note: soup.obj: ")]
+    assert len(lines) == 2 and "welded" in lines[0] and "1 of" in lines[1]
+    rep = json.loads((out / "report.json").read_text())
+    assert len(rep["target_repairs"]) == 2 and rep["n_faces_input"] == len(F)
+    raw = load_pattern(out / "pattern.toml").raw
+    assert raw["mesh"] == {"size_mm": VERIFY_MESH_SIZE_MM, "across": VERIFY_MESH_ACROSS}
+    assert raw["solver"]["max_iterations"] == VERIFY_ITERATIONS
+
+
 def test_registration_is_never_worse_than_its_kabsch_start():
     """A tightly rolled sheet against a gently curved target: point-to-plane ICP can walk off;
     the returned pose is the best seen, so its RMS distance is at most the Kabsch start's."""
