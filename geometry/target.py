@@ -180,7 +180,9 @@ def check_disk(V: np.ndarray, F: np.ndarray, where: str = "mesh", repairs: list 
     if loops == 0:
         raise SelfshapeError(f"{where}: closed surface (no boundary); a disk-like surface is required")
     if loops > 1:
-        raise SelfshapeError(f"{where}: {loops} boundary loops (holes); a disk needs exactly one")
+        raise SelfshapeError(f"{where}: {loops} boundary loops ({loops - 1} hole{'s' if loops > 2 else ''}); the fabric "
+                             f"is one piece without holes, so the target must be a disk: fill the hole"
+                             f"{'s' if loops > 2 else ''} or cut the surface open to its outer edge")
     chi = n - len(E) + len(F)
     if chi != 1:
         raise SelfshapeError(f"{where}: Euler characteristic {chi} (genus {(1 - chi) // 2}); a disk has 1")
