@@ -597,7 +597,7 @@ def _try_jig(block, rep, candidates, printed_points, triangles, near_x, refined_
     """Release the refined design held on jig posts (inverse.jig) at its state nearest the target,
     with the JIG_TRIALS posts and release steps in turn until one reaches that state; records block["jig"] (posts, the
     deviations, the largest post reaction in N, whether the state was reached) and, when reached,
-    candidates["jig"] = (score, verification, pattern dict with the posts as [[support]])."""
+    candidates["jig"] = (score, verification, pattern dict with the posts as [[support]], its simulation)."""
     from inverse.jig import jig_supports, support_reactions
 
     tried = []
@@ -621,7 +621,8 @@ def _try_jig(block, rep, candidates, printed_points, triangles, near_x, refined_
                       **{key: rep.get(key) for key in ("deviation_pct_bbox", "deviation_target_to_deployed_pct_bbox",
                                                        "verify_newton_iterations", "verify_reason")}})
         if reached:
-            candidates["jig"] = (_deviation_score(rep), {key: rep[key] for key in VERIFY_KEYS if key in rep}, raw_j)
+            candidates["jig"] = (_deviation_score(rep), {key: rep[key] for key in VERIFY_KEYS if key in rep}, raw_j,
+                                 sims_j[0] if sims_j else None)
             block["jig"] = {**tried[-1], "tried": tried}
             return
     block["jig"] = {"posts": None, "reached": False, "tried": tried,
@@ -681,9 +682,10 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
 
     verified = {}
 
-    def write_and_verify(raw_, title, sims_=None):
+    def write_and_verify(raw_, title, sims_=None, simulation=None):
         """Write the design files of ``raw_`` and replace the report's verification by its own;
-        verified["last"]: its simulation (None if it could not run)."""
+        verified["last"]: its simulation (None if it could not run). ``simulation``: the one
+        an earlier call ran for this same ``raw_``, written again instead of re-simulated."""
         sims_ = [] if sims_ is None else sims_
         verified["last"] = None
         p_toml = out.file("pattern.toml")
@@ -694,7 +696,7 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
         if progress is not None:
             progress({"stage": "verify"})
         rep.update(verify_design(d, parse_pattern(raw_, p_toml, os.path.dirname(os.path.abspath(p_toml))), out,
-                                 sims=sims_, progress=progress))
+                                 sims=sims_, progress=progress, simulation=simulation))
         verified["last"] = sims_[-1] if sims_ else None
     refined_raw = pattern_dict(d, seed=o.seed, target_name=name, **pattern_kw)
     write_and_verify(refined_raw, name + " (refined)")
@@ -711,7 +713,8 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
             near["deviation_pct_bbox"] + near["deviation_target_to_deployed_pct_bbox"]))
     if near.get("deviation_pct_bbox"):
         block["release_reaches_refined_state"] = reaches_near(rep)
-    candidates = {"refined": (_deviation_score(rep), {k: rep[k] for k in VERIFY_KEYS if k in rep}, refined_raw)}
+    candidates = {"refined": (_deviation_score(rep), {k: rep[k] for k in VERIFY_KEYS if k in rep}, refined_raw,
+                              verified["refined"])}
     if near_x is not None and near.get("deviation_pct_bbox") and not block["release_reaches_refined_state"]:
         _try_jig(block, rep, candidates, sims[0].sheet.points, sims[0].sheet.triangles, near_x, refined_raw, name,
                  write_and_verify, reaches_near)
@@ -727,7 +730,8 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
                                      f"released, the sheet reaches it ({scored[best][0]:.2f} %)")
         on_disk = "refined" if "jig" not in block else ("jig" if block["jig"]["reached"] else None)
         if on_disk != best:
-            write_and_verify(scored[best][2], name + (" (refined)" if best == "refined" else " (refined, on a jig)"))
+            write_and_verify(scored[best][2], name + (" (refined)" if best == "refined" else " (refined, on a jig)"),
+                             simulation=scored[best][3])
     else:
         # the refined design, rounded and released from flat (and on a jig, if one was tried),
         # deploys farther from the target than the open loop: keep the open loop
@@ -735,7 +739,7 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
         block["refined_thickness_mm"] = [r.thickness_mm for r in d.ribbons]
         for r, t0 in zip(d.ribbons, before):
             r.thickness_mm = t0
-        write_and_verify(raw, name)
+        write_and_verify(raw, name, simulation=sims[0])      # its verification, written again, not re-run
         block["kept"] = "open loop"
         block["kept_note"] = (f"the refined design deploys from flat farther from the target than the open loop "
                               f"(mean of both directions {_fmt(candidates['refined'][0])} % against {_fmt(open_score)} %"

@@ -63,7 +63,7 @@ def flat_sheet_deviation(d: Design):
 
 
 def verify_design(d: Design, pattern, out_dir: str | None = None, written: list | None = None,
-                  sims: list | None = None, progress=None) -> dict:
+                  sims: list | None = None, progress=None, simulation=None) -> dict:
     """Simulate ``pattern`` (the geometry.patterns.Pattern of the design d), register the deployed
     surface to the target and return the report entries: verify_converged, verify_reason,
     Newton iterations, deviation_pct_bbox [mean, max] (deployed -> target),
@@ -75,24 +75,31 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
     shellfem.outfiles.OutputDir), deployed.vtu, deployed.obj/.stl/.ply (registered, mm) and
     verify.png are written there atomically and their paths appended to ``written``; the
     Simulation is appended to ``sims`` if given (the refinement starts from it). ``progress``:
-    the simulation's progress callback (forward.simulate.simulate_sheet)."""
+    the simulation's progress callback (forward.simulate.simulate_sheet). ``simulation``: an
+    earlier Simulation of this same pattern, registered and written instead of simulating again
+    (the solver is deterministic, so it is the state a new run would reach;
+    verify_simulation_s is then its own wall time)."""
     from forward.simulate import simulate
     from inverse.plots import plot_verify
     from inverse.vtu import write_deployed_vtu
 
     t0 = time.perf_counter()
-    try:
-        sim = simulate(pattern, progress=progress)
-    except SelfshapeError as e:      # the design stays valid; the verification could not run
-        return {"verify_converged": False, "verify_reason": f"simulation failed: {e}", "deviation_pct_bbox": None,
-                "verify_note": "the simulation could not run; no deviation reported",
-                "verify_simulation_s": round(time.perf_counter() - t0, 2)}
+    if simulation is not None:
+        sim = simulation
+    else:
+        try:
+            sim = simulate(pattern, progress=progress)
+        except SelfshapeError as e:      # the design stays valid; the verification could not run
+            return {"verify_converged": False, "verify_reason": f"simulation failed: {e}", "deviation_pct_bbox": None,
+                    "verify_note": "the simulation could not run; no deviation reported",
+                    "verify_simulation_s": round(time.perf_counter() - t0, 2)}
     if sims is not None:
         sims.append(sim)
     s = sim.summary()
+    seconds = s.get("wall_time_s", 0.0) if simulation is not None else time.perf_counter() - t0
     out = {"verify_converged": bool(s["converged"]), "verify_reason": s["reason"],
            "verify_newton_iterations": s["newton_iterations"], "verify_n_triangles": s["n_triangles"],
-           "verify_simulation_s": round(time.perf_counter() - t0, 2)}
+           "verify_simulation_s": round(seconds, 2)}
     if not s["converged"]:
         out["deviation_pct_bbox"] = None
         out["verify_note"] = f"simulation did not converge ({s['reason']}); no deviation reported"

@@ -155,9 +155,10 @@ def test_a_refinement_that_deploys_worse_keeps_the_open_loop_design(tmp_path, mo
         for r in d.ribbons:
             r.thickness_mm = 0.6
         return {"outer_iterations": 2, "reason": "test", "seconds": 0.0, "rounded": {}}, None
-    rep, _ = _refine_with_fake_release(tmp_path, monkeypatch, lambda refined, held: 0.3 if refined else 1.0, refine)
+    rep, box = _refine_with_fake_release(tmp_path, monkeypatch, lambda refined, held: 0.3 if refined else 1.0, refine)
     ref = rep["refine"]
     assert ref["ok"] and ref["kept"] == "open loop" and "kept" in ref["kept_note"]
+    assert box["supports"] == [0, 0]       # the open loop's verification is written again, not simulated again
     assert ref["refined_released"]["deviation_pct_bbox"][0] > 1.0          # the flattened deployment
     assert set(ref["refined_thickness_mm"]) == {0.6}
     assert rep["deviation_pct_bbox"][1] < 1e-6 and rep["open_loop"]["deviation_pct_bbox"][1] < 1e-6
