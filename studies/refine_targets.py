@@ -1,6 +1,6 @@
 """Open-loop and refined designs of the targets in meshes/targets at 110 mm (issue 18's benchmark),
 of the analytic targets of study_cli.ANALYTIC_TARGETS (a barrel vault, an S-wave, a hypar, an
-ellipsoid cap), or of any
+ellipsoid cap, a Gaussian bump, a cone segment), or of any
 target mesh named by its path.
 
 For each TARGET.obj: `inverse.design.design_file(..., refine=True)` -> OUT/TARGET/ (pattern.toml,

@@ -75,8 +75,33 @@ def _ellipsoid_cap(length_mm: float = 120.0, width_mm: float = 70.0, height_mm: 
     return V, F
 
 
+def _bump(size_mm: float = 110.0, height_mm: float = 14.0, width_mm: float = 30.0, n: int = 55):
+    """A Gaussian bump z = h exp(-r^2 / w^2) over a size x size square (mm): a dome (K = 4 h^2 / w^4
+    at the top) ringed by saddles where it meets the nearly flat rim, so K changes sign."""
+    import numpy as np
+
+    from geometry.target import plane_patch
+    V, F = plane_patch(size_mm, size_mm, n, n)
+    V[:, 2] = height_mm * np.exp(-(V[:, 0] ** 2 + V[:, 1] ** 2) / width_mm ** 2)
+    return V, F
+
+
+def _cone(half_angle_deg: float = 30.0, slant_mm: tuple = (40.0, 120.0), turn_rad: float = 1.4, n: int = 40):
+    """A developable cone segment (mm): slant distance 40-120 mm from the apex, 1.4 rad around the
+    axis, half angle 30 degrees; K = 0, and the curvature across the generators falls as 1/distance."""
+    import numpy as np
+
+    from geometry.target import plane_patch
+    V, F = plane_patch(1.0, 1.0, n, n)
+    s = slant_mm[0] + (V[:, 0] + 0.5) * (slant_mm[1] - slant_mm[0])
+    th = V[:, 1] * turn_rad
+    a = np.radians(half_angle_deg)
+    return np.column_stack([s * np.sin(a) * np.cos(th), s * np.sin(a) * np.sin(th), -s * np.cos(a)]), F
+
+
 #: analytic targets outside meshes/ (the classes the shipped scans do not cover), by name
-ANALYTIC_TARGETS = {"vault": _vault, "wave": _wave, "hypar": _hypar, "ellipsoid": _ellipsoid_cap}
+ANALYTIC_TARGETS = {"vault": _vault, "wave": _wave, "hypar": _hypar, "ellipsoid": _ellipsoid_cap, "bump": _bump,
+                    "cone": _cone}
 
 
 def analytic_target(name: str, out_dir: str) -> str:

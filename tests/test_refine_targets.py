@@ -106,7 +106,8 @@ def test_the_readme_table_is_built_from_the_json_lines(tmp_path, capsys):
 def test_analytic_targets_are_disks_with_the_curvature_they_state():
     """Each analytic target (study_cli.ANALYTIC_TARGETS) is a disk the designer accepts; the
     hypar z = x y / 250 mm has K = -1/250^2 at its centre, the ellipsoid cap K > 0 at its top
-    (angle defect per area within 8 mm of the centre), the vault and the wave K = 0."""
+    (angle defect per area within 8 mm of the centre), the vault, the wave and the cone K = 0,
+    the bump K > 0 on top and K < 0 around it."""
     import igl
     from geometry.target import check_disk
     from study_cli import ANALYTIC_TARGETS
@@ -120,3 +121,10 @@ def test_analytic_targets_are_disks_with_the_curvature_they_state():
     assert K0["hypar"] == pytest.approx(-1 / 250.0 ** 2, rel=0.1)
     assert K0["ellipsoid"] == pytest.approx(15.0 ** 2 / (90.0 ** 2 * 60.0 ** 2), rel=0.1)   # c^2 / (a^2 b^2)
     assert abs(K0["vault"]) < 1e-3 * abs(K0["hypar"]) and abs(K0["wave"]) < 1e-3 * abs(K0["hypar"])
+    assert abs(K0["cone"]) < 1e-3 * abs(K0["hypar"])
+    # the bump: K = 4 h^2 / w^4 at the top, falling within the 8 mm disk; a ring of saddles below
+    assert 0.75 * 4 * 14.0 ** 2 / 30.0 ** 4 < K0["bump"] < 4 * 14.0 ** 2 / 30.0 ** 4
+    V, F = ANALYTIC_TARGETS["bump"]()
+    inner = np.setdiff1d(np.arange(len(V)), igl.boundary_loop(F))
+    K = igl.gaussian_curvature(V, F)[inner] / igl.massmatrix(V, F, igl.MASSMATRIX_TYPE_BARYCENTRIC).diagonal()[inner]
+    assert K.min() < -0.1 * K0["bump"]
