@@ -168,20 +168,24 @@ def test_a_refinement_that_deploys_worse_keeps_the_open_loop_design(tmp_path, mo
     assert on_disk["refine"]["kept"] == "open loop" and on_disk["deviation_pct_bbox"][1] < 1e-6
 
 
+def _refine_to_the_target(d, *a, **k):
+    """A fake refinement: every ribbon 0.6 mm, the state nearest the target is the target itself."""
+    for r in d.ribbons:
+        r.thickness_mm = 0.6
+    zero = {"deviation_pct_bbox": [0.0, 0.0], "deviation_target_to_deployed_pct_bbox": [0.0, 0.0]}
+    return {"outer_iterations": 2, "reason": "test", "seconds": 0.0, "rounded": zero}, d.V
+
+
 def test_a_jig_that_holds_the_sheet_near_the_refined_state_is_kept_over_a_worse_open_loop(tmp_path, monkeypatch):
     """No jig reaches the refined state (its deviations differ by more than the tolerance), but
     the posts hold the sheet nearer the target than any free release: that jig is kept (a
     110 mm bump was returned as its open loop, worse than a flat sheet, with an 8-post jig at
     0.75 / 3.24 % at hand), the note says the posts carry load, and its verification is the
     one written (not simulated again)."""
-    def refine(d, *a, **k):
-        for r in d.ribbons:
-            r.thickness_mm = 0.6
-        zero = {"deviation_pct_bbox": [0.0, 0.0], "deviation_target_to_deployed_pct_bbox": [0.0, 0.0]}
-        return {"outer_iterations": 2, "reason": "test", "seconds": 0.0, "rounded": zero}, d.V
     # open loop 0.6, refined and released from flat 0.3, on a jig 0.85 (near the target, not at it)
     rep, box = _refine_with_fake_release(tmp_path, monkeypatch,
-                                         lambda refined, held: 0.85 if held else (0.3 if refined else 0.6), refine)
+                                         lambda refined, held: 0.85 if held else (0.3 if refined else 0.6),
+                                         _refine_to_the_target)
     ref = rep["refine"]
     assert ref["kept"] == "refined, on a jig" and ref["jig"]["reached"] is False
     assert [t["posts"] for t in ref["jig"]["tried"]] == [4, 8] and not any(t["reached"] for t in ref["jig"]["tried"])
@@ -197,14 +201,10 @@ def test_a_jig_that_selects_the_refined_state_is_written_as_supports(tmp_path, m
     it); held on jig posts at the refined state it reaches that state (the fake returns the
     target when the pattern has supports): the refined design is kept with the posts as
     [[support]] in pattern.toml, and the report says which release reaches what."""
-    def refine(d, *a, **k):
-        for r in d.ribbons:
-            r.thickness_mm = 0.6
-        zero = {"deviation_pct_bbox": [0.0, 0.0], "deviation_target_to_deployed_pct_bbox": [0.0, 0.0]}
-        return {"outer_iterations": 2, "reason": "test", "seconds": 0.0, "rounded": zero}, d.V
     # open loop 0.6, refined and released from flat 0.3, refined on the jig: the target
     rep, box = _refine_with_fake_release(tmp_path, monkeypatch,
-                                         lambda refined, held: 1.0 if held else (0.3 if refined else 0.6), refine)
+                                         lambda refined, held: 1.0 if held else (0.3 if refined else 0.6),
+                                         _refine_to_the_target)
     ref = rep["refine"]
     assert ref["kept"] == "refined, on a jig" and ref["release_reaches_refined_state"] is False
     assert ref["jig"]["reached"] and ref["jig"]["posts"] == 4 and "jig posts" in ref["release_note"]
