@@ -95,9 +95,7 @@ def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
     except SelfshapeError as e:
         raise SelfshapeError(f"{name}: {e}") from None
     if str(path).lower().endswith(".stl") and len(F):
-        # STL stores every triangle with its own corners: weld identical positions
-        V, inverse = np.unique(V, axis=0, return_inverse=True)
-        F = inverse.reshape(-1)[F]
+        V, F = weld_coincident(V, F)      # STL stores every triangle with its own corners
     return V, F
 
 
@@ -146,7 +144,7 @@ def check_disk(V: np.ndarray, F: np.ndarray, where: str = "mesh", repairs: list 
         f = int(np.flatnonzero(out.any(axis=1))[0])
         raise SelfshapeError(f"{where}: face {f} references a vertex index outside 0..{len(V) - 1}")
     V, F = _welded_if_disk(V, F, repairs)
-    rep = (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 2] == F[:, 0])
+    rep = _repeated_vertex(F)
     if rep.any():
         f = int(np.flatnonzero(rep)[0])
         raise SelfshapeError(f"{where}: face {f} is degenerate (repeated vertex), {int(rep.sum())} such faces")
@@ -168,15 +166,13 @@ def check_disk(V: np.ndarray, F: np.ndarray, where: str = "mesh", repairs: list 
             raise SelfshapeError(f"{where}: the surface is not orientable (a Moebius band: no orientation of "
                                  f"the faces agrees along edge ({clash[0]}, {clash[1]}))")
     n = len(V)
-    ncomp, _ = connected_components(
-        sp.coo_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(n, n)), directed=False)
+    ncomp, loops = _components_and_loops(F, n)
     if ncomp > 1:
         raise SelfshapeError(f"{where}: {ncomp} connected components (need one)")
     manifold = _vertex_manifold(F, n)
     if not manifold.all():
         v = int(np.flatnonzero(~manifold)[0])
         raise SelfshapeError(f"{where}: non-manifold vertex {v} (its faces form several fans)")
-    loops = boundary_loop_count(F, n)
     if loops == 0:
         raise SelfshapeError(f"{where}: closed surface (no boundary); a disk-like surface is required")
     if loops > 1:
@@ -233,9 +229,15 @@ def weld_coincident(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return V[first[order]], rank[inverse.reshape(-1)][F]
 
 
+def _repeated_vertex(F: np.ndarray) -> np.ndarray:
+    """True for faces that name one vertex twice (degenerate)."""
+    return (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 2] == F[:, 0])
+
+
 def _components_and_loops(F: np.ndarray, n: int) -> tuple[int, int]:
+    """Connected pieces (counting referenced vertices only) and boundary loops of (F, n vertices)."""
     E, _, _ = unique_edges(F)
-    ncomp, labels = connected_components(
+    _, labels = connected_components(
         sp.coo_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(n, n)), directed=False)
     used = np.unique(F)
     return len(np.unique(labels[used])), boundary_loop_count(F, n)
@@ -252,9 +254,9 @@ def _welded_if_disk(V: np.ndarray, F: np.ndarray, repairs: list | None):
     W, G = weld_coincident(V, F)
     if len(W) == len(V):
         return V, F
-    if ((G[:, 0] == G[:, 1]) | (G[:, 1] == G[:, 2]) | (G[:, 2] == G[:, 0])).any():
+    if _repeated_vertex(G).any():
         return V, F
-    E, _, counts = unique_edges(G)
+    _, _, counts = unique_edges(G)
     if (counts > 2).any():
         return V, F
     pieces_w, loops_w = _components_and_loops(G, len(W))

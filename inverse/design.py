@@ -788,7 +788,7 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
 
     ``options``/``overrides``: the design's DesignOptions, as for `design`. mesh_size_mm,
     mesh_across: pattern.toml's [mesh] (default: inverse.to_pattern.VERIFY_MESH_SIZE_MM / _ACROSS,
-    the laws' own discretisation; None: the pattern defaults). verify_iterations: Newton cap of
+    the discretisation of the README's design figures; None: the pattern defaults). verify_iterations: Newton cap of
     the verification, written to pattern.toml's [solver] max_iterations (default
     inverse.to_pattern.VERIFY_ITERATIONS; None: the simulator's 300);
     metric_floor: [solver] metric_floor (default: the simulator's 10). The verification
