@@ -8,6 +8,20 @@ from shellfem.boundary import graph_laplacian, harmonic_extension, nearest_verti
 from shellfem.errors import SelfshapeError
 
 
+def outer_edge_vertices(points: np.ndarray, boundary_edges: np.ndarray) -> np.ndarray:
+    """The vertices (sorted) of the boundary loop that is the fabric's outer edge: the loop
+    through the boundary vertex of least x (holes lie inside the outer edge, so their rims
+    never reach it). points (n, >=2) printed-state mm; boundary_edges (m, 2)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+    verts, inv = np.unique(boundary_edges, return_inverse=True)
+    inv = inv.reshape(-1, 2)
+    A = sp.coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(len(verts), len(verts)))
+    _, labels = connected_components(A, directed=False)
+    left = int(np.argmin(points[verts, 0]))
+    return verts[labels == labels[left]]
+
+
 def support_constraints(sheet: Sheet, topo, supports, fabric, tol: float, plane_z: float = 0.0):
     """(dofs (k,), values (k,)) held by the pattern's [[support]]s on the sheet (printed-state mm):
     "z" holds the vertices' z at ``plane_z``, "xyz" holds them at ``position`` or at their relaxed
@@ -20,7 +34,7 @@ def support_constraints(sheet: Sheet, topo, supports, fabric, tol: float, plane_
     for k, sup in enumerate(supports):
         label = sup.label or f"[[support]] #{k + 1}"
         if sup.boundary:
-            idx = np.unique(topo.edges[~topo.interior])
+            idx = outer_edge_vertices(sheet.points, topo.edges[~topo.interior])
         else:
             idx = nearest_vertices(sheet.points, sup.points, tol, label)
         if sup.fix == "z":

@@ -159,9 +159,11 @@ def _build_geo(gmsh, outline: Polygon, geoms) -> dict:
 
 
 def _occ_polygon(occ, poly: Polygon) -> int:
+    """An OCC plane surface of ``poly``; every ring counter-clockwise (OCC finds the holes itself:
+    a clockwise hole ring, as shapely orients it, was added to the area and never fragmented)."""
     loops = []
     for ring in [poly.exterior, *poly.interiors]:
-        xy = np.asarray(ring.coords)[:-1]
+        xy = np.asarray(ring.coords)[:-1] if ring.is_ccw else np.asarray(ring.coords)[-2::-1]
         pts = [occ.addPoint(float(x), float(y), 0.0) for x, y in xy]
         lines = [occ.addLine(pts[i], pts[(i + 1) % len(pts)]) for i in range(len(pts))]
         loops.append(occ.addCurveLoop(lines))

@@ -2,9 +2,10 @@
 
 Shapes: ``rectangle`` (origin at (0, 0)), ``disk`` (centred at (0, 0), polygonised),
 ``hexagon`` (centred at (0, 0), a vertex on +x) and ``polygon`` (a simple polygon from a
-point list, any orientation). ``polygon`` is also the validator used for every printed
-[[region]]: bad input raises SelfshapeError with a one-line message naming ``where``; detail
-below geometry.schema.DETAIL_MM (0.1 um) is dropped.
+point list, any orientation); :func:`with_holes` cuts polygons out of any of them (fabric with
+holes). ``polygon`` is also the validator used for every printed [[region]]: bad input raises
+SelfshapeError with a one-line message naming ``where``; detail below geometry.schema.DETAIL_MM
+(0.1 um) is dropped.
 """
 from __future__ import annotations
 
@@ -106,6 +107,44 @@ def polygon(points, where: str = "polygon") -> Polygon:
     return shapely.orient_polygons(poly) if hasattr(shapely, "orient_polygons") else shapely.geometry.polygon.orient(poly)
 
 
+def with_holes(shape: Polygon, holes, where: str = "holes", min_bridge_mm: float = 0.1) -> Polygon:
+    """``shape`` (a simple Polygon, mm) with the polygons of ``holes`` (a list of point lists,
+    each validated as :func:`polygon`) cut out: the fabric with holes. Each hole lies inside the
+    shape, and the fabric left between a hole and the edge or another hole is at least
+    ``min_bridge_mm`` wide (a hole touching the edge is a notch: put it into the outline; a
+    narrower bridge would be a thread the mesh cannot resolve). Raises SelfshapeError naming
+    ``where`` and the hole (1-based) otherwise."""
+    if isinstance(holes, (str, bytes, dict)) or not isinstance(holes, (list, tuple)):
+        raise SelfshapeError(f"{where} must be a list of polygons (each a list of [x, y] points), got {holes!r:.80}")
+    if not holes:
+        return shape
+    polys = [polygon(h, f"{where}[{i + 1}]") for i, h in enumerate(holes)]
+    edge = shape.exterior
+    for i, h in enumerate(polys):
+        if not shape.covers(h):
+            far = h.difference(shape)
+            at = (far if not far.is_empty else h).representative_point()
+            raise SelfshapeError(f"{where}[{i + 1}]: the hole is not inside the fabric (near ({at.x:.4g}, {at.y:.4g})); "
+                                 f"a cut through the edge belongs in the outline")
+        gap = float(edge.distance(h.exterior))
+        if gap < min_bridge_mm:
+            raise SelfshapeError(f"{where}[{i + 1}]: the hole is {gap:.3g} mm from the fabric's edge; at least "
+                                 f"{min_bridge_mm:g} mm of fabric must stay between them (a cut through the edge "
+                                 f"belongs in the outline)")
+    for i in range(len(polys)):
+        for j in range(i + 1, len(polys)):
+            gap = float(polys[i].distance(polys[j])) if not polys[i].intersects(polys[j]) else 0.0
+            if gap < min_bridge_mm:
+                how = "overlaps" if polys[i].intersects(polys[j]) and polys[i].intersection(polys[j]).area > 0 else \
+                    f"is {gap:.3g} mm from"
+                raise SelfshapeError(f"{where}[{j + 1}]: the hole {how} hole {i + 1}; at least {min_bridge_mm:g} mm of "
+                                     f"fabric must stay between holes (merge overlapping holes into one polygon)")
+    out = Polygon(np.asarray(edge.coords), [np.asarray(h.exterior.coords) for h in polys])
+    if not out.is_valid:                # not expected after the checks above
+        raise SelfshapeError(f"{where}: the fabric with its holes is not a valid polygon ({shapely.is_valid_reason(out)})")
+    return shapely.orient_polygons(out) if hasattr(shapely, "orient_polygons") else shapely.geometry.polygon.orient(out)
+
+
 def _ring_without_detail(xy: np.ndarray, tol: float) -> np.ndarray:
     """The vertices of a closed ring (k, 2), without its repeated end, that stay when every
     vertex closer than ``tol`` to the segment between its two neighbours is dropped: in passes
@@ -157,5 +196,8 @@ def check_inside(outline: Polygon, geom, where: str, what: str = "polygon") -> N
         return
     outside = geom.difference(outline)
     at = outside.representative_point() if not outside.is_empty else geom.representative_point()
-    how = "is outside the fabric" if not geom.intersects(outline) else "crosses the fabric outline"
+    if outline.interiors and Polygon(outline.exterior).buffer(tol).covers(geom):
+        how = "lies in a hole of the fabric" if not geom.intersects(outline) else "crosses a hole of the fabric"
+    else:
+        how = "is outside the fabric" if not geom.intersects(outline) else "crosses the fabric outline"
     raise SelfshapeError(f"{where}: {what} {how} ({outside.area:.3g} mm^2 outside, e.g. near ({at.x:.4g}, {at.y:.4g}))")

@@ -76,7 +76,7 @@ TOP_LEVEL = {"fabric", "plastic", "region", "ribbon", "stars", "support", "mesh"
 
 def fabric_keys() -> set:
     """The keys [fabric] allows: shape, record fields, one table per registered membrane model."""
-    return {*SHAPES, *FABRIC_RECORD_KEYS, *MEMBRANE_MODELS}
+    return {*SHAPES, "holes", *FABRIC_RECORD_KEYS, *MEMBRANE_MODELS}
 
 
 @dataclass
@@ -288,6 +288,8 @@ def _fabric(raw: dict, src: str, mesh_size: float):
         outline = outlines.hexagon(_num(t, "hexagon", where))
     else:
         outline = outlines.polygon(t["outline"], f"{where} outline")
+    if "holes" in t:
+        outline = outlines.with_holes(outline, t["holes"], f"{where} holes")
     width = 2.0 * outline.area / outline.length
     if width < MIN_FABRIC_WIDTH_MM:
         raise SelfshapeError(f"{where}: {kind}: the fabric is {width:.3g} mm wide (2 area / perimeter); "
@@ -484,7 +486,7 @@ def _supports(raw, src, outline) -> list[Support]:
         fix = _choice(t, "fix", where, ("z", "xyz"), "z")
         if boundary:
             if "points" in t or "position" in t:
-                raise SelfshapeError(f"{where}: boundary = true holds the whole outline; drop points/position")
+                raise SelfshapeError(f"{where}: boundary = true holds the whole outer edge; drop points/position")
             out.append(Support(points=np.zeros((0, 2)), fix=fix, label=f"support #{i + 1}", boundary=True))
             continue
         if "points" not in t:
@@ -493,7 +495,9 @@ def _supports(raw, src, outline) -> list[Support]:
         inside = shapely.contains_xy(grown, pts[:, 0], pts[:, 1])
         if not inside.all():
             k = int(np.argmin(inside))
-            raise SelfshapeError(f"{where}: point {k + 1} ({pts[k, 0]:.4g}, {pts[k, 1]:.4g}) is outside the fabric")
+            how = "in a hole of" if outline.interiors and shapely.contains_xy(Polygon(outline.exterior), *pts[k]) \
+                else "outside"
+            raise SelfshapeError(f"{where}: point {k + 1} ({pts[k, 0]:.4g}, {pts[k, 1]:.4g}) is {how} the fabric")
         pos = None
         if "position" in t:
             if fix != "xyz":

@@ -56,6 +56,16 @@ def test_pattern_drawing_has_a_layer_per_side_and_thickness():
     assert all(s.closed for s in d)
 
 
+def test_fabric_holes_are_drawn_on_the_fabric_layer(tmp_path):
+    raw = {**PATTERN, "fabric": {**PATTERN["fabric"], "holes": [[[25, 10], [30, 10], [30, 12], [25, 12]]]}}
+    d = cad.pattern_drawing(parse_pattern(raw, "t.toml", ROOT))
+    fabric = sorted((s for s in d if s.layer == "fabric"), key=lambda s: -np.ptp(s.points[:, 0]))
+    assert len(fabric) == 2 and all(s.closed for s in fabric)
+    assert np.allclose(fabric[1].points.min(0), [25, 10]) and np.allclose(fabric[1].points.max(0), [30, 12])
+    cad.write_drawing(os.path.join(tmp_path, "p.dxf"), d)
+    assert _same(cad.read_drawing(os.path.join(tmp_path, "p.dxf")), d)
+
+
 def test_dxf_round_trip_in_mm_with_layers(tmp_path):
     import ezdxf
     d = cad.pattern_drawing(_pattern())

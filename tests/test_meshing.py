@@ -340,3 +340,25 @@ def test_msh_reader_refuses_what_is_not_a_printed_sheet(tmp_path, nodes, tris, t
     ok = _msh2(tmp_path / "ok.msh", [(0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)], [(1, 2, 3), (2, 4, 3)], [0.3, 0.0])
     s = read_msh(ok)
     assert s.n_triangles == 2 and list(s.thickness_front) == [0.3, 0.0]
+
+
+@pytest.mark.parametrize("kernel", ["geo", "occ"])
+def test_fabric_holes_are_left_out_of_the_mesh(kernel):
+    # ribbons and a region around two holes: the mesh covers the fabric without them, conforms to
+    # the clipped print, and has one boundary loop per hole besides the outer edge
+    from geometry.meshops import boundary_loop_count
+    raw = {"fabric": {"disk": 20.0, "holes": [[[-8, -3], [-2, -3], [-2, 3], [-8, 3]], [[3, 3], [9, 3], [6, 9]]]},
+           "region": [{"polygon": [[-10, -10], [0, -10], [0, -5], [-10, -5]], "thickness_mm": 0.3}],
+           "ribbon": [{"path": [[-19, 0], [19, 0]], "width_mm": 1.5, "thickness_mm": 0.4},
+                      {"path": [[6, -15], [6, 15]], "width_mm": 1.5, "thickness_mm": 0.3, "side": "back"}],
+           "mesh": {"size_mm": 1.5}}
+    p = load_pattern(raw)
+    s = mesh_pattern(p, kernel=kernel)
+    a = _areas(s)
+    assert a.sum() == pytest.approx(p.outline.area, rel=1e-6)       # vertices snapped to 1e-5 mm
+    assert boundary_loop_count(s.triangles, len(s.points)) == 3
+    c = s.points[s.triangles].mean(axis=1)
+    assert not shapely.contains_xy(shapely.union_all([shapely.Polygon(h) for h in p.outline.interiors]), c[:, 0], c[:, 1]).any()
+    printed = shapely.union_all([e.geometry for e in p.elements])
+    assert a[(s.thickness_front + s.thickness_back) > 0].sum() == pytest.approx(printed.area, rel=1e-5)
+

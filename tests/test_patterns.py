@@ -77,6 +77,19 @@ def test_defaults_and_shapes():
     assert cw.outline.area == 100.0 and cw.outline.exterior.is_ccw
 
 
+def test_fabric_with_holes_clips_the_print():
+    raw = copy.deepcopy(BASE)
+    whole = load_pattern(raw).elements[-1].geometry.area
+    raw["fabric"]["holes"] = [[[24.0, 12.0], [34.0, 12.0], [34.0, 18.0], [24.0, 18.0]],
+                              [[2.0, 11.0], [2.0, 12.5], [0.5, 12.5]]]        # clockwise: any orientation
+    p = load_pattern(raw)
+    assert p.outline.area == pytest.approx(800.0 - 60.0 - 1.125, rel=1e-12)
+    assert len(p.outline.interiors) == 2 and all(not r.is_ccw for r in p.outline.interiors)
+    ribbon = p.elements[-1].geometry                   # the ribbon at y = 15 crosses the first hole
+    assert ribbon.geom_type == "MultiPolygon" and ribbon.area == pytest.approx(whole - 10.0 * 1.5, rel=1e-12)
+    assert load_pattern({"fabric": {"disk": 20.0, "holes": []}}).outline.interiors.__len__() == 0
+
+
 def test_ribbon_and_gcode_clipped_to_fabric():
     raw = copy.deepcopy(BASE)
     raw["ribbon"] = [{"path": [[-10.0, 10.0], [50.0, 10.0]], "width_mm": 2.0}]
@@ -165,6 +178,26 @@ BAD = [
     (lambda r: r.update(solver={"metric_floor": float("nan")}), "[solver]: metric_floor must be a finite number"),
     (lambda r: r.update(solver={"metric_predictor": "no"}), "[solver]: metric_predictor must be true or false"),
     (lambda r: r.update(print={"gcode": 3}), "[print]: gcode must be a file name"),
+    (lambda r: r["fabric"].update(holes=[[[35, 5], [45, 5], [45, 10], [35, 10]]]),
+     "[fabric] holes[1]: the hole is not inside the fabric (near (42.5"),
+    (lambda r: r["fabric"].update(holes=[[[30, 5], [39.95, 5], [39.95, 10], [30, 10]]]),
+     "[fabric] holes[1]: the hole is 0.05 mm from the fabric's edge; at least 0.1 mm"),
+    (lambda r: r["fabric"].update(holes=[[[24, 4], [30, 4], [30, 8], [24, 8]], [[28, 6], [34, 6], [34, 9], [28, 9]]]),
+     "[fabric] holes[2]: the hole overlaps hole 1"),
+    (lambda r: r["fabric"].update(holes=[[[24, 4], [30, 4], [30, 8], [24, 8]], [[30.05, 4], [34, 4], [34, 8]]]),
+     "[fabric] holes[2]: the hole is 0.05 mm from hole 1"),
+    (lambda r: r["fabric"].update(holes=[[[24, 4], [30, 8], [30, 4], [24, 8]]]),
+     "[fabric] holes[1]: polygon is self-intersecting at (27, 6)"),
+    (lambda r: r["fabric"].update(holes=[[24, 4], [30, 4], [30, 8]]), "[fabric] holes[1]: polygon must be a list of"),
+    (lambda r: r["fabric"].update(holes="square"), "[fabric] holes must be a list of polygons"),
+    (lambda r: r["fabric"].update(holes=[[[2, 2], [8, 2], [8, 8], [2, 8]]]),
+     "[[region]] #1: polygon crosses a hole of the fabric"),
+    (lambda r: r["fabric"].update(holes=[[[0.5, 0.5], [9.5, 0.5], [9.5, 9.5], [0.5, 9.5]]]),
+     "[[region]] #1: polygon lies in a hole of the fabric"),
+    (lambda r: r["fabric"].update(holes=[[[24, 4], [30, 4], [30, 8], [24, 8]]]) or
+     r["support"][0].update(points=[[25, 5]]), "[[support]] #1: point 1 (25, 5) is in a hole of the fabric"),
+    (lambda r: r["fabric"].update(holes=[[[1, 12], [39, 12], [39, 18], [1, 18]]]),
+     "[[ribbon]] #1: ribbon lies entirely outside"),
 ]
 
 

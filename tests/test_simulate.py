@@ -6,6 +6,7 @@ import meshio
 import numpy as np
 import pytest
 
+from geometry.elements import Support
 from geometry.patterns import parse_pattern
 from selfshape.cli import main
 from shellfem.errors import SelfshapeError
@@ -94,6 +95,34 @@ def test_boundary_held_at_the_relaxed_fabric_is_the_exact_relaxed_sheet():
     x = sim.model.split(sim.result.q)[0]
     assert np.abs(x[:, :2] - P / [1.35, 1.2]).max() < 1e-6
     assert np.abs(x[:, 2]).max() < 1e-6
+    assert abs(sim.result.energy) < 1e-10
+
+
+def test_boundary_support_holds_the_outer_edge_not_the_holes():
+    # a bare frame of fabric (a rectangle with two holes) held "xyz" at its outer edge where the
+    # fabric relaxes: the hole rims stay free, and the equilibrium is still the flat sheet
+    # scaled by 1/s with zero energy (uniform relaxation moves the rims there by themselves)
+    from geometry.meshing import mesh_pattern
+    from geometry.patterns import load_pattern
+    from forward.simulate import simulate_sheet
+    from forward.supports import outer_edge_vertices
+    from geometry.meshops import unique_edges
+    pat = load_pattern({"fabric": {"rectangle": [30.0, 20.0], "stretch": [1.3, 1.2],
+                                   "holes": [[[5, 5], [12, 5], [12, 15], [5, 15]], [[18, 6], [25, 6], [21, 14]]]},
+                        "mesh": {"size_mm": 2.5}})
+    sh = mesh_pattern(pat)
+    E, _, counts = unique_edges(sh.triangles)
+    rim = np.unique(E[counts == 1])
+    outer = outer_edge_vertices(sh.points, E[counts == 1])
+    P = sh.points
+    on_edge = (np.isclose(P[:, 0], 0) | np.isclose(P[:, 0], 30) | np.isclose(P[:, 1], 0) | np.isclose(P[:, 1], 20))
+    assert np.array_equal(outer, np.flatnonzero(on_edge)) and len(rim) > len(outer) + 10
+    sim = simulate_sheet(sh, pat.fabric, Plastic(), [Support(points=np.zeros((0, 2)), fix="xyz", boundary=True)],
+                         max_iterations=50)
+    assert len(sim.fixed) == 3 * len(outer)
+    assert sim.result.converged, sim.result.reason
+    x = sim.model.split(sim.result.q)[0]
+    assert np.abs(x[:, :2] - P / [1.3, 1.2]).max() < 1e-6 and np.abs(x[:, 2]).max() < 1e-6
     assert abs(sim.result.energy) < 1e-10
 
 
