@@ -134,12 +134,22 @@ def jacobians(uv: np.ndarray, F: np.ndarray, Dinv: np.ndarray) -> np.ndarray:
 
 
 def tutte_embedding(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """Tutte embedding (uniform weights) with the boundary on the unit circle, spaced by arc
-    length; counter-clockwise with respect to the face orientation. (n, 2)"""
+    """Tutte embedding (uniform weights) with the outer boundary (the longest loop) on the unit
+    circle, spaced by arc length; counter-clockwise with respect to the face orientation. (n, 2)
+
+    A disk with holes: each hole is first closed by a fan of triangles to a vertex at its rim's
+    centroid, the closed disk embedded, and the fans dropped again; the embedding of a disk is
+    injective (Tutte), so the holes' rims come out as simple polygons inside the outer one."""
     import igl
 
+    from geometry.meshops import boundary_loops
+
     F = np.ascontiguousarray(F, dtype=np.int64)
-    bnd = igl.boundary_loop(F)
+    loops = boundary_loops(V, F)
+    n_input = len(V)
+    if len(loops) > 1:
+        V, F = _holes_closed(V, F, loops[1:])
+    bnd = loops[0]
     bc = igl.map_vertices_to_circle(np.asfortranarray(V, dtype=float), bnd.astype(np.int32))
     n = len(V)
     E, _, _ = unique_edges(F)
@@ -153,7 +163,24 @@ def tutte_embedding(V: np.ndarray, F: np.ndarray) -> np.ndarray:
         uv[free] = solve(-(L[free][:, bnd] @ bc))
     if signed_areas(uv, F).sum() < 0:
         uv[:, 0] *= -1.0
-    return uv
+    return uv[:n_input]
+
+
+def _holes_closed(V: np.ndarray, F: np.ndarray, holes) -> tuple[np.ndarray, np.ndarray]:
+    """(V, F) with each hole rim (a vertex loop) closed by a fan to a new vertex at its centroid,
+    the fan's faces oriented as their neighbours (each runs its rim edge the other way)."""
+    H = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    n = len(V)
+    key = H[:, 0] * n + H[:, 1]
+    boundary = H[~np.isin(key, H[:, 1] * n + H[:, 0])]          # halfedges without a twin
+    owner = np.full(n, -1, np.int64)
+    for k, loop in enumerate(holes):
+        owner[loop] = k
+    hole = owner[boundary[:, 0]]
+    inner = hole >= 0
+    centres = np.array([V[loop].mean(axis=0) for loop in holes])
+    fans = np.column_stack([boundary[inner, 1], boundary[inner, 0], n + hole[inner]])
+    return np.vstack([V, centres]), np.vstack([F, fans])
 
 
 def slim_map(V: np.ndarray, F: np.ndarray, uv0: np.ndarray, iterations: int = 3) -> np.ndarray:
@@ -329,7 +356,7 @@ def flatten(V: np.ndarray, F: np.ndarray, dir1: np.ndarray, bounds=None, *, max_
             tol: float = 1e-6, slim_iterations: int = 2, isometric_iterations: int = 100,
             uv_init: np.ndarray | None = None, local_loops: int = 2, anderson: int = 5,
             stop: str = "norm") -> FlatResult:
-    """Bounded-stretch flattening of a disk-topology target (V mm, F) with per-face k1
+    """Bounded-stretch flattening of a disk-topology target (V mm, F; holes allowed) with per-face k1
     directions ``dir1`` (m, 3). bounds = (s1min, s1max, s2min, s2max), default
     `stretch_bounds()`, or a polygon of admissible (sigma1, sigma2) pairs ((k, 2);
     inverse.contraction: what a pattern's spacings realise), onto which the local step projects.
@@ -352,8 +379,8 @@ def flatten(V: np.ndarray, F: np.ndarray, dir1: np.ndarray, bounds=None, *, max_
     dir1 = np.asarray(dir1, dtype=float)
     if dir1.shape != F.shape:
         raise SelfshapeError(f"flatten: dir1 must have shape {F.shape}, got {dir1.shape}")
-    if boundary_loop_count(F, len(V)) != 1:
-        raise SelfshapeError("flatten: the mesh must have exactly one boundary loop (disk topology)")
+    if boundary_loop_count(F, len(V)) < 1:
+        raise SelfshapeError("flatten: the mesh has no boundary (a disk, possibly with holes, is needed)")
     if stop not in ("norm", "mean"):
         raise SelfshapeError(f"flatten: stop must be 'norm' or 'mean', got {stop!r}")
     U, W, Dinv, X = local_triangles(V, F)

@@ -191,6 +191,17 @@ def boundary_loop_count(F: np.ndarray, n: int) -> int:
     return len(np.unique(labels[verts]))
 
 
+def boundary_loops(V: np.ndarray, F: np.ndarray) -> list[np.ndarray]:
+    """The boundary loops of a manifold mesh as vertex index arrays (each in the order its faces
+    run along it), the longest (by length in V's units) first: a disk with holes' outer edge,
+    then its holes' rims."""
+    import igl
+
+    loops = [np.asarray(loop, np.int64) for loop in igl.boundary_loop_all(np.ascontiguousarray(F, dtype=np.int64))]
+    length = [float(np.linalg.norm(V[np.roll(loop, -1)] - V[loop], axis=1).sum()) for loop in loops]
+    return [loops[i] for i in np.argsort(length, kind="stable")[::-1]]
+
+
 def remove_unreferenced(V: np.ndarray, F: np.ndarray):
     """Drop vertices no face uses; returns (V, F, old index of each kept vertex)."""
     used = np.unique(F)

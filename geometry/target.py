@@ -100,10 +100,11 @@ def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ----------------------------------------------------------------------------- topology
-def check_disk(V: np.ndarray, F: np.ndarray, where: str = "mesh", repairs: list | None = None
+def check_disk(V: np.ndarray, F: np.ndarray, where: str = "mesh", repairs: list | None = None, holes: bool = False
                ) -> tuple[np.ndarray, np.ndarray]:
-    """Validate a disk-topology triangle mesh; return it without unreferenced vertices, with its
-    faces consistently oriented.
+    """Validate a disk-topology triangle mesh (with ``holes``: a disk with any number of holes,
+    i.e. genus 0 with one boundary loop per hole besides the outer one); return it without
+    unreferenced vertices, with its faces consistently oriented.
 
     Two defects of exported meshes are repaired, since each has one right answer: faces stored
     apart (a polygon soup, or an exporter's seams) are welded at identical positions when that
@@ -175,13 +176,16 @@ def check_disk(V: np.ndarray, F: np.ndarray, where: str = "mesh", repairs: list 
         raise SelfshapeError(f"{where}: non-manifold vertex {v} (its faces form several fans)")
     if loops == 0:
         raise SelfshapeError(f"{where}: closed surface (no boundary); a disk-like surface is required")
-    if loops > 1:
-        raise SelfshapeError(f"{where}: {loops} boundary loops ({loops - 1} hole{'s' if loops > 2 else ''}); the fabric "
-                             f"is one piece without holes, so the target must be a disk: fill the hole"
-                             f"{'s' if loops > 2 else ''} or cut the surface open to its outer edge")
+    if loops > 1 and not holes:
+        raise SelfshapeError(f"{where}: {loops} boundary loops ({loops - 1} hole{'s' if loops > 2 else ''}); a disk "
+                             f"has one: fill the hole{'s' if loops > 2 else ''} or cut the surface open to its "
+                             f"outer edge")
     chi = n - len(E) + len(F)
-    if chi != 1:
-        raise SelfshapeError(f"{where}: Euler characteristic {chi} (genus {(1 - chi) // 2}); a disk has 1")
+    if chi != 2 - loops:
+        genus = (2 - loops - chi) // 2
+        raise SelfshapeError(f"{where}: Euler characteristic {chi} with {loops} boundary loop{'s' if loops > 1 else ''} "
+                             f"(genus {genus}: {genus} handle{'s' if genus > 1 else ''}); a disk"
+                             f"{' with holes' if loops > 1 else ''} has {2 - loops}: cut each handle open")
     return V, F
 
 
@@ -290,11 +294,11 @@ def normalize(V: np.ndarray, diagonal_mm: float | None = 110.0) -> np.ndarray:
 
 
 def load_target(path, diagonal_mm: float | None = 110.0) -> tuple[np.ndarray, np.ndarray]:
-    """Read a disk-topology target surface (OBJ/PLY/STL/... ), validate it, drop unreferenced
-    vertices, centre it and scale it to a bounding-box diagonal of ``diagonal_mm`` mm."""
+    """Read a target surface (OBJ/PLY/STL/... ; a disk, possibly with holes), validate it, drop
+    unreferenced vertices, centre it and scale it to a bounding-box diagonal of ``diagonal_mm`` mm."""
     name = os.path.basename(str(path))
     V, F = read_mesh(path)
-    V, F = check_disk(V, F, where=name)
+    V, F = check_disk(V, F, where=name, holes=True)
     return normalize(V, diagonal_mm), F
 
 

@@ -75,5 +75,5 @@ def printed_over_asked(d) -> float:
     s1, s2 = project_stretches(d.flat.sigma1, d.flat.sigma2, d.bounds)
     area = np.abs(signed_areas(d.flat.uv, d.F))
     asked = float(np.sum(area * asked_coverage(s1, s2, d.stretch)))
-    printed = float(shapely.intersection(ribbon_union(d.ribbons), shapely.Polygon(d.outline)).area)
+    printed = float(shapely.intersection(ribbon_union(d.ribbons), d.fabric_polygon()).area)
     return printed / asked if asked > 0 else float("nan")

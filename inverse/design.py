@@ -91,22 +91,33 @@ def bend_share(k1: np.ndarray, kappa_along: np.ndarray, areas: np.ndarray) -> fl
     return float(np.sum(areas * np.abs(kappa_along)) / top) if top > 0 else 1.0
 
 
-def boundary_polygon(uv: np.ndarray, F: np.ndarray, simplify_mm: float = 0.02) -> np.ndarray:
-    """The flat mesh's boundary loop as a simple polygon (k, 2), counter-clockwise, simplified
-    within ``simplify_mm``; SelfshapeError if it self-intersects (a flipped flattening)."""
-    import igl
+def boundary_polygons(uv: np.ndarray, F: np.ndarray, simplify_mm: float = 0.02, where: str = "flattening"
+                      ) -> tuple[np.ndarray, list]:
+    """The flat mesh's boundary as (outline (k, 2), holes [(k, 2), ...]): the outer loop (the one
+    enclosing the most area) counter-clockwise and the holes' rims clockwise, simplified within
+    ``simplify_mm``. SelfshapeError if a loop self-intersects (a flipped flattening) or the
+    fabric between a hole and the edge or another hole is narrower than the pattern format
+    allows (geometry.outlines.with_holes)."""
     import shapely
 
-    loop = igl.boundary_loop(np.ascontiguousarray(F, dtype=np.int64))
-    poly = shapely.Polygon(uv[loop])
-    if not poly.is_valid:
-        raise SelfshapeError(f"flattening: the flat boundary self-intersects ({shapely.is_valid_reason(poly)})")
+    from geometry.meshops import boundary_loops
+    from geometry.outlines import with_holes
+
+    rings = [shapely.Polygon(uv[loop]) for loop in boundary_loops(np.column_stack([uv, np.zeros(len(uv))]), F)]
+    for ring in rings:
+        if not ring.is_valid:
+            raise SelfshapeError(f"{where}: the flat boundary self-intersects ({shapely.is_valid_reason(ring)})")
+    rings.sort(key=lambda r: -r.area)
+    outer = rings[0]
+    if len(rings) > 1:
+        pts = lambda r: np.asarray(r.exterior.coords)[:-1]  # noqa: E731
+        outer = with_holes(outer, [pts(r).tolist() for r in rings[1:]], f"{where}: the flattened holes")
     if simplify_mm > 0:
-        simple = poly.simplify(simplify_mm, preserve_topology=True)
-        if simple.is_valid and simple.geom_type == "Polygon":
-            poly = simple
-    poly = shapely.geometry.polygon.orient(poly, 1.0)
-    return np.asarray(poly.exterior.coords)[:-1]
+        simple = outer.simplify(simplify_mm, preserve_topology=True)
+        if simple.is_valid and simple.geom_type == "Polygon" and len(simple.interiors) == len(outer.interiors):
+            outer = simple
+    poly = shapely.geometry.polygon.orient(outer, 1.0)
+    return np.asarray(poly.exterior.coords)[:-1], [np.asarray(h.coords)[:-1] for h in poly.interiors]
 
 
 def flatten_multilevel(V0, F0, levels, V, F, dir1, bounds, lam, curv0=None, stop="mean", max_iter=1000):
@@ -347,6 +358,8 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     ``progress``: called with {"stage": "design", "step": name, "index": i, "steps": n} as each
     of DESIGN_STAGES starts (the CLI's status line). ``stretch = "auto"`` designs at each shipped
     law's stretch and returns the best (`choose_stretch`)."""
+    import shapely
+
     from geometry.curvature import principal_curvature
     from geometry.fields import curvature_line_field
     from geometry.flattening import project_stretches
@@ -392,7 +405,7 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     contraction = contraction_for(stretch, ribbon_length, ribbon_width, o.contraction)
     bounds = contraction.bounds() if bounds is None else bounds
     repairs: list = []
-    V0, F0 = check_disk(V, F, where=where, repairs=repairs)
+    V0, F0 = check_disk(V, F, where=where, repairs=repairs, holes=True)
     V0 = normalize(V0, o.diagonal_mm)
     total_area = float(face_areas(V0, F0).sum())
     if not total_area > 0:
@@ -420,7 +433,8 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
 
     _check_fits_bed(flat.uv, printer, ribbon_length, o.diagonal_mm, where)
     kappa1 = normal_curvature_along(curv, lf.face_dirs)
-    outline = boundary_polygon(flat.uv, Ff)
+    outline, holes = boundary_polygons(flat.uv, Ff, where=f"{where}: flattening")
+    fabric = shapely.Polygon(outline, holes)
     s1, s2 = project_stretches(flat.sigma1, flat.sigma2, bounds)
     # the stripes need a few edges per period (2 mu2 >= 7.8 mm), not the flattening's resolution
     lay_levels = levels
@@ -434,7 +448,7 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
                                                              s1, s2, kappa1)
         try:
             ribbons = ribbon_layout(uv_l, Ff if F_l is None else F_l, d_l, s1_l, s2_l, k_l, stretch,
-                                    outline=outline, ribbon_length=ribbon_length, ribbon_width=ribbon_width,
+                                    outline=fabric, ribbon_length=ribbon_length, ribbon_width=ribbon_width,
                                     seed=o.seed, contraction=contraction)
             break
         except MeshTooCoarse as e:
@@ -456,7 +470,7 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
         raise SelfshapeError(f"{where}: the layout produced no ribbons (surface too small for "
                              f"{ribbon_length:g} x {ribbon_width:g} mm ribbons?)")
     simplify_paths(ribbons, 0.01)
-    ribbons, sep = separate_ribbons(ribbons, outline, gap_mm, min_length=2.0)
+    ribbons, sep = separate_ribbons(ribbons, fabric, gap_mm, min_length=2.0)
     if not ribbons:
         raise SelfshapeError(f"{where}: no ribbon is left after keeping them {gap_mm:g} mm apart")
     lap("layout")
@@ -470,7 +484,7 @@ def design(V, F, options: DesignOptions | None = None, *, where: str = "target",
     reach["warning"] = reach_warning(reach)
     lap("thickness")
     return Design(V=Vf, F=Ff, V_input=V0, F_input=F0, curvature=curv, field=lf, flat=flat, kappa1=kappa1,
-                  outline=outline, ribbons=ribbons, stretch=float(stretch),
+                  outline=outline, holes=holes, ribbons=ribbons, stretch=float(stretch),
                   bounds=bounds if isinstance(bounds, np.ndarray) else tuple(bounds),
                   refine_levels=levels, layout_levels=lay_levels, lam=float(o.lam), stop=stop, thickness_info=tinfo,
                   law_source=law.source, law_plastic_mpa=law.plastic_young_modulus_mpa,

@@ -19,6 +19,8 @@ def plot_pattern(d: Design, path: str, title: str = ""):
     ext = d.outline.max(0) - d.outline.min(0)
     fig, ax = plt.subplots(figsize=(8, 8 * max(ext[1], 1) / max(ext[0], 1) + 0.6))
     ax.fill(*d.outline.T, facecolor="0.94", edgecolor="0.3", lw=0.8)
+    for h in d.holes:
+        ax.fill(*np.asarray(h).T, facecolor="white", edgecolor="0.3", lw=0.8)
     th = np.array([r.thickness_mm for r in d.ribbons])
     lo = th.min()
     polys, cols = [], []

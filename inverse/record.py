@@ -12,7 +12,8 @@ class Design:
     """Everything the pipeline computed (mm). V, F: scaled and refined target; V_input, F_input:
     the scaled input before refinement; curvature, field: geometry.curvature / fields records;
     flat: geometry.flattening.FlatResult; kappa1 (m,): signed target normal curvature along the
-    ribbon direction (> 0: front); outline (k, 2): flattened boundary polygon; ribbons:
+    ribbon direction (> 0: front); outline (k, 2): flattened outer boundary polygon; holes: the
+    flattened hole rims (a list of (k, 2) polygons; empty for a disk target); ribbons:
     geometry.elements.Ribbon list with thickness_mm and side; thickness_info: clamp counts per
     side; times: seconds per stage."""
     V: np.ndarray
@@ -41,3 +42,9 @@ class Design:
     separation: dict = field(default_factory=dict)
     curvature_reach: dict = field(default_factory=dict)   # inverse.thickness_law.curvature_reach
     target_repairs: list = field(default_factory=list)    # what geometry.target.check_disk repaired, sentences
+    holes: list = field(default_factory=list)             # (k, 2) polygons cut out of the outline
+
+    def fabric_polygon(self):
+        """The flat fabric as a shapely Polygon: the outline with its holes (mm)."""
+        from shapely.geometry import Polygon
+        return Polygon(self.outline, [np.asarray(h) for h in self.holes])

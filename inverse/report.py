@@ -35,7 +35,7 @@ def report_dict(d: Design) -> dict:
         "field_t": None if not np.isfinite(d.field.t) else float(d.field.t),
         "sigma1_range": [float(f.sigma1.min()), float(f.sigma1.max())],
         "sigma2_range": [float(f.sigma2.min()), float(f.sigma2.max())],
-        "flat_area_mm2": float(abs(_polygon_area(d.outline))),
+        "flat_area_mm2": float(d.fabric_polygon().area),
         "n_ribbons": len(d.ribbons),
         "ribbons_per_side": {s: sum(r.side == s for r in d.ribbons) for s in ("front", "back")},
         "ribbon_length_mm": {"total": float(np.sum(lengths)), "mean": float(np.mean(lengths))},
@@ -48,7 +48,3 @@ def report_dict(d: Design) -> dict:
         "target_repairs": d.target_repairs,
     }
 
-
-def _polygon_area(P):
-    x, y = P[:, 0], P[:, 1]
-    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))

@@ -47,7 +47,8 @@ def _longest_line(geom):
 
 def separate_ribbons(ribbons, outline, gap_mm: float = 0.5, min_length: float = 2.0):
     """Make the printed ribbons meshable: every ribbon polygon (flat ends) at least ``gap_mm``
-    inside the outline and ``gap_mm`` away from every other ribbon (no overlaps, no slivers).
+    inside the outline (a (k, 2) polygon, or a shapely Polygon with holes) and ``gap_mm`` away
+    from every other ribbon (no overlaps, no slivers).
 
     Centre lines are clipped to the outline eroded by w/2 + gap (then the whole ribbon, which lies
     within w/2 of its centre line, is >= gap inside). Where two ribbons come closer than the gap
@@ -60,7 +61,7 @@ def separate_ribbons(ribbons, outline, gap_mm: float = 0.5, min_length: float = 
 
     from geometry.patterns import ribbon_polygon
 
-    region = shapely.Polygon(outline)
+    region = outline if isinstance(outline, shapely.Geometry) else shapely.Polygon(outline)
     stats = {"clipped": 0, "trimmed": 0, "dropped": 0}
     inner = {}
     out = []

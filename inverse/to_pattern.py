@@ -43,7 +43,8 @@ def pattern_dict(d: Design, *, fabric=None, plastic=None, mesh_size_mm: float = 
     return {
         "meta": {"generator": "selfshape design (inverse.design)", "target": target_name,
                  "stretch_bounds": np.asarray(d.bounds).tolist(), "thickness_law": os.path.basename(d.law_source)},
-        "fabric": {"outline": r4(d.outline), **fabric_table(fab), "stretch": d.stretch},
+        "fabric": {"outline": r4(d.outline), **({"holes": [r4(h) for h in d.holes]} if d.holes else {}),
+                   **fabric_table(fab), "stretch": d.stretch},
         "plastic": plastic_table(pla),
         "ribbon": [{"path": r4(r.path), "width_mm": float(r.width_mm), "thickness_mm": float(r.thickness_mm),
                     "side": r.side} for r in d.ribbons],

@@ -54,6 +54,39 @@ def test_cylinder_isometry_kept_when_the_bounds_admit_it(cylinder):
     np.testing.assert_allclose(res.sigma2, 1.4, atol=1e-3)
 
 
+def _cylinder_with_holes():
+    """The cylinder fixture's mesh with two cells of faces cut out: a developable disk with 2 holes."""
+    V, F = cylinder_patch(30.0, 60.0, 50.0, 24, 20)
+    c = V[F].mean(axis=1)
+    i = np.floor((30.0 * np.arcsin(c[:, 0] / 30.0) + 30.0) / 2.5).astype(int)   # the face's grid cell
+    j = np.floor((c[:, 1] + 25.0) / 2.5).astype(int)
+    cut = ((i >= 5) & (i < 9) & (j >= 4) & (j < 9)) | ((i >= 14) & (i < 19) & (j >= 10) & (j < 15))
+    from geometry.meshops import remove_unreferenced
+    W, G, _ = remove_unreferenced(V, F[~cut])          # the holes' inner grid vertices go
+    return W, G, cut
+
+
+def test_tutte_and_flattening_of_a_disk_with_holes():
+    # a cylinder patch with two holes: Tutte closes the holes by fans and drops them again
+    # (injective), and the flattening is the same unrolling as without the holes
+    from geometry.meshops import boundary_loops, signed_areas
+    V, F, cut = _cylinder_with_holes()
+    assert cut.sum() == 2 * (20 + 25)
+    uv = tutte_embedding(V, F)
+    assert uv.shape == (len(V), 2) and (signed_areas(uv, F) > 0).all()
+    loops = boundary_loops(V, F)
+    assert len(loops) == 3 and np.isclose(np.linalg.norm(uv[loops[0]], axis=1), 1.0).all()
+    d1 = curvature_line_field(V, F).face_dirs
+    res = flatten(V, F, d1, bounds=(1.0, 1.3, 0.9, 1.5), anderson=0)
+    assert res.converged and res.flipped == 0
+    np.testing.assert_allclose(res.sigma1, 1.0, atol=1e-3)
+    np.testing.assert_allclose(res.sigma2, 1.0, atol=1e-3)
+    # the holes keep their shape: unrolled cells of 60 / 24 x 50 / 20 mm
+    import shapely
+    holes = sorted(shapely.Polygon(res.uv[loop]).area for loop in loops[1:])
+    assert holes == pytest.approx([20 * 2.5 * 2.5, 25 * 2.5 * 2.5], rel=2e-3)
+
+
 def test_plane_all_sigma_within_bounds():
     V, F = plane_patch(60.0, 40.0, 18, 12)
     res, lf, _ = flatten_surface(V, F)

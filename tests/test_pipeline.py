@@ -214,6 +214,33 @@ def test_written_ribbons_are_separated_and_inside(written):
     assert 10 <= sep["clipped"] <= 40 and sep["trimmed"] <= 2 and sep["dropped"] <= 0.05 * rep["n_ribbons"]
 
 
+def test_a_target_with_a_hole_designs_a_fabric_with_that_hole(tmp_path):
+    # the cylinder patch (developable: flattened isometrically along k1, stretched 1.3 across)
+    # with a 15 x 12.5 mm window cut out: the pattern's fabric has the window as a hole, no
+    # ribbon comes within the separation gap of its rim, and the pattern meshes with 2 boundaries
+    from geometry.meshing import mesh_pattern
+    from geometry.meshops import boundary_loop_count, remove_unreferenced
+    V, F = cylinder_patch()                              # 24 x 20 cells of 2.5 x 2.5 mm
+    c = V[F].mean(axis=1)
+    s, y = 30.0 * np.arcsin(c[:, 0] / 30.0), c[:, 1]
+    window = (np.abs(s - 5.0) < 7.5) & (np.abs(y + 2.5) < 6.25)
+    V, F, _ = remove_unreferenced(V, F[~window])
+    rep = design_file(write_obj(tmp_path / "window.obj", V, F), tmp_path / "out", diagonal_mm=None, stretch=1.6)
+    pat = load_pattern(tmp_path / "out" / "pattern.toml")
+    assert len(pat.outline.interiors) == 1
+    hole = shapely.Polygon(pat.outline.interiors[0])
+    # every stretch pair in the bounds' box costs nothing, so the areas are known to the box: at
+    # least the smallest stretches' product, at most the largest's
+    s1min, s1max, s2min, s2max = rep["stretch_bounds"]
+    for flat, area in ((hole.area, 15.0 * 12.5), (rep["flat_area_mm2"], 60.0 * 50.0 - 15.0 * 12.5)):
+        assert 0.99 * s1min * s2min * area < flat < 1.01 * s1max * s2max * area
+    polys = [e.geometry for e in pat.elements]
+    assert len(polys) > 20 and min(pat.outline.boundary.distance(p) for p in polys) >= 0.5 - 1e-3
+    assert min(pat.outline.interiors[0].distance(p) for p in polys) < 3.0     # ribbons run up to the rim
+    sheet = mesh_pattern(pat)
+    assert boundary_loop_count(sheet.triangles, len(sheet.points)) == 2
+
+
 def test_separate_ribbons_trims_overlaps_and_clips():
     from geometry.elements import Ribbon
     from inverse.separation import separate_ribbons
@@ -662,10 +689,10 @@ def test_bed_precheck_never_refuses_a_target_that_fits(stretch, monkeypatch):
         pass
     seen = {}
 
-    def grab(uv, F, simplify_mm=0.02):
+    def grab(uv, F, simplify_mm=0.02, where=""):
         seen["ext"] = np.ptp(uv, axis=0)
         raise Stop
-    monkeypatch.setattr(mod, "boundary_polygon", grab)
+    monkeypatch.setattr(mod, "boundary_polygons", grab)
     box = np.asarray(Printer().bed_size, float) + 2 * mod.RIBBON_LENGTH_MM
     bounds = contraction_for(stretch, mod.RIBBON_LENGTH_MM, mod.RIBBON_WIDTH_MM, "auto").bounds()
     for name in ("saddle", "hat", "hemisphere", "beetle"):

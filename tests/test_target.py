@@ -143,11 +143,27 @@ def _bad_cases():
     # two fans sharing one vertex (bow tie)
     bow = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [-1, 0, 0], [-1, -1, 0.0]])
     cases["non-manifold vertex"] = (bow, np.array([[0, 1, 2], [0, 3, 4]]))
-    # annulus: a square ring
+    # a handle: a torus with one face cut out (one boundary loop, genus 1)
+    cases["genus 1"] = _torus_with_a_hole()
+    return cases
+
+
+def _square_ring():
+    """A square ring: a 3 x 3 cell grid without its middle cell (2 boundary loops)."""
     A, G = plane_patch(6.0, 6.0, 3, 3)
     centre = {5, 6, 9, 10}.__contains__            # the middle cell of the 4 x 4 vertex grid
-    cases["2 boundary loops"] = (A, G[~np.array([all(centre(i) for i in f[:2]) and centre(f[2]) for f in G])])
-    return cases
+    return A, G[~np.array([all(centre(i) for i in f[:2]) and centre(f[2]) for f in G])]
+
+
+def _torus_with_a_hole(n=12, m=8):
+    u, v = np.meshgrid(2 * np.pi * np.arange(n) / n, 2 * np.pi * np.arange(m) / m, indexing="ij")
+    V = np.column_stack([((20 + 6 * np.cos(v)) * np.cos(u)).ravel(), ((20 + 6 * np.cos(v)) * np.sin(u)).ravel(),
+                         (6 * np.sin(v)).ravel()])
+    i, j = np.meshgrid(np.arange(n), np.arange(m), indexing="ij")
+    a, b = i * m + j, ((i + 1) % n) * m + j
+    c, d = ((i + 1) % n) * m + (j + 1) % m, i * m + (j + 1) % m
+    F = np.r_[np.column_stack([a.ravel(), b.ravel(), c.ravel()]), np.column_stack([a.ravel(), c.ravel(), d.ravel()])]
+    return V, F[1:]
 
 
 @pytest.mark.parametrize("problem", list(_bad_cases()))
@@ -161,8 +177,23 @@ def test_bad_input_one_line_naming_file_and_problem(tmp_path, problem):
     key = {"closed surface": "closed", "degenerate": "degenerate", "zero area": "zero area",
            "non-manifold edge": "non-manifold edge", "non-manifold vertex": "non-manifold vertex",
            "not orientable": "not orientable",
-           "2 connected components": "2 connected components", "2 boundary loops": "2 boundary loops"}[problem]
+           "2 connected components": "2 connected components",
+           "genus 1": "Euler characteristic -1 with 1 boundary loop (genus 1: 1 handle); a disk has 1"}[problem]
     assert key in msg
+
+
+def test_a_disk_with_holes_is_a_target_and_a_handle_is_not(tmp_path):
+    V, F = _square_ring()
+    V[:, 2] = 0.02 * V[:, 0] ** 2
+    W, G = load_target(write_obj(tmp_path / "ring.obj", V, F), diagonal_mm=None)
+    assert len(G) == len(F) and np.allclose(W, V - 0.5 * (V.min(0) + V.max(0)))
+    with pytest.raises(SelfshapeError, match="ring.obj: 2 boundary loops .1 hole.; a disk has one: fill the hole or"):
+        check_disk(V, F, "ring.obj")
+    # a ring with a handle: genus 1 and 2 boundary loops
+    T, H = _torus_with_a_hole()
+    with pytest.raises(SelfshapeError, match=r"Euler characteristic -2 with 2 boundary loops \(genus 1: 1 handle\); "
+                                             r"a disk with holes has 0: cut each handle open"):
+        check_disk(T, np.r_[H[:40], H[41:]], "t.obj", holes=True)
 
 
 def test_missing_file_and_nan(tmp_path):
