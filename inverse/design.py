@@ -111,7 +111,9 @@ def boundary_polygons(uv: np.ndarray, F: np.ndarray, simplify_mm: float = 0.02, 
     outer = rings[0]
     if len(rings) > 1:
         pts = lambda r: np.asarray(r.exterior.coords)[:-1]  # noqa: E731
-        outer = with_holes(outer, [pts(r).tolist() for r in rings[1:]], f"{where}: the flattened holes")
+        # the pattern format's bridge, and a margin for the 1e-4 mm rounding pattern.toml applies
+        outer = with_holes(outer, [pts(r).tolist() for r in rings[1:]], f"{where}: the flattened holes",
+                           min_bridge_mm=0.1 + 1e-3)
     if simplify_mm > 0:
         simple = outer.simplify(simplify_mm, preserve_topology=True)
         if simple.is_valid and simple.geom_type == "Polygon" and len(simple.interiors) == len(outer.interiors):
