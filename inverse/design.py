@@ -111,9 +111,10 @@ def boundary_polygons(uv: np.ndarray, F: np.ndarray, simplify_mm: float = 0.02, 
     outer = rings[0]
     if len(rings) > 1:
         pts = lambda r: np.asarray(r.exterior.coords)[:-1]  # noqa: E731
-        # the pattern format's bridge, and a margin for the 1e-4 mm rounding pattern.toml applies
+        # the pattern format's bridge, with a margin for the simplification below and the 1e-4 mm
+        # rounding of pattern.toml
         outer = with_holes(outer, [pts(r).tolist() for r in rings[1:]], f"{where}: the flattened holes",
-                           min_bridge_mm=0.1 + 1e-3)
+                           min_bridge_mm=0.1 + 2.0 * simplify_mm + 1e-3)
     if simplify_mm > 0:
         simple = outer.simplify(simplify_mm, preserve_topology=True)
         if simple.is_valid and simple.geom_type == "Polygon" and len(simple.interiors) == len(outer.interiors):
