@@ -1,4 +1,4 @@
-"""Target surfaces for inverse design: read, validate (disk topology), scale, refine.
+"""Target surfaces for inverse design: read, validate (a disk, possibly with holes), scale, refine.
 
 All public functions take and return plain arrays: V (n, 3) float vertex positions and
 F (m, 3) int triangle indices. After `load_target` lengths are millimetres.

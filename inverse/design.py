@@ -7,7 +7,7 @@
                             refine.png)
 
 Stages (times in Design.times / report.json "stages_s"):
- 1. check (disk topology, one-line errors), centre and scale to a bounding-box diagonal
+ 1. check (a disk, possibly with holes; one-line errors), centre and scale to a bounding-box diagonal
     (default 110 mm), Loop-refine until the mean edge is <= ``edge_mm`` (stripes of period
     2 mu2 >= 7.8 mm need several edges per period; the seed's meshes had 40k-160k faces);
  2. principal curvatures and the Knoppel 2013 line field (seed lambda);
@@ -354,7 +354,7 @@ def check_design_numbers(o: DesignOptions) -> None:
 @threadpool_limits.wrap(limits=1, user_api="blas")
 def design(V, F, options: DesignOptions | None = None, *, where: str = "target", progress=None,
            **overrides) -> Design:
-    """Inverse design of a disk-topology target (V (n, 3), F (m, 3)); see the module doc.
+    """Inverse design of a target that is a disk, possibly with holes (V (n, 3), F (m, 3)); see the module doc.
 
     ``options`` (default DesignOptions()) with any of its fields overridden by keyword, e.g.
     ``design(V, F, stretch=1.4, edge_mm=None)``; ``where`` names the target in messages.
