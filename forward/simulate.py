@@ -154,7 +154,7 @@ def _level_setup(sheet: Sheet, fabric, plastic, supports, seed: int, tol_support
     x, _ = model.split(q)
     edge = np.linalg.norm(sheet.points[sheet.triangles[:, 1]] - sheet.points[sheet.triangles[:, 0]], axis=1)
     tol = tol_support if tol_support is not None else 2.0 * float(edge.max())
-    fixed, values = support_constraints(sheet, model.topo, supports, fabric, tol,
+    fixed, values = support_constraints(sheet, supports, fabric, tol,
                                         plane_z=support_plane(sheet, fabric, ground))
     model.contact = make_contact(sheet, fabric, fixed, contact, ground, exclusion_mm)
     if start is not None:

@@ -8,25 +8,19 @@ from shellfem.boundary import graph_laplacian, harmonic_extension, nearest_verti
 from shellfem.errors import SelfshapeError
 
 
-def outer_edge_vertices(points: np.ndarray, boundary_edges: np.ndarray) -> np.ndarray:
+def outer_edge_vertices(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """The vertices (sorted) of the boundary loop that is the fabric's outer edge: the loop
-    through the boundary vertex of least x (holes lie inside the outer edge, so their rims
-    never reach it). points (n, >=2) printed-state mm; boundary_edges (m, 2)."""
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
-    verts, inv = np.unique(boundary_edges, return_inverse=True)
-    inv = inv.reshape(-1, 2)
-    A = sp.coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(len(verts), len(verts)))
-    _, labels = connected_components(A, directed=False)
-    left = int(np.argmin(points[verts, 0]))
-    return verts[labels == labels[left]]
+    reaching least x (holes lie inside the outer edge, so their rims never reach it).
+    points (n, >=2) printed-state mm; triangles (m, 3)."""
+    from geometry.meshops import boundary_loops
+    return np.sort(min(boundary_loops(points, triangles), key=lambda loop: points[loop, 0].min()))
 
 
-def support_constraints(sheet: Sheet, topo, supports, fabric, tol: float, plane_z: float = 0.0):
+def support_constraints(sheet: Sheet, supports, fabric, tol: float, plane_z: float = 0.0):
     """(dofs (k,), values (k,)) held by the pattern's [[support]]s on the sheet (printed-state mm):
     "z" holds the vertices' z at ``plane_z``, "xyz" holds them at ``position`` or at their relaxed
     (printed / stretch) positions at z = ``plane_z``; ``tol`` (mm) is how far a support point may
-    lie from its vertex. topo: the model's edge topology (the boundary of a boundary support).
+    lie from its vertex; a boundary support holds the fabric's outer edge (:func:`outer_edge_vertices`).
     plane_z (mm): where the sheet rests on the table, 0 without a ground (the plane z = 0); with
     a ground, the top of its barrier's band (forward.simulate.support_plane)."""
     dofs, vals = [], []
@@ -34,7 +28,7 @@ def support_constraints(sheet: Sheet, topo, supports, fabric, tol: float, plane_
     for k, sup in enumerate(supports):
         label = sup.label or f"[[support]] #{k + 1}"
         if sup.boundary:
-            idx = outer_edge_vertices(sheet.points, topo.edges[~topo.interior])
+            idx = outer_edge_vertices(sheet.points, sheet.triangles)
         else:
             idx = nearest_vertices(sheet.points, sup.points, tol, label)
         if sup.fix == "z":

@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from geometry.meshops import (boundary_loop_count, cotan_weights, face_areas, face_frames, factorize, signed_areas,
-                              unique_edges)
+from geometry.meshops import (boundary_loop_count, cotan_weights, face_areas, face_frames, factorize, halfedges,
+                              signed_areas, unique_edges)
 from shellfem.errors import SelfshapeError
 
 
@@ -169,7 +169,7 @@ def tutte_embedding(V: np.ndarray, F: np.ndarray) -> np.ndarray:
 def _holes_closed(V: np.ndarray, F: np.ndarray, holes) -> tuple[np.ndarray, np.ndarray]:
     """(V, F) with each hole rim (a vertex loop) closed by a fan to a new vertex at its centroid,
     the fan's faces oriented as their neighbours (each runs its rim edge the other way)."""
-    H = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    H = halfedges(F)
     n = len(V)
     key = H[:, 0] * n + H[:, 1]
     boundary = H[~np.isin(key, H[:, 1] * n + H[:, 0])]          # halfedges without a twin
