@@ -62,59 +62,106 @@ STARTS = ("target", "released")
 SAME_STATE_MM = 0.05
 
 
-def _refine_from_starts(prob, p0, q_target, sim, T, opts, measure, starts):
+def _refine_from_starts(prob, p0, q_target, sim, T, opts, measure, starts, parallel=None):
     """Run inverse.refine.refine_thickness from each of ``starts`` ("target": the target's
     positions, edge angles 0; "released": the verification's released state moved onto the
     target by the best rigid motion, so that the gauge holds a rigid motion of it). The released
     start is skipped when the verification did not converge, or when the solve from the target
     settled in the released state (weighted RMS apart below SAME_STATE_MM after the best rigid
     motion): the two refinements would be one. Returns ([(label, RefineResult), ...], the
-    per-start records for the report); raises SelfshapeError when no start gives an equilibrium."""
+    per-start records for the report); raises SelfshapeError when no start gives an equilibrium.
+
+    ``parallel`` (default: shellfem.forked.available(), two or more cores): once the target's
+    first solve has settled elsewhere than the released state, the refinement from the released
+    state runs beside it in a forked process, each on one core until both have ended (a fixed
+    thread schedule: the refinement's results depend on the thread count in the last digits, so
+    a switch at whichever moment the other ends would make them depend on timing). The 110 mm
+    saddle's two starts: 665 s side by side against 1,165 s one after the other; the same states
+    to 1e-4 mm rms. ``measure`` is called with ``report=False`` there (no progress from the child)."""
     from inverse.refine import refine_thickness
     from inverse.registration import kabsch
+    from shellfem import forked
 
     for s in starts:
         if s not in ("target", "released"):
             raise ValueError(f"refine: unknown start {s!r} (target, released)")
-    runs, records, first_states = [], [], {}
+    parallel = forked.wanted(parallel)
+    runs, records, first_states, jobs = [], [], {}, {}
     q_rel = None
     if sim.result.converged:
         q_rel = sim.result.q.copy()
         x = sim.model.split(q_rel)[0]
         R, c = kabsch(x, T, prob.w)
         q_rel[:x.size] = (x @ R.T + c).ravel()
-    for s in starts:
-        label = "target" if s == "target" else "released state"
-        if s == "released":
-            if q_rel is None:
-                records.append({"start": label, "skipped": "the verification's release did not converge"})
-                continue
-            x0 = first_states.get("target")
-            if x0 is not None:
-                x = sim.model.split(q_rel)[0]
-                R, c = kabsch(x0, x, prob.w)
-                apart = float(np.sqrt(prob.w @ np.sum((x0 @ R.T + c - x) ** 2, 1) / prob.w.sum()))
-                if apart < SAME_STATE_MM:
-                    records.append({"start": label, "skipped": f"the solve from the target settled in it "
-                                                               f"({apart:.2g} mm apart)"})
-                    continue
+
+    def settled_in_released():
+        """The target's first solve settled in the released state: (True, note) or (False, None)."""
+        x0 = first_states.get("target")
+        if x0 is None:
+            return False, None
+        x = sim.model.split(q_rel)[0]
+        R, c = kabsch(x0, x, prob.w)
+        apart = float(np.sqrt(prob.w @ np.sum((x0 @ R.T + c - x) ** 2, 1) / prob.w.sum()))
+        return apart < SAME_STATE_MM, f"the solve from the target settled in it ({apart:.2g} mm apart)"
+
+    def run(s, label, report=True, on_first=None):
+        """(record, RefineResult or None) of the refinement from start s."""
         t0 = time.perf_counter()
 
-        def callback(it, p, q, model, s=s, label=label):
+        def callback(it, p, q, model):
             if it == 0:
                 first_states[s] = model.split(q)[0].copy()
-            return measure(it, p, q, model, label)
+                if on_first is not None:
+                    on_first()
+            return measure(it, p, q, model, label, report=report)
         try:
             res = refine_thickness(prob, p0, q_target if s == "target" else q_rel, opts, callback=callback)
         except SelfshapeError as e:
-            records.append({"start": label, "converged": False, "reason": str(e),
-                            "seconds": round(time.perf_counter() - t0, 2)})
-            continue
-        runs.append((label, res))
-        records.append({"start": label, "converged": True, "outer_iterations": len(res.history) - 1,
-                        "rms_mm_start": res.history[0]["rms_mm"], "rms_mm": res.rms_mm,
-                        "objective": res.objective, "reason": res.reason,
-                        "seconds": round(time.perf_counter() - t0, 2)})
+            return {"start": label, "converged": False, "reason": str(e),
+                    "seconds": round(time.perf_counter() - t0, 2)}, None
+        return {"start": label, "converged": True, "outer_iterations": len(res.history) - 1,
+                "rms_mm_start": res.history[0]["rms_mm"], "rms_mm": res.rms_mm,
+                "objective": res.objective, "reason": res.reason,
+                "seconds": round(time.perf_counter() - t0, 2)}, res
+
+    def run_in_child(s, label):
+        record, res = run(s, label, report=False)
+        if res is not None and res.margin is not None:
+            res.margin.problem = None             # the problem stays in the parent (nothing to pickle)
+        return record, res
+
+    def launch_released():
+        """After the target's first solve: start the released state's refinement beside it."""
+        if (parallel and "released" in starts and starts.index("released") > starts.index("target")
+                and q_rel is not None and not settled_in_released()[0]):
+            jobs["released"] = forked.start(run_in_child, "released", "released state", label="refine from the released state")
+
+    try:
+        for s in starts:
+            label = "target" if s == "target" else "released state"
+            if s == "released":
+                if q_rel is None:
+                    records.append({"start": label, "skipped": "the verification's release did not converge"})
+                    continue
+                same, note = settled_in_released()
+                if same:
+                    records.append({"start": label, "skipped": note})
+                    continue
+            if s in jobs:
+                record, res = jobs.pop(s).result()
+                forked.set_threads(None)
+                if res is not None and res.margin is not None:
+                    res.margin.problem = prob
+            else:
+                record, res = run(s, label, on_first=launch_released if s == "target" else None)
+            records.append(record)
+            if res is not None:
+                runs.append((label, res))
+    finally:
+        for job in jobs.values():                  # an exception here: no child left behind
+            job.cancel()
+        if jobs:
+            forked.set_threads(None)
     if not runs:
         raise SelfshapeError("refine: no equilibrium near the target: "
                              + "; ".join(f"from the {r['start']}: {r.get('reason') or r.get('skipped')}" for r in records))
@@ -122,7 +169,7 @@ def _refine_from_starts(prob, p0, q_target, sim, T, opts, measure, starts):
 
 
 def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.05, verbose: bool = False,
-                  progress=None, layer_rounds_max: int = 8, starts=STARTS) -> tuple:
+                  progress=None, layer_rounds_max: int = 8, starts=STARTS, parallel=None) -> tuple:
     """Refine the thicknesses of the design ``d`` (whose pattern is ``pattern`` and whose
     verification simulation is ``sim``, forward.simulate.Simulation). Sets the ribbons'
     thickness_mm to the rounded refined values and returns (block, positions): the report block
@@ -140,7 +187,9 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     linearised where the previous one left the design, and thin ribbons rounded to 0.1 mm layers
     start far from the continuous optimum, so later rounds still gain (docs/notes.md, session 26).
     ``starts``: the first states of the refinement, tried in turn (see _refine_from_starts); the
-    refinement with the lowest objective is rounded and kept, and "starts" records each."""
+    refinement with the lowest objective is rounded and kept, and "starts" records each.
+    ``parallel``: the two starts side by side on two cores (see _refine_from_starts; None: when
+    the machine has two cores)."""
     from inverse.refine import (RefineOptions, ThicknessProblem, finite_or_none, follow_thickness, linear_rounding,
                                 refine_layers)
     from inverse.registration import flat_to_target
@@ -159,14 +208,14 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     prob = ThicknessProblem(sheet, pattern.fabric, pattern.plastic, param, T, free, smoothness=smoothness)
     q_target = np.concatenate([T.ravel(), np.zeros(sim.model.n_edges)])
 
-    def measure(it, p, q, model, start=None):
+    def measure(it, p, q, model, start=None, report=True):
         out = deviations(d, model.split(q)[0], sheet.triangles, T)
-        if progress is not None:
+        if progress is not None and report:
             progress({"stage": "outer", "iteration": int(it), "start": start,
                       "rms_mm": prob.objective(model.split(q)[0], p)[1] ** 0.5})
         return out
 
-    runs, starts_block = _refine_from_starts(prob, p0, q_target, sim, T, opts, measure, starts)
+    runs, starts_block = _refine_from_starts(prob, p0, q_target, sim, T, opts, measure, starts, parallel)
     start, res = min(runs, key=lambda r: r[1].objective)
     h = printer.layer_height_mm
     p_round = rounded(res.thickness, h, opts.bounds)

@@ -218,6 +218,14 @@ class Contact:
         self._certificates = deque(maxlen=CERTIFIED_STATES)   # (positions, distance bound) of the last states
         self.certified_moves = 0   # step-filter calls settled by a state's distance bound
 
+    def __getstate__(self):
+        """Pickled without its ipctk objects (the collision mesh and the last state's collisions):
+        caches, rebuilt when next needed (a simulation sent back from a worker process)."""
+        state = self.__dict__.copy()
+        state["_mesh"] = None
+        state["_last_state"] = None
+        return state
+
     # --- set-up ----------------------------------------------------------------------------
     def set_stiffness(self, diag_positions: np.ndarray):
         """kappa from the position diagonal of the elastic Hessian (N/mm): see the module docstring."""

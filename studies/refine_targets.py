@@ -16,11 +16,14 @@ single-threaded processes (--workers N), or on a running scheduler's workers (--
 ADDRESS; they need this repository on their PYTHONPATH and the output folder on a shared file
 system). The JSON lines come as the targets finish; the summary lists them in the order asked.
 On a terminal a status line on stderr counts the targets done and the time left (-q hides it).
+In this process (no --workers) on two or more cores, each target's two refinement starts and its
+jig releases run side by side in forked workers (inverse.design.design_file's ``parallel``);
+--serial runs them one after the other (for timing: the refined states agree to about 1e-4 mm rms, and the rounding to layers may pick another layer count for a few ribbons).
 
     python studies/refine_targets.py [--mesh-size 3] [--across 1] [--max-outer N] [--stretch 1.2]
                                      [--printer inverse/data/printers/layer_0.1mm.toml]
                                      [--verify-iterations 3000] [--out out/refine]
-                                     [--workers N | --scheduler ADDRESS] [-q] [names or paths...]
+                                     [--workers N | --scheduler ADDRESS] [--serial] [-q] [names or paths...]
     python studies/refine_targets.py --table RUN.jsonl [...]     # the README table of runs' JSON lines
 """
 from __future__ import annotations
@@ -45,7 +48,8 @@ def run_target(path, out_dir, args) -> dict:
     t0 = time.perf_counter()
     rep = design_file(path, out_dir, refine=True, mesh_size_mm=args.mesh_size, mesh_across=args.across,
                       verify_iterations=args.verify_iterations, refine_options=opts, printer=printer,
-                      verbose=args.verbose, **({} if args.stretch is None else {"stretch": args.stretch}))
+                      verbose=args.verbose, parallel=False if (args.serial or args.workers or args.scheduler) else None,
+                      **({} if args.stretch is None else {"stretch": args.stretch}))
     ref, ol = rep.get("refine", {}), rep.get("open_loop", {})
     return {
         "target": os.path.splitext(os.path.basename(path))[0],
@@ -154,6 +158,9 @@ def main(argv=None) -> int:
     ap.add_argument("--stretch", type=float, help="pre-stretch s (default: the design's own choice)")
     ap.add_argument("--max-thickness", type=float, default=1.6, help="thickest printable ribbon (mm)")
     ap.add_argument("-v", "--verbose", action="store_true")
+    ap.add_argument("--serial", action="store_true",
+                    help="one solve at a time (default on 2+ cores: the two refinement starts and the jig releases "
+                         "side by side; always serial on a cluster, whose workers are one core each)")
     ap.add_argument("--workers", type=int, default=None,
                     help="targets side by side on a local Dask cluster of this many processes "
                          "(default 0: one after another in this process)")

@@ -28,7 +28,7 @@ class _Split:
         return q[:3 * self.n].reshape(-1, 3), q[3 * self.n:]
 
 
-def _starts_case(monkeypatch, released, first_state, objectives, fails=()):
+def _starts_case(monkeypatch, released, first_state, objectives, fails=(), parallel=False):
     """Run inverse.design_refine._refine_from_starts with refine_thickness replaced: the solve
     from start s settles in first_state(s, q0) (positions) and ends at objectives[s], or raises
     for s in fails. ``released``: the verification's positions (None: it did not converge)."""
@@ -58,7 +58,8 @@ def _starts_case(monkeypatch, released, first_state, objectives, fails=()):
                             history=[dict(iteration=0, rms_mm=2.0), dict(iteration=1, rms_mm=1.0)], reason="ftol")
 
     monkeypatch.setattr(inverse.refine, "refine_thickness", fake)
-    out = dr._refine_from_starts(prob, np.ones(3), q_target, sim, T, None, lambda *a, **k: {}, dr.STARTS)
+    out = dr._refine_from_starts(prob, np.ones(3), q_target, sim, T, None, lambda *a, **k: {}, dr.STARTS,
+                                 parallel=parallel)
     return out, calls, T
 
 
@@ -75,6 +76,33 @@ def test_the_refinement_from_the_released_state_is_kept_when_it_ends_lower(monke
     (runs, _), _, T = _starts_case(monkeypatch, T @ rot.T + 7.0, lambda s, x0: x0 * (1.1 if s == "target" else 1.0),
                                    {"target": 4.0, "released": 1.0})
     np.testing.assert_allclose(runs[1][1].q[:T.size].reshape(-1, 3), T, atol=1e-9)
+
+
+def test_the_two_starts_side_by_side_give_what_one_after_the_other_gives(monkeypatch):
+    """parallel=True: the released start's refinement runs in a forked child (its call is not
+    seen in this process); its result and record come back as the sequential run's."""
+    from shellfem import forked
+    if not forked.available():
+        pytest.skip("one core: the starts run one after the other")
+    rot = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    released = np.random.default_rng(5).normal(size=(12, 3)) * 10 @ rot + 7.0
+    seq, calls_seq, _ = _starts_case(monkeypatch, released, lambda s, x0: x0, {"target": 4.0, "released": 1.0})
+    par, calls_par, _ = _starts_case(monkeypatch, released, lambda s, x0: x0, {"target": 4.0, "released": 1.0},
+                                     parallel=True)
+    assert calls_seq == ["target", "released"] and calls_par == ["target"]
+    assert [r[0] for r in par[0]] == ["target", "released state"]
+    for (_, a), (_, b) in zip(seq[0], par[0]):
+        assert a.objective == b.objective
+        np.testing.assert_array_equal(a.q, b.q)
+    strip = [{k: v for k, v in r.items() if k != "seconds"} for r in seq[1]]
+    assert strip == [{k: v for k, v in r.items() if k != "seconds"} for r in par[1]]
+    # a child whose refinement fails is recorded like a sequential failure
+    par, calls_par, _ = _starts_case(monkeypatch, released, lambda s, x0: x0, {"target": 4.0, "released": 1.0},
+                                     fails=("released",), parallel=True)
+    assert [r[0] for r in par[0]] == ["target"] and par[1][1]["converged"] is False
+    assert "no equilibrium near the start (test)" in par[1][1]["reason"]
+    # nothing left limited: this process has every core back
+    assert forked._LIMITS is None
 
 
 def test_the_released_start_is_skipped_when_the_target_settles_in_it(monkeypatch):
@@ -265,15 +293,16 @@ def test_a_jig_that_cannot_be_simulated_is_recorded_and_the_next_one_tried():
     tris = np.array([[0, 1, 6], [1, 7, 6]])
     calls = []
 
-    def write_and_verify(raw, title, sims=None):
+    def write_and_verify(raw, title, sims=None, simulation=None):
         calls.append(len(raw["support"][0]["points"]))
         if len(calls) == 1:
             raise SelfshapeError("pattern.toml: [[support]] #1: point 3 (1, 2) is outside the fabric")
         rep.update(verify_converged=True)
 
     rep, block, candidates = {}, {}, {}
-    design_module._try_jig(block, rep, candidates, g, tris, np.column_stack([g, np.zeros(len(g))]), {}, "t",
-                           write_and_verify, lambda r: r.get("verify_converged", False))
+    trials = design_module.jig_patterns({}, g, tris, np.column_stack([g, np.zeros(len(g))]))
+    design_module._try_jig(block, rep, candidates, trials, "t", write_and_verify,
+                           lambda r: r.get("verify_converged", False))
     first, second = block["jig"]["tried"]
     assert first == {"posts": 4, "release_steps": 4, "reached": False,
                      "error": "pattern.toml: [[support]] #1: point 3 (1, 2) is outside the fabric"}
@@ -300,3 +329,32 @@ def test_the_cli_names_both_starts_and_the_one_kept():
                                    "(iteration cap; 300 iterations)")
     assert _refine_lines({"refine": {"ok": False, "reason": "no equilibrium"}}) == [
         "refinement failed, open-loop design kept: no equilibrium"]
+
+
+@pytest.mark.parametrize("reach_at", [1, 2])
+def test_jig_releases_are_simulated_ahead_in_workers_and_the_unneeded_one_cancelled(monkeypatch, tmp_path, reach_at):
+    """With a parallel _JigQueue each jig's simulation comes from a forked worker (started while
+    the previous one is decided); once a jig reaches the refined state the next is cancelled and
+    this process has every core back."""
+    import os
+
+    from shellfem import forked
+    if not forked.available():
+        pytest.skip("one core: the jigs are simulated one after the other")
+    monkeypatch.setattr(design_module, "_simulate_dict",
+                        lambda raw, path, base: ("ahead", len(raw["support"][0]["points"]), os.getpid()))
+    g = np.stack(np.meshgrid(np.linspace(0, 10, 6), np.linspace(0, 10, 6)), -1).reshape(-1, 2)
+    tris = np.array([[0, 1, 6], [1, 7, 6]])
+    trials = design_module.jig_patterns({}, g, tris, np.column_stack([g, np.zeros(len(g))]))
+    queue = design_module._JigQueue(trials, str(tmp_path / "pattern.toml"), True)
+    seen, rep, block, candidates = [], {}, {}, {}
+
+    def write_and_verify(raw, title, sims=None, simulation=None):
+        seen.append(simulation)
+        rep.update(verify_converged=True, deviation_pct_bbox=[1.0, 2.0])
+    design_module._try_jig(block, rep, candidates, trials, "t", write_and_verify, lambda r: len(seen) == reach_at,
+                           queue)
+    assert [s[:2] for s in seen] == [("ahead", 4), ("ahead", 8)][:reach_at]
+    assert all(s[2] != os.getpid() for s in seen)
+    assert block["jig"]["posts"] == (4, 8)[reach_at - 1] and block["jig"]["reached"]
+    assert queue.jobs == {} and forked._LIMITS is None

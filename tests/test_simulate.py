@@ -381,3 +381,22 @@ def test_without_the_metric_predictor_every_level_is_exact_and_lands_on_the_same
     u, _, vt = np.linalg.svd(a.T @ b)                   # the best rotation of a onto b (Kabsch)
     r = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
     assert np.abs(a @ r - b).max() < 1e-4 * np.ptp(b, axis=0).max()
+
+
+def test_a_simulation_on_one_thread_in_a_worker_has_the_bits_of_two_threads_here():
+    """The refinement's workers (shellfem.forked) run on one thread: their results must be the
+    serial run's to the last bit (MKL's conditional numerical reproducibility, fixed numba chunks),
+    and a Simulation (contact included) must travel back from the worker."""
+    from forward.simulate import simulate
+    from geometry.patterns import load_pattern
+    from shellfem import forked
+    if not forked.available():
+        pytest.skip("needs fork and two cores")
+    here = os.path.join(os.path.dirname(__file__), "..", "examples", "window.toml")
+    pat = load_pattern(here)
+    mine = simulate(pat)
+    theirs = forked.start(simulate, pat).result()
+    forked.set_threads(None)
+    assert mine.result.converged and theirs.result.converged
+    assert mine.result.iterations == theirs.result.iterations
+    np.testing.assert_array_equal(mine.result.q, theirs.result.q)

@@ -1,0 +1,146 @@
+"""One function run beside this process, in a forked child on one core: two long independent
+solves on a two-core machine (e.g. a refinement from two starting states) side by side.
+
+Why a fork and not a pool: the work's inputs (meshes, models, factorisations) are already in
+this process's memory and need not be pickled; only the result travels back. Why one thread
+each: the solves' numba kernels and MKL PARDISO use both cores, but only about 1.6 of them on
+average (the rest of a Newton iteration is serial); two of them side by side on one thread each
+took 185 s where one after the other on two threads took 232 s (a 50k-unknown sheet, 210 Newton
+iterations each). A simulation's result does not depend on the thread count (MKL's conditional
+numerical reproducibility, fixed numba chunks: the same bits on one thread as on two); other
+computations may differ in their last digits (BLAS reductions), so a caller that wants run-to-run
+repeatable results keeps a fixed thread schedule (not one that changes when a child happens to end).
+
+    job = start(fn, *args)        # the child runs fn(*args) on one thread; this process too
+    ...                           # this process's own work; job.done() polls
+    value = job.result()          # the child's return value, or its SelfshapeError raised here
+
+The child stays on one thread to its end: raising its thread count after the fork hung it inside
+MKL PARDISO (Intel OpenMP's pool is the parent's; a forked child must not grow it). This process
+takes both cores back (:func:`set_threads` (None)) once the child is done.
+"""
+from __future__ import annotations
+
+import os
+import traceback
+
+from shellfem.errors import SelfshapeError
+
+_LIMITS = None         # threadpoolctl limits in force in this process (to restore)
+
+
+def available() -> bool:
+    """A fork is possible (POSIX, not in a daemonic worker process, which may have no children)
+    and this machine has two or more cores for this process."""
+    import multiprocessing as mp
+
+    if not hasattr(os, "fork") or mp.current_process().daemon:
+        return False
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    return cores >= 2
+
+
+def wanted(parallel: bool | None = None) -> bool:
+    """``parallel`` as asked; None: :func:`available`."""
+    return available() if parallel is None else bool(parallel)
+
+
+def set_threads(n: int | None) -> None:
+    """Limit numba and BLAS/MKL (PARDISO) in this process to ``n`` threads; None: undo the limit."""
+    global _LIMITS
+    try:
+        import numba
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS if n is None else max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
+    except (ImportError, ValueError):
+        pass
+    from threadpoolctl import threadpool_limits
+    if _LIMITS is not None:
+        _LIMITS.restore_original_limits()
+        _LIMITS = None
+    if n is not None:
+        _LIMITS = threadpool_limits(n)
+
+
+class Job:
+    """A child process running one function (see :func:`start`)."""
+
+    def __init__(self, process, conn, label):
+        self.process, self.conn, self.label = process, conn, label
+        self._value = None
+        self._have = False
+
+    def done(self) -> bool:
+        """The child has finished (its result is waiting)."""
+        return self._have or self.conn.poll()
+
+    def result(self):
+        """Wait for the child and return fn's value;
+        the child's SelfshapeError is raised here as it was; any other exception there is a
+        RuntimeError carrying its traceback; a child that died (killed, out of memory) is a
+        SelfshapeError naming its exit code."""
+        if not self._have:
+            try:
+                self._value = self.conn.recv()
+            except EOFError:
+                self.process.join()
+                self._value = ("died", self.process.exitcode)
+            self._have = True
+            self.conn.close()
+            self.process.join()
+        kind, payload = self._value
+        if kind == "ok":
+            return payload
+        if kind == "selfshape":
+            raise SelfshapeError(payload)
+        if kind == "died":
+            raise SelfshapeError(f"{self.label}: the worker process died (exit code {payload}; out of memory?)")
+        raise RuntimeError(f"{self.label}: the worker process raised\n{payload}")
+
+    def cancel(self) -> None:
+        """Stop the child (nothing is returned)."""
+        if self.process.is_alive():
+            self.process.kill()
+        self.process.join()
+        self.conn.close()
+        self._have, self._value = True, ("selfshape", f"{self.label}: cancelled")
+
+
+def _child(conn, fn, args):
+    set_threads(1)
+    try:
+        msg = ("ok", fn(*args))
+    except SelfshapeError as e:
+        msg = ("selfshape", str(e))
+    except BaseException:                   # noqa: BLE001 - reported to the parent, which raises it
+        msg = ("error", traceback.format_exc())
+    try:
+        conn.send(msg)
+    except Exception:                       # noqa: BLE001 - an unpicklable value: say so
+        conn.send(("error", traceback.format_exc()))
+    conn.close()
+
+
+def start(fn, *args, label: str = "worker") -> Job:
+    """Run ``fn(*args)`` in a forked child on one thread, and limit this process to one thread
+    until :meth:`Job.result` (call :func:`set_threads` (None) after it). ``fn`` may be any
+    callable (a closure too: nothing is pickled but its return value, which must pickle)."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("fork")
+    recv, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_run_and_exit, args=(send, fn, args), daemon=True)
+    proc.start()
+    send.close()
+    set_threads(1)
+    return Job(proc, recv, label)
+
+
+def _run_and_exit(conn, fn, args):
+    # os._exit: the parent's atexit handlers and open resources are not the child's to run
+    try:
+        _child(conn, fn, args)
+    finally:
+        os._exit(0)
