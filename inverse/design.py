@@ -914,9 +914,7 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
     ``parallel`` (None: when the machine has two or more cores): the refinement's independent
     solves side by side in forked workers, one core each (its two starts; the jig releases
     beside the release from flat): the 110 mm saddle's run 1,247 s against 1,737 s one after
-    the other, the refined states equal to 1e-4 mm rms (the refinement's last digits depend on
-    the thread count, so the schedule of thread counts is fixed, not set by which worker ends
-    first). Returns the report dict."""
+    the other. Returns the report dict."""
     from geometry.target import read_mesh
     from shellfem.outfiles import OutputDir
 

@@ -74,10 +74,10 @@ def _refine_from_starts(prob, p0, q_target, sim, T, opts, measure, starts, paral
     ``parallel`` (default: shellfem.forked.available(), two or more cores): once the target's
     first solve has settled elsewhere than the released state, the refinement from the released
     state runs beside it in a forked process, each on one core until both have ended (a fixed
-    thread schedule: the refinement's results depend on the thread count in the last digits, so
-    a switch at whichever moment the other ends would make them depend on timing). The 110 mm
-    saddle's two starts: 665 s side by side against 1,165 s one after the other; the same states
-    to 1e-4 mm rms. ``measure`` is called with ``report=False`` there (no progress from the child)."""
+    thread schedule). The refinement holds OpenBLAS to one thread (inverse.refine), so its
+    results do not depend on the thread count. The 110 mm saddle's two starts: 665 s side by side
+    against 1,165 s one after the other. ``measure`` is called with ``report=False`` there (no
+    progress from the child)."""
     from inverse.refine import refine_thickness
     from inverse.registration import kabsch
     from shellfem import forked

@@ -26,6 +26,7 @@ import scipy.sparse as sp
 from geometry.meshops import signed_areas
 from inverse.registration import kabsch
 from shellfem.errors import SelfshapeError
+from shellfem.linalg import one_openblas_thread
 
 #: the reason of a trial solve stopped because its objective rose past the limit
 LEFT_BRANCH = "left the branch"
@@ -384,6 +385,7 @@ def layer_descent(M, b, p, step: float, lo: float, hi: float, sweeps: int = 20) 
     return p + _coordinate_descent(M, -np.asarray(b, float), offsets, np.ones(len(p), np.int64), sweeps)
 
 
+@one_openblas_thread
 def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: int = 2,
                   newton_iterations: int = 400, max_trials: int = 4, verbose: bool = False,
                   leave_factor: float = RefineOptions.leave_factor, shifted_run: int = RefineOptions.shifted_run,
@@ -509,6 +511,7 @@ def next_trust_radius(radius: float, ceiling: float, step, rho: float, max_step:
     return radius, ceiling
 
 
+@one_openblas_thread
 def refine_thickness(problem: ThicknessProblem, p0, q0, options: RefineOptions = RefineOptions(),
                      callback=None) -> RefineResult:
     """Gauss-Newton refinement of the thicknesses from p0 (P,) with the equilibrium solve

@@ -7,9 +7,9 @@ each: the solves' numba kernels and MKL PARDISO use both cores, but only about 1
 average (the rest of a Newton iteration is serial); two of them side by side on one thread each
 took 185 s where one after the other on two threads took 232 s (a 50k-unknown sheet, 210 Newton
 iterations each). A simulation's result does not depend on the thread count (MKL's conditional
-numerical reproducibility, fixed numba chunks: the same bits on one thread as on two); other
-computations may differ in their last digits (BLAS reductions), so a caller that wants run-to-run
-repeatable results keeps a fixed thread schedule (not one that changes when a child happens to end).
+numerical reproducibility, fixed numba chunks: the same bits on one thread as on two); OpenBLAS
+reductions do depend on it, so code run this way holds OpenBLAS to one thread
+(shellfem.linalg.one_openblas_thread), and a caller keeps a fixed thread schedule all the same.
 
     job = start(fn, *args)        # the child runs fn(*args) on one thread; this process too
     ...                           # this process's own work; job.done() polls

@@ -9,9 +9,12 @@ while the sparsity pattern stays the same, as it does over a Newton loop.
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from threadpoolctl import ThreadpoolController
 
 from shellfem import pardiso
 
@@ -112,3 +115,19 @@ class SparseSPD:
         if np.any(d <= 0) or not np.all(np.isfinite(d)):
             raise NotPositiveDefinite("non-positive pivot")
         return lu.solve
+
+
+def one_openblas_thread(fn):
+    """``fn`` run with every loaded OpenBLAS (numpy's, scipy's, CHOLMOD's) on one thread.
+
+    OpenBLAS threads busy-wait after the many small batched products of the assembly and take
+    the second core from the compiled kernels and PARDISO, and their round-off depends on the
+    thread count (the refinement's lowest mode and Gauss-Newton matrix differed in their last
+    digits between one and two OpenBLAS threads on the 110 mm saddle); MKL (PARDISO) keeps its
+    threads, and its results do not depend on their count. The libraries are looked up at each
+    call (a solver backend may load its BLAS after import); the counts are restored on return."""
+    @functools.wraps(fn)
+    def limited(*args, **kwargs):
+        with ThreadpoolController().select(internal_api="openblas").limit(limits=1):
+            return fn(*args, **kwargs)
+    return limited

@@ -55,16 +55,15 @@ not converged, with the reason.
 """
 from __future__ import annotations
 
-import functools
 import time
 from collections import deque
 from dataclasses import dataclass, field
 from itertools import islice
 
 import numpy as np
-from threadpoolctl import ThreadpoolController
 
 from shellfem.assembly import BlockScatter, PatternUnion, reduce_upper, symmetric_matvec
+from shellfem.linalg import one_openblas_thread
 from shellfem.corotational import RotationPath, rotate
 from shellfem.linalg import NotPositiveDefinite, SparseSPD
 from shellfem.relaxations import EdgeAngleRelaxation, StiffRegionRelaxation
@@ -212,18 +211,8 @@ class NewtonOptions:
         return DEFAULT_METRIC_FLOOR if self.metric_floor is None else self.metric_floor
 
 
-def _one_openblas_thread(solve):
-    """Run ``solve`` with every loaded OpenBLAS (numpy's, scipy's, CHOLMOD's) on one thread.
-
-    OpenBLAS threads busy-wait after the many small batched products of the assembly and take
-    the second core from the compiled kernels and PARDISO, and their round-off depends on the
-    thread count; MKL (PARDISO) keeps its threads. The libraries are looked up at each call
-    (a solver backend may load its BLAS after import); the counts are restored on return."""
-    @functools.wraps(solve)
-    def limited(*args, **kwargs):
-        with ThreadpoolController().select(internal_api="openblas").limit(limits=1):
-            return solve(*args, **kwargs)
-    return limited
+#: the solver's OpenBLAS limit (shellfem.linalg.one_openblas_thread)
+_one_openblas_thread = one_openblas_thread
 
 
 @_one_openblas_thread

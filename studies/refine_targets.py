@@ -18,7 +18,7 @@ system). The JSON lines come as the targets finish; the summary lists them in th
 On a terminal a status line on stderr counts the targets done and the time left (-q hides it).
 In this process (no --workers) on two or more cores, each target's two refinement starts and its
 jig releases run side by side in forked workers (inverse.design.design_file's ``parallel``);
---serial runs them one after the other (for timing: the refined states agree to about 1e-4 mm rms, and the rounding to layers may pick another layer count for a few ribbons).
+--serial runs them one after the other (for timing).
 
     python studies/refine_targets.py [--mesh-size 3] [--across 1] [--max-outer N] [--stretch 1.2]
                                      [--printer inverse/data/printers/layer_0.1mm.toml]
