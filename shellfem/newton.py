@@ -63,9 +63,8 @@ from itertools import islice
 import numpy as np
 
 from shellfem.assembly import BlockScatter, PatternUnion, reduce_upper, symmetric_matvec
-from shellfem.linalg import one_openblas_thread
 from shellfem.corotational import RotationPath, rotate
-from shellfem.linalg import NotPositiveDefinite, SparseSPD
+from shellfem.linalg import NotPositiveDefinite, SparseSPD, one_openblas_thread
 from shellfem.relaxations import EdgeAngleRelaxation, StiffRegionRelaxation
 
 #: inner steps of the start's edge-angle relaxation (after an accepted step: the relaxation's 4)
@@ -211,11 +210,7 @@ class NewtonOptions:
         return DEFAULT_METRIC_FLOOR if self.metric_floor is None else self.metric_floor
 
 
-#: the solver's OpenBLAS limit (shellfem.linalg.one_openblas_thread)
-_one_openblas_thread = one_openblas_thread
-
-
-@_one_openblas_thread
+@one_openblas_thread
 def newton(model, q0: np.ndarray, free: np.ndarray, **options) -> SolveResult:
     """Minimise model energy over the DOFs where ``free`` is True, starting from q0.
 
