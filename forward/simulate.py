@@ -450,25 +450,45 @@ def simulate_sheet(sheet: Sheet, fabric, plastic, supports=(), *, seed: int = 0,
     return Simulation(sheet, model, result, fixed, gauge, time.perf_counter() - t0)
 
 
-def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=False,
-             coarse_levels=None, progress=None) -> Simulation:
-    """Mesh a geometry.patterns.Pattern and compute its released equilibrium.
-
-    coarse_levels (default: the pattern's [solver] coarse_levels, "auto"): coarser meshes of the
-    pattern solved first (nested iteration, shellfem.multilevel); 0 solves the mesh alone.
-    progress: as for simulate_sheet, and {"stage": "mesh"} before meshing.
-
-    [solver] model = "rods" (pattern.solver_model): the seed's chapter-3 model, rods on the
-    centre lines of the stars' arms and the ribbons (the fabric mesh conforming to them,
-    geometry.centrelines) on a bare fabric, with the effective monolayer's rest curvature
-    (shellfem.rods); one mesh level."""
-    from geometry.meshing import coarse_meshes, mesh_pattern
+def _check_held(pattern) -> None:
     if pattern.fabric.areal_weight > 0 and not pattern.supports:
         # before meshing, naming the file and the key (simulate_sheet's own check names neither);
         # the reader accepts such a pattern: meshing, exporting or designing it needs no support
         raise SelfshapeError(f"{pattern.source}: [fabric] areal_weight_n_per_mm2 > 0 (gravity) needs a [[support]] "
                              f"that holds the sheet in z: without one the sheet falls")
-    if progress is not None:
+
+
+def mesh_for_simulation(pattern, *, size_mm=None, coarse_levels=None) -> tuple:
+    """(sheet, coarse): the meshes :func:`simulate` solves a shell pattern on, the conforming
+    mesh (geometry.meshing.mesh_pattern) and its coarser levels for nested iteration, coarsest
+    first; ``coarse_levels`` as for :func:`simulate`. Meshed once here, they can be simulated
+    elsewhere (``simulate(pattern, meshed=...)`` in a worker) while this process works on the
+    same mesh (the refinement of inverse.design_refine)."""
+    from geometry.meshing import coarse_meshes, mesh_pattern
+    if getattr(pattern, "solver_model", "shell") == "rods":
+        raise SelfshapeError(f"{pattern.source}: [solver] model = \"rods\" is meshed by simulate itself")
+    _check_held(pattern)
+    sheet = mesh_pattern(pattern, size_mm=size_mm)
+    levels = getattr(pattern, "coarse_levels", "auto") if coarse_levels is None else coarse_levels
+    return sheet, coarse_meshes(pattern, sheet.n_vertices, size_mm=size_mm, levels=levels)
+
+
+def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=False,
+             coarse_levels=None, progress=None, meshed=None) -> Simulation:
+    """Mesh a geometry.patterns.Pattern and compute its released equilibrium.
+
+    coarse_levels (default: the pattern's [solver] coarse_levels, "auto"): coarser meshes of the
+    pattern solved first (nested iteration, shellfem.multilevel); 0 solves the mesh alone.
+    progress: as for simulate_sheet, and {"stage": "mesh"} before meshing. ``meshed``: the
+    (sheet, coarse) of :func:`mesh_for_simulation` for this pattern, solved instead of meshing
+    again (``size_mm`` and ``coarse_levels`` are then its own).
+
+    [solver] model = "rods" (pattern.solver_model): the seed's chapter-3 model, rods on the
+    centre lines of the stars' arms and the ribbons (the fabric mesh conforming to them,
+    geometry.centrelines) on a bare fabric, with the effective monolayer's rest curvature
+    (shellfem.rods); one mesh level."""
+    _check_held(pattern)
+    if progress is not None and meshed is None:
         progress({"stage": "mesh"})
     if getattr(pattern, "solver_model", "shell") == "rods":
         from geometry.centrelines import mesh_pattern_rods
@@ -483,9 +503,8 @@ def simulate(pattern, *, size_mm=None, seed=None, max_iterations=None, verbose=F
                              metric_floor=pattern.metric_floor, progress=progress, model_factory=factory,
                              release_steps=getattr(pattern, "release_steps", 1))
         return sim
-    sheet = mesh_pattern(pattern, size_mm=size_mm)
-    levels = getattr(pattern, "coarse_levels", "auto") if coarse_levels is None else coarse_levels
-    coarse = coarse_meshes(pattern, sheet.n_vertices, size_mm=size_mm, levels=levels)
+    sheet, coarse = meshed if meshed is not None else \
+        mesh_for_simulation(pattern, size_mm=size_mm, coarse_levels=coarse_levels)
     mi = max_iterations or pattern.max_iterations
     return simulate_sheet(sheet, pattern.fabric, pattern.plastic, pattern.supports,
                           seed=pattern.seed if seed is None else seed, max_iterations=mi, verbose=verbose,

@@ -6,6 +6,7 @@ import numpy as np
 
 from shellfem.boundary import graph_laplacian, harmonic_extension, nearest_vertices
 from shellfem.errors import SelfshapeError
+from shellfem.sheet import Sheet
 
 
 def outer_edge_vertices(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:

@@ -49,7 +49,7 @@ from inverse.record import Design
 from inverse.report import report_dict
 from inverse.separation import separate_ribbons, simplify_paths
 from inverse.to_pattern import VERIFY_ITERATIONS, VERIFY_MESH_ACROSS, VERIFY_MESH_SIZE_MM, pattern_dict
-from inverse.verify import register_simulation, verify_design
+from inverse.verify import SimulationBeside, register_simulation, verify_design
 from inverse.vtu import write_flat_vtu
 from shellfem.errors import SelfshapeError
 
@@ -657,8 +657,6 @@ class _JigQueue:
     def simulation(self, i):
         """Jig i's Simulation from its worker; None when it was not started or its run failed
         (the caller then simulates it itself, and reports the failure as a serial run would)."""
-        from shellfem import forked
-
         job = self.jobs.pop(i, None)
         if job is None:
             return None
@@ -666,17 +664,10 @@ class _JigQueue:
             return job.result()
         except SelfshapeError:
             return None
-        finally:
-            if not self.jobs:
-                forked.set_threads(None)
 
     def cancel(self):
-        from shellfem import forked
-
         for job in self.jobs.values():
             job.cancel()
-        if self.jobs:
-            forked.set_threads(None)
         self.jobs = {}
 
 
@@ -746,7 +737,7 @@ def _write_before_after(out, d, before, after, label, name):
 
 
 def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smoothness, verbose, pattern_kw,
-                        raw, progress=None, parallel=None):
+                        raw, progress=None, parallel=None, beside=None):
     """The --refine stage of design_file: refine, then rewrite pattern.toml, G-code, pattern.png
     and the verification (into the OutputDir ``out``) for the rounded refined thicknesses; on
     failure keep the open-loop design and record why (report "refine": {"ok": false, "reason": ...}).
@@ -755,7 +746,10 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
     pattern dict) are written again and re-verified, and "refine" records both ("kept"). When
     release from flat misses the refined state (the equilibrium nearest the target), the
     release is tried again held on jig posts at that state (_try_jig); a jig that reaches it and
-    deploys nearest the target is written into pattern.toml as [[support]] ("refined, on a jig")."""
+    deploys nearest the target is written into pattern.toml as [[support]] ("refined, on a jig").
+    ``beside``: the open-loop verification's inverse.verify.SimulationBeside, still releasing the
+    sheet in its worker while the refinement starts from the target (``sims`` then empty): its
+    verification is written into ``rep`` here, once the refinement no longer runs."""
     from geometry.patterns import parse_pattern
     from inverse.design_refine import refine_design
     from inverse.printer import Printer
@@ -764,17 +758,42 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
     t = time.perf_counter()
     printer = o.printer or Printer()
     oob = rep.get("sigma_out_of_bounds_pct")
-    if not sims:
-        rep["refine"] = {"ok": False, "reason": "the open-loop simulation could not run: nothing to refine from"}
+    nothing = {"ok": False, "reason": "the open-loop simulation could not run: nothing to refine from"}
+    if beside is None and not sims:
+        rep["refine"] = nothing
         return
     before = [r.thickness_mm for r in d.ribbons]
+    failed = None
     try:
-        block, near_x = refine_design(d, pattern, sims[0], printer, refine_options, smoothness=smoothness,
-                                      verbose=verbose, progress=progress, parallel=parallel)
+        block, near_x = refine_design(d, pattern, beside if beside is not None else sims[0], printer, refine_options,
+                                      smoothness=smoothness, verbose=verbose, progress=progress, parallel=parallel)
     except SelfshapeError as e:
+        failed = e
+    except BaseException:                           # Ctrl-C or a bug: no worker left behind
+        if beside is not None:
+            beside.cancel()
+        raise
+    if beside is not None:
+        # the open-loop verification, simulated beside the refinement: registered and written now,
+        # with the open-loop thicknesses (the refinement has set the refined ones on d)
+        refined = [r.thickness_mm for r in d.ribbons]
         for r, t0 in zip(d.ribbons, before):
             r.thickness_mm = t0
-        rep["refine"] = {"ok": False, "reason": str(e), "seconds": round(time.perf_counter() - t, 2),
+        t_v = time.perf_counter()
+        rep.update(verify_design(d, pattern, out, sims=sims, beside=beside))
+        rep["stages_s"]["verify"] = round(float(rep.get("verify_simulation_s") or 0.0) + time.perf_counter() - t_v, 3)
+        rep["verify_beside_refine"] = True
+        for r, t1 in zip(d.ribbons, refined):
+            r.thickness_mm = t1
+        if not sims:
+            for r, t0 in zip(d.ribbons, before):
+                r.thickness_mm = t0
+            rep["refine"] = nothing
+            return
+    if failed is not None:
+        for r, t0 in zip(d.ribbons, before):
+            r.thickness_mm = t0
+        rep["refine"] = {"ok": False, "reason": str(failed), "seconds": round(time.perf_counter() - t, 2),
                          "note": "the open-loop design is kept"}
         return
     rep["open_loop"] = {k: rep[k] for k in VERIFY_KEYS if k in rep}
@@ -916,6 +935,7 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
     beside the release from flat): the 110 mm saddle's run 1,247 s against 1,737 s one after
     the other. Returns the report dict."""
     from geometry.target import read_mesh
+    from shellfem import forked
     from shellfem.outfiles import OutputDir
 
     t_start = time.perf_counter()
@@ -960,17 +980,27 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
             p_toml = out.file("pattern.toml")
             pattern = parse_pattern(raw, p_toml, os.path.dirname(os.path.abspath(p_toml)))
             sims = []
+            beside = None
             if progress is not None:
                 progress({"stage": "verify"})
-            rep.update(verify_design(d, pattern, out, sims=sims, progress=progress))
-            rep["stages_s"]["verify"] = round(time.perf_counter() - t, 3)
+            if refine and forked.wanted(parallel) and getattr(pattern, "solver_model", "shell") == "shell":
+                # the refinement from the target needs only the mesh: the open-loop verification's
+                # release from flat runs beside it in a worker (a meshing error: the verification
+                # below reports it as a serial run does)
+                try:
+                    beside = SimulationBeside(pattern, label="the open-loop verification")
+                except SelfshapeError:
+                    beside = None
+            if beside is None:
+                rep.update(verify_design(d, pattern, out, sims=sims, progress=progress))
+                rep["stages_s"]["verify"] = round(time.perf_counter() - t, 3)
             if refine:
                 if progress is not None:
                     progress({"stage": "refine"})
                 _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, refine_smoothness, verbose,
                                     dict(mesh_size_mm=mesh_size_mm, mesh_across=mesh_across,
                                          max_iterations=verify_iterations, metric_floor=metric_floor),
-                                    raw=raw, progress=progress, parallel=parallel)
+                                    raw=raw, progress=progress, parallel=parallel, beside=beside)
         rep["total_time_s"] = round(time.perf_counter() - t_start, 3)
         from forward.view import folder_page
         out.write_text("index.html", folder_page(out.path, rep))        # the 3D page (forward.view)

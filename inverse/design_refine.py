@@ -71,6 +71,11 @@ def _refine_from_starts(prob, p0, q_target, sim, T, opts, measure, starts, paral
     motion): the two refinements would be one. Returns ([(label, RefineResult), ...], the
     per-start records for the report); raises SelfshapeError when no start gives an equilibrium.
 
+    ``sim``: the verification's forward.simulate.Simulation, or an inverse.verify.SimulationBeside
+    whose worker is still releasing the sheet from flat: the refinement from the target needs only
+    the mesh and runs meanwhile; the released start is decided once both that worker and the
+    target's first solve are done (checked at each of the target's outer iterations).
+
     ``parallel`` (default: shellfem.forked.available(), two or more cores): once the target's
     first solve has settled elsewhere than the released state, the refinement from the released
     state runs beside it in a forked process, each on one core until both have ended (a fixed
@@ -80,42 +85,57 @@ def _refine_from_starts(prob, p0, q_target, sim, T, opts, measure, starts, paral
     progress from the child)."""
     from inverse.refine import refine_thickness
     from inverse.registration import kabsch
+    from inverse.verify import SimulationBeside
     from shellfem import forked
 
     for s in starts:
         if s not in ("target", "released"):
             raise ValueError(f"refine: unknown start {s!r} (target, released)")
     parallel = forked.wanted(parallel)
+    pending = sim if isinstance(sim, SimulationBeside) else None
     runs, records, first_states, jobs = [], [], {}, {}
-    q_rel = None
-    if sim.result.converged:
-        q_rel = sim.result.q.copy()
-        x = sim.model.split(q_rel)[0]
-        R, c = kabsch(x, T, prob.w)
-        q_rel[:x.size] = (x @ R.T + c).ravel()
+    released = {}               # "q": the released state on the target (None: none), "why": why none
+    n = len(T)
+
+    def released_state():
+        """The verification's released state moved onto the target, or None (waits for the worker)."""
+        if "q" not in released:
+            try:
+                s_ = pending.simulation() if pending is not None else sim
+            except SelfshapeError as e:
+                released.update(q=None, why=f"the verification's release could not run ({e})")
+                return None
+            if not s_.result.converged:
+                released.update(q=None, why="the verification's release did not converge")
+                return None
+            q = s_.result.q.copy()
+            R, c = kabsch(q[:3 * n].reshape(n, 3), T, prob.w)
+            q[:3 * n] = (q[:3 * n].reshape(n, 3) @ R.T + c).ravel()
+            released["q"] = q
+        return released["q"]
 
     def settled_in_released():
         """The target's first solve settled in the released state: (True, note) or (False, None)."""
         x0 = first_states.get("target")
         if x0 is None:
             return False, None
-        x = sim.model.split(q_rel)[0]
+        x = released["q"][:3 * n].reshape(n, 3)
         R, c = kabsch(x0, x, prob.w)
         apart = float(np.sqrt(prob.w @ np.sum((x0 @ R.T + c - x) ** 2, 1) / prob.w.sum()))
         return apart < SAME_STATE_MM, f"the solve from the target settled in it ({apart:.2g} mm apart)"
 
-    def run(s, label, report=True, on_first=None):
+    def run(s, label, report=True, on_iteration=None):
         """(record, RefineResult or None) of the refinement from start s."""
         t0 = time.perf_counter()
 
         def callback(it, p, q, model):
             if it == 0:
                 first_states[s] = model.split(q)[0].copy()
-                if on_first is not None:
-                    on_first()
+            if on_iteration is not None:
+                on_iteration()
             return measure(it, p, q, model, label, report=report)
         try:
-            res = refine_thickness(prob, p0, q_target if s == "target" else q_rel, opts, callback=callback)
+            res = refine_thickness(prob, p0, q_target if s == "target" else released["q"], opts, callback=callback)
         except SelfshapeError as e:
             return {"start": label, "converged": False, "reason": str(e),
                     "seconds": round(time.perf_counter() - t0, 2)}, None
@@ -130,18 +150,25 @@ def _refine_from_starts(prob, p0, q_target, sim, T, opts, measure, starts, paral
             res.margin.problem = None             # the problem stays in the parent (nothing to pickle)
         return record, res
 
+    decided = []
+
     def launch_released():
-        """After the target's first solve: start the released state's refinement beside it."""
-        if (parallel and "released" in starts and starts.index("released") > starts.index("target")
-                and q_rel is not None and not settled_in_released()[0]):
+        """At each of the target's outer iterations: once its first solve is done and the
+        verification's release is in, start the released state's refinement beside it (once)."""
+        if (decided or not parallel or "released" not in starts
+                or starts.index("released") < starts.index("target") or "target" not in first_states
+                or (pending is not None and not pending.done())):
+            return
+        decided.append(True)
+        if released_state() is not None and not settled_in_released()[0]:
             jobs["released"] = forked.start(run_in_child, "released", "released state", label="refine from the released state")
 
     try:
         for s in starts:
             label = "target" if s == "target" else "released state"
             if s == "released":
-                if q_rel is None:
-                    records.append({"start": label, "skipped": "the verification's release did not converge"})
+                if released_state() is None:
+                    records.append({"start": label, "skipped": released["why"]})
                     continue
                 same, note = settled_in_released()
                 if same:
@@ -149,19 +176,16 @@ def _refine_from_starts(prob, p0, q_target, sim, T, opts, measure, starts, paral
                     continue
             if s in jobs:
                 record, res = jobs.pop(s).result()
-                forked.set_threads(None)
                 if res is not None and res.margin is not None:
                     res.margin.problem = prob
             else:
-                record, res = run(s, label, on_first=launch_released if s == "target" else None)
+                record, res = run(s, label, on_iteration=launch_released if s == "target" else None)
             records.append(record)
             if res is not None:
                 runs.append((label, res))
     finally:
         for job in jobs.values():                  # an exception here: no child left behind
             job.cancel()
-        if jobs:
-            forked.set_threads(None)
     if not runs:
         raise SelfshapeError("refine: no equilibrium near the target: "
                              + "; ".join(f"from the {r['start']}: {r.get('reason') or r.get('skipped')}" for r in records))
@@ -171,7 +195,8 @@ def _refine_from_starts(prob, p0, q_target, sim, T, opts, measure, starts, paral
 def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.05, verbose: bool = False,
                   progress=None, layer_rounds_max: int = 8, starts=STARTS, parallel=None) -> tuple:
     """Refine the thicknesses of the design ``d`` (whose pattern is ``pattern`` and whose
-    verification simulation is ``sim``, forward.simulate.Simulation). Sets the ribbons'
+    verification simulation is ``sim``, forward.simulate.Simulation, or an
+    inverse.verify.SimulationBeside still running in its worker). Sets the ribbons'
     thickness_mm to the rounded refined values and returns (block, positions): the report block
     "refine" (per outer iteration objective, RMS distance (mm), deviations both ways (%),
     seconds; continuous and rounded thicknesses; the rounded design's deviations at the
@@ -194,6 +219,7 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
                                 refine_layers)
     from inverse.registration import flat_to_target
     from shellfem.boundary import gauge_dofs
+    from shellfem.kinematics import build_topology
 
     t0 = time.perf_counter()
     opts = options or RefineOptions(bounds=(printer.layer_height_mm, 1.6), verbose=verbose)
@@ -203,10 +229,11 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
         raise SelfshapeError("refine: the design has no printed region to refine")
     p0 = np.array([d.ribbons[g[0]].thickness_mm for g in groups])
     T = flat_to_target(sheet.points, d.flat.uv, d.F, d.V)
-    free = np.ones(sim.model.n_dofs, bool)
+    n_edges = build_topology(sheet.triangles).n_edges
+    free = np.ones(3 * sheet.n_vertices + n_edges, bool)
     free[gauge_dofs(T, np.zeros(0, np.int64))] = False
     prob = ThicknessProblem(sheet, pattern.fabric, pattern.plastic, param, T, free, smoothness=smoothness)
-    q_target = np.concatenate([T.ravel(), np.zeros(sim.model.n_edges)])
+    q_target = np.concatenate([T.ravel(), np.zeros(n_edges)])
 
     def measure(it, p, q, model, start=None, report=True):
         out = deviations(d, model.split(q)[0], sheet.triangles, T)

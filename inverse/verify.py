@@ -43,6 +43,33 @@ def register_simulation(d: Design, sim):
     return result
 
 
+class SimulationBeside:
+    """A pattern's simulation (forward.simulate.simulate) run in a forked worker on one core
+    (shellfem.forked) while this process works on the same mesh: ``sheet`` is here at once, the
+    Simulation when :meth:`simulation` is asked. Why: `design --refine` refines from the target's
+    own positions, which needs only the mesh, while the open-loop verification releases the
+    sheet from flat; side by side they share the two cores. The worker's Simulation has the bits
+    this process would have computed (the solver's results do not depend on its thread count)."""
+
+    def __init__(self, pattern, label: str = "the verification"):
+        from forward.simulate import mesh_for_simulation, simulate
+        from shellfem import forked
+
+        self.sheet, coarse = mesh_for_simulation(pattern)       # its SelfshapeError: raised here
+        self.job = forked.start(lambda: simulate(pattern, meshed=(self.sheet, coarse)), label=label)
+
+    def done(self) -> bool:
+        """The worker has finished (its Simulation, or its error, is waiting)."""
+        return self.job.done()
+
+    def simulation(self):
+        """Wait for the worker: its Simulation; its SelfshapeError is raised here."""
+        return self.job.result()
+
+    def cancel(self) -> None:
+        self.job.cancel()
+
+
 #: a verification warns when its two mean deviations sum to more than this times the flat sheet's
 FLAT_MARGIN = 0.95
 
@@ -63,7 +90,7 @@ def flat_sheet_deviation(d: Design):
 
 
 def verify_design(d: Design, pattern, out_dir: str | None = None, written: list | None = None,
-                  sims: list | None = None, progress=None, simulation=None) -> dict:
+                  sims: list | None = None, progress=None, simulation=None, beside=None) -> dict:
     """Simulate ``pattern`` (the geometry.patterns.Pattern of the design d), register the deployed
     surface to the target and return the report entries: verify_converged, verify_reason,
     Newton iterations, deviation_pct_bbox [mean, max] (deployed -> target),
@@ -78,7 +105,9 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
     the simulation's progress callback (forward.simulate.simulate_sheet). ``simulation``: an
     earlier Simulation of this same pattern, registered and written instead of simulating again
     (the solver is deterministic, so it is the state a new run would reach;
-    verify_simulation_s is then its own wall time)."""
+    verify_simulation_s is then its own wall time). ``beside``: a :class:`SimulationBeside` of
+    this pattern, whose worker's Simulation is waited for instead of simulating here (its error
+    is reported as a simulation here would fail)."""
     from forward.simulate import simulate
     from inverse.plots import plot_verify
     from inverse.vtu import write_deployed_vtu
@@ -88,7 +117,7 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
         sim = simulation
     else:
         try:
-            sim = simulate(pattern, progress=progress)
+            sim = beside.simulation() if beside is not None else simulate(pattern, progress=progress)
         except SelfshapeError as e:      # the design stays valid; the verification could not run
             return {"verify_converged": False, "verify_reason": f"simulation failed: {e}", "deviation_pct_bbox": None,
                     "verify_note": "the simulation could not run; no deviation reported",
@@ -96,7 +125,7 @@ def verify_design(d: Design, pattern, out_dir: str | None = None, written: list 
     if sims is not None:
         sims.append(sim)
     s = sim.summary()
-    seconds = s.get("wall_time_s", 0.0) if simulation is not None else time.perf_counter() - t0
+    seconds = s.get("wall_time_s", 0.0) if simulation is not None or beside is not None else time.perf_counter() - t0
     out = {"verify_converged": bool(s["converged"]), "verify_reason": s["reason"],
            "verify_newton_iterations": s["newton_iterations"], "verify_n_triangles": s["n_triangles"],
            "verify_simulation_s": round(seconds, 2)}

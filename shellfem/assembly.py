@@ -217,7 +217,6 @@ class PatternUnion:
         """A + B on the union pattern (A itself while B never had an entry)."""
         if self._keys is None and (B is None or B.nnz == 0):
             return A
-        n = A.shape[1]
         # the same read-only index arrays as last time (scipy wraps BlockScatter's arrays in
         # new views, so identity ``is`` never held: the union was rebuilt on every call, 0.2 s
         # each on the 2.5k-vertex dome, 38 % of its solve with the ground on)

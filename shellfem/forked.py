@@ -17,7 +17,9 @@ reductions do depend on it, so code run this way holds OpenBLAS to one thread
 
 The child stays on one thread to its end: raising its thread count after the fork hung it inside
 MKL PARDISO (Intel OpenMP's pool is the parent's; a forked child must not grow it). This process
-takes both cores back (:func:`set_threads` (None)) once the child is done.
+stays on one thread while any job it started is live, and takes all its cores back when the
+last one ends (its result is in, or it was cancelled): the thread schedule lives here, not in
+the callers.
 """
 from __future__ import annotations
 
@@ -27,6 +29,8 @@ import traceback
 from shellfem.errors import SelfshapeError
 
 _LIMITS = None         # threadpoolctl limits in force in this process (to restore)
+_LIVE = 0              # jobs started by this process and not yet ended (result in, or cancelled)
+_IN_CHILD = False      # this process is a forked child: it stays on one thread
 
 
 def available() -> bool:
@@ -49,8 +53,11 @@ def wanted(parallel: bool | None = None) -> bool:
 
 
 def set_threads(n: int | None) -> None:
-    """Limit numba and BLAS/MKL (PARDISO) in this process to ``n`` threads; None: undo the limit."""
+    """Limit numba and BLAS/MKL (PARDISO) in this process to ``n`` threads; None: undo the limit.
+    A forked child stays on one thread whatever is asked (see the module doc)."""
     global _LIMITS
+    if _IN_CHILD:
+        n = 1
     try:
         import numba
         numba.set_num_threads(numba.config.NUMBA_NUM_THREADS if n is None else max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
@@ -71,6 +78,16 @@ class Job:
         self.process, self.conn, self.label = process, conn, label
         self._value = None
         self._have = False
+        self._ended = False
+
+    def _end(self):
+        """This job no longer runs: the parent takes its cores back when no other job does."""
+        global _LIVE
+        if not self._ended:
+            self._ended = True
+            _LIVE -= 1
+            if _LIVE == 0 and not _IN_CHILD:
+                set_threads(None)
 
     def done(self) -> bool:
         """The child has finished (its result is waiting)."""
@@ -90,6 +107,7 @@ class Job:
             self._have = True
             self.conn.close()
             self.process.join()
+            self._end()
         kind, payload = self._value
         if kind == "ok":
             return payload
@@ -105,10 +123,14 @@ class Job:
             self.process.kill()
         self.process.join()
         self.conn.close()
-        self._have, self._value = True, ("selfshape", f"{self.label}: cancelled")
+        if not self._have:
+            self._have, self._value = True, ("selfshape", f"{self.label}: cancelled")
+        self._end()
 
 
 def _child(conn, fn, args):
+    global _IN_CHILD, _LIVE
+    _IN_CHILD, _LIVE = True, 0
     set_threads(1)
     try:
         msg = ("ok", fn(*args))
@@ -125,8 +147,10 @@ def _child(conn, fn, args):
 
 def start(fn, *args, label: str = "worker") -> Job:
     """Run ``fn(*args)`` in a forked child on one thread, and limit this process to one thread
-    until :meth:`Job.result` (call :func:`set_threads` (None) after it). ``fn`` may be any
-    callable (a closure too: nothing is pickled but its return value, which must pickle)."""
+    until every job it started has ended (:meth:`Job.result` returned or raised, or
+    :meth:`Job.cancel`). ``fn`` may be any callable (a closure too: nothing is pickled but its
+    return value, which must pickle)."""
+    global _LIVE
     import multiprocessing as mp
 
     ctx = mp.get_context("fork")
@@ -134,6 +158,7 @@ def start(fn, *args, label: str = "worker") -> Job:
     proc = ctx.Process(target=_run_and_exit, args=(send, fn, args), daemon=True)
     proc.start()
     send.close()
+    _LIVE += 1
     set_threads(1)
     return Job(proc, recv, label)
 

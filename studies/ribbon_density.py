@@ -71,7 +71,7 @@ def layout_stages(uv, F, dir1, sigma1, sigma2, kappa1, s, outline, ribbon_length
 
     uv = np.asarray(uv, float)
     F = np.asarray(F).astype(np.int64)
-    m, n = len(F), len(uv)
+    n = len(uv)
     sigma1 = np.where((sigma1 < 1.0) & (sigma1 >= 1.0 - bound_tol), 1.0, sigma1)
     sigma2 = np.where((sigma2 < 1.0) & (sigma2 >= 1.0 - bound_tol), 1.0, sigma2)
     mu1, mu2 = ribbon_spacing(sigma1, sigma2, s, ribbon_length, ribbon_width)

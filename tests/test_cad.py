@@ -3,7 +3,6 @@ thickness, the deployed surface as OBJ/STL/PLY; each read back (ezdxf, xml.etree
 End to end: `selfshape simulate` and `design` write them beside their other outputs."""
 import json
 import os
-import shutil
 
 import meshio
 import numpy as np

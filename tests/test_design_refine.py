@@ -28,10 +28,12 @@ class _Split:
         return q[:3 * self.n].reshape(-1, 3), q[3 * self.n:]
 
 
-def _starts_case(monkeypatch, released, first_state, objectives, fails=(), parallel=False):
+def _starts_case(monkeypatch, released, first_state, objectives, fails=(), parallel=False, pending=None):
     """Run inverse.design_refine._refine_from_starts with refine_thickness replaced: the solve
-    from start s settles in first_state(s, q0) (positions) and ends at objectives[s], or raises
-    for s in fails. ``released``: the verification's positions (None: it did not converge)."""
+    from start s settles in first_state(s, q0) (positions) after two outer iterations and ends at
+    objectives[s], or raises for s in fails. ``released``: the verification's positions (None:
+    it did not converge). ``pending(sim)``: what is passed instead of the verification's
+    Simulation (a stand-in for one still running beside)."""
     import types
 
     import inverse.design_refine as dr
@@ -54,12 +56,13 @@ def _starts_case(monkeypatch, released, first_state, objectives, fails=(), paral
             raise SelfshapeError("refine: no equilibrium near the start (test)")
         q = np.concatenate([first_state(s, split.split(q0)[0]).ravel(), np.zeros(4)])
         callback(0, p0, q, split)
+        callback(1, p0, q, split)
         return RefineResult(thickness=np.asarray(p0), q=q, objective=objectives[s], rms_mm=objectives[s] ** 0.5,
                             history=[dict(iteration=0, rms_mm=2.0), dict(iteration=1, rms_mm=1.0)], reason="ftol")
 
     monkeypatch.setattr(inverse.refine, "refine_thickness", fake)
-    out = dr._refine_from_starts(prob, np.ones(3), q_target, sim, T, None, lambda *a, **k: {}, dr.STARTS,
-                                 parallel=parallel)
+    out = dr._refine_from_starts(prob, np.ones(3), q_target, sim if pending is None else pending(sim), T, None,
+                                 lambda *a, **k: {}, dr.STARTS, parallel=parallel)
     return out, calls, T
 
 
@@ -133,7 +136,8 @@ def test_failed_refinement_keeps_the_open_loop_design(tmp_path, monkeypatch):
             r.thickness_mm = 9.9
         raise SelfshapeError("refine: no equilibrium near the start (test)")
     monkeypatch.setattr(inverse.design_refine, "refine_design", fail)
-    rep = design_file(target, tmp_path / "out", refine=True, edge_mm=None, stretch=1.3)
+    # serial: the fake simulation lives in this process (parallel: the open loop's verification beside)
+    rep = design_file(target, tmp_path / "out", refine=True, edge_mm=None, stretch=1.3, parallel=False)
     assert rep["refine"]["ok"] is False and "no equilibrium" in rep["refine"]["reason"]
     assert "open_loop" not in rep and rep["deviation_pct_bbox"][1] < 1e-6
     pat = load_pattern(tmp_path / "out" / "pattern.toml")
@@ -172,7 +176,8 @@ def _refine_with_fake_release(tmp_path, monkeypatch, z_scale, refine):
     monkeypatch.setattr(design_module, "design", keep)
     monkeypatch.setattr(forward.simulate, "simulate", fake)
     monkeypatch.setattr(inverse.design_refine, "refine_design", refine)
-    return design_file(target, tmp_path / "out", refine=True, edge_mm=None, stretch=1.3), box
+    # serial: the fake simulation records into box in this process
+    return design_file(target, tmp_path / "out", refine=True, edge_mm=None, stretch=1.3, parallel=False), box
 
 
 def test_a_refinement_that_deploys_worse_keeps_the_open_loop_design(tmp_path, monkeypatch):
@@ -358,3 +363,89 @@ def test_jig_releases_are_simulated_ahead_in_workers_and_the_unneeded_one_cancel
     assert all(s[2] != os.getpid() for s in seen)
     assert block["jig"]["posts"] == (4, 8)[reach_at - 1] and block["jig"]["reached"]
     assert queue.jobs == {} and forked._LIMITS is None
+
+
+class _Pending:
+    """Stands in for an inverse.verify.SimulationBeside whose worker finishes after ``after``
+    polls of done(); simulation() is its Simulation, or raises ``error``."""
+    def __init__(self, sim, after, error=None):
+        self.sim, self.after, self.error, self.polls = sim, after, error, 0
+
+    def done(self):
+        self.polls += 1
+        return self.polls > self.after
+
+    def simulation(self):
+        if self.error is not None:
+            raise SelfshapeError(self.error)
+        return self.sim
+
+
+@pytest.mark.parametrize("parallel", [False, True])
+def test_the_refinement_from_the_target_starts_while_the_verification_still_runs(monkeypatch, parallel):
+    """The verification simulated beside the refinement (inverse.verify.SimulationBeside): the
+    released start is decided only once the verification is in (here after the target's first
+    outer iteration), and the records are those of a run that had the verification first."""
+    import inverse.verify
+    from shellfem import forked
+    if parallel and not forked.available():
+        pytest.skip("one core")
+    rot = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    released = np.random.default_rng(5).normal(size=(12, 3)) * 10 @ rot + 7.0
+    objectives = {"target": 4.0, "released": 1.0}
+    seq, calls_seq, _ = _starts_case(monkeypatch, released, lambda s, x0: x0, objectives)
+    monkeypatch.setattr(inverse.verify, "SimulationBeside", _Pending)
+    polls = []
+    beside, calls, _ = _starts_case(monkeypatch, released, lambda s, x0: x0, objectives, parallel=parallel,
+                                    pending=lambda sim: polls.append(_Pending(sim, after=1)) or polls[-1])
+    assert calls == (["target"] if parallel else ["target", "released"])
+    assert polls[0].polls == (2 if parallel else 0)     # serial: nothing polled, the result waited for
+    strip = [{k: v for k, v in r.items() if k != "seconds"} for r in seq[1]]
+    assert strip == [{k: v for k, v in r.items() if k != "seconds"} for r in beside[1]]
+    for (_, a), (_, b) in zip(seq[0], beside[0]):
+        np.testing.assert_array_equal(a.q, b.q)
+    # a verification whose simulation failed: no released start, the reason recorded
+    (runs, records), calls, _ = _starts_case(monkeypatch, released, lambda s, x0: x0, objectives, parallel=parallel,
+                                             pending=lambda sim: _Pending(sim, 0, error="mesh.obj: no memory (test)"))
+    assert calls == ["target"] and [r[0] for r in runs] == ["target"]
+    assert records[1]["skipped"] == "the verification's release could not run (mesh.obj: no memory (test))"
+
+
+def test_the_open_loop_verification_beside_the_refinement_is_the_serial_one(tmp_path, monkeypatch):
+    """design_file(refine=True, parallel=True): the open loop's release from flat runs in a worker
+    while the refinement works on the same mesh; its report entries and deployed.vtu are those of
+    the serial run (the worker's simulation has the serial bits), and the refined design is then
+    verified as before."""
+    import meshio
+
+    import inverse.design_refine
+    from geometry.target import sphere_cap
+    from inverse.verify import SimulationBeside
+    from shellfem import forked
+    if not forked.available():
+        pytest.skip("one core")
+    seen = []
+
+    def refine(d, pattern, sim, *a, **k):
+        seen.append((type(sim), sim.sheet.n_vertices))
+        for r in d.ribbons:
+            r.thickness_mm = 0.6
+        return {"outer_iterations": 1, "reason": "test", "seconds": 0.0, "rounded": {}}, None
+    monkeypatch.setattr(inverse.design_refine, "refine_design", refine)
+    V, F = sphere_cap(40.0, 30.0, 6)
+    target = write_obj(tmp_path / "cap.obj", V, F)
+    reps, vtus = [], []
+    for parallel in (False, True):
+        out = tmp_path / f"out{parallel}"
+        reps.append(design_file(target, out, refine=True, diagonal_mm=40.0, mesh_size_mm=4.0, parallel=parallel))
+        vtus.append(meshio.read(out / "deployed.vtu"))
+    serial, beside = reps
+    assert seen[0][0] is not SimulationBeside and seen[1][0] is SimulationBeside and seen[0][1] == seen[1][1]
+    assert beside.get("verify_beside_refine") and "verify_beside_refine" not in serial
+    keys = ("deviation_pct_bbox", "deviation_target_to_deployed_pct_bbox", "verify_newton_iterations", "verify_converged")
+    assert serial["open_loop"]["verify_converged"]
+    assert {k: serial["open_loop"][k] for k in keys} == {k: beside["open_loop"][k] for k in keys}
+    assert {k: serial[k] for k in keys} == {k: beside[k] for k in keys}       # the refined design's, verified here
+    assert serial["refine"]["kept"] == beside["refine"]["kept"]
+    np.testing.assert_array_equal(vtus[0].points, vtus[1].points)
+    assert beside["stages_s"]["verify"] >= beside["open_loop"]["verify_simulation_s"] > 0

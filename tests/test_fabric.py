@@ -171,7 +171,6 @@ def test_stabilised_cycles_drop_preconditioning_and_drifting_cycles():
     stress = lambda e: FC.barrier_curve(e, 0.03, 0.02, 1.0)  # noqa: E731
     rows = _tensile_rows(stress, 70, rng, cycles=4)
     # make cycle 2 unloading 5 % stiffer than the (stable) cycles 3 and 4
-    L, w, h = 60.0, 20.0, 0.8
     fixed = []
     for r in rows:
         if r[1] == 2 and r[2] == "unload":

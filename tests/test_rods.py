@@ -238,7 +238,7 @@ def test_cantilever_under_end_moment_is_the_elastica_arc():
         x = x.reshape(-1, 3)
         j = ad.Jet.inputs((x[N] - x[N - 1])[None, :2])
         a = ad.atan2(j[1], j[0])
-        E, g, H = np.zeros(1), np.zeros(3 * (N + 1)), np.zeros((3 * (N + 1),) * 2)
+        g, H = np.zeros(3 * (N + 1)), np.zeros((3 * (N + 1),) * 2)
         idx = np.array([3 * (N - 1), 3 * (N - 1) + 1, 3 * N, 3 * N + 1])
         sel = np.array([[-1, 0], [0, -1], [1, 0], [0, 1]], float)
         g[idx] = -M * sel @ a.g[0]

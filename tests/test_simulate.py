@@ -396,7 +396,6 @@ def test_a_simulation_on_one_thread_in_a_worker_has_the_bits_of_two_threads_here
     pat = load_pattern(here)
     mine = simulate(pat)
     theirs = forked.start(simulate, pat).result()
-    forked.set_threads(None)
     assert mine.result.converged and theirs.result.converged
     assert mine.result.iterations == theirs.result.iterations
     np.testing.assert_array_equal(mine.result.q, theirs.result.q)

@@ -431,7 +431,7 @@ def main(argv=None, status=None):
                               fabric=fabric, plastic=plastic)
                 log.append(chk)
                 rel = abs(chk["kappa_per_mm"] - front[(t_c, mu_c)]) / front[(t_c, mu_c)]
-                mirror_note = [f"  back rows = front rows by mirror symmetry through the fabric mid-surface (no gravity);",
+                mirror_note = ["  back rows = front rows by mirror symmetry through the fabric mid-surface (no gravity);",
                                f"  check: back simulated at t={t_c:g} mu2={mu_c:g}: |kappa| {chk['kappa_per_mm']:.6g} vs front "
                                f"{front[(t_c, mu_c)]:.6g} (relative difference {rel:.1e}, converged={chk['converged']})"]
                 if not chk["converged"] or rel > 1e-3:
