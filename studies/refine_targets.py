@@ -16,8 +16,9 @@ single-threaded processes (--workers N), or on a running scheduler's workers (--
 ADDRESS; they need this repository on their PYTHONPATH and the output folder on a shared file
 system). The JSON lines come as the targets finish; the summary lists them in the order asked.
 On a terminal a status line on stderr counts the targets done and the time left (-q hides it).
-In this process (no --workers) on two or more cores, each target's two refinement starts and its
-jig releases run side by side in forked workers (inverse.design.design_file's ``parallel``);
+In this process (no --workers) on two or more cores, each target's open-loop verification (beside
+the refinement from the target), its two refinement starts and its jig releases run side by side
+in forked workers (inverse.design.design_file's ``parallel``);
 --serial runs them one after the other (for timing).
 
     python studies/refine_targets.py [--mesh-size 3] [--across 1] [--max-outer N] [--stretch 1.2]
@@ -159,8 +160,9 @@ def main(argv=None) -> int:
     ap.add_argument("--max-thickness", type=float, default=1.6, help="thickest printable ribbon (mm)")
     ap.add_argument("-v", "--verbose", action="store_true")
     ap.add_argument("--serial", action="store_true",
-                    help="one solve at a time (default on 2+ cores: the two refinement starts and the jig releases "
-                         "side by side; always serial on a cluster, whose workers are one core each)")
+                    help="one solve at a time (default on 2+ cores: the open-loop verification, the two refinement "
+                         "starts and the jig releases side by side; always serial on a cluster, whose workers are "
+                         "one core each)")
     ap.add_argument("--workers", type=int, default=None,
                     help="targets side by side on a local Dask cluster of this many processes "
                          "(default 0: one after another in this process)")
