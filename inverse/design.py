@@ -774,17 +774,12 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
             beside.cancel()
         raise
     if beside is not None:
-        # the open-loop verification, simulated beside the refinement: registered and written now,
-        # with the open-loop thicknesses (the refinement has set the refined ones on d)
-        refined = [r.thickness_mm for r in d.ribbons]
-        for r, t0 in zip(d.ribbons, before):
-            r.thickness_mm = t0
+        # the open-loop verification, simulated beside the refinement: registered and written now
+        # (from the worker's simulation and the target; the ribbons' thicknesses are not read)
         t_v = time.perf_counter()
         rep.update(verify_design(d, pattern, out, sims=sims, beside=beside))
         rep["stages_s"]["verify"] = round(float(rep.get("verify_simulation_s") or 0.0) + time.perf_counter() - t_v, 3)
         rep["verify_beside_refine"] = True
-        for r, t1 in zip(d.ribbons, refined):
-            r.thickness_mm = t1
         if not sims:
             for r, t0 in zip(d.ribbons, before):
                 r.thickness_mm = t0
