@@ -153,14 +153,19 @@ class PardisoCholesky:
         self._factored = True
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        """x with (A + diag(shift)) x = b for one right-hand side b (n,)."""
+        """x with (A + diag(shift)) x = b for one right-hand side b (n,) or several, the columns
+        of b (n, k), in one call (PARDISO's multiple right-hand sides: the factor is read once
+        for all of them)."""
         if not self._factored:
             raise PardisoError("PARDISO: solve without a successful factorisation")
-        b = np.ascontiguousarray(b, dtype=np.float64)
-        if b.shape != (self.n,):
-            raise ValueError(f"PARDISO: right-hand side of shape {b.shape}, expected ({self.n},)")
-        x = np.zeros_like(b)
-        err = self._call(33, self._a, b, x)
+        b = np.asarray(b, dtype=np.float64)
+        if b.ndim not in (1, 2) or b.shape[0] != self.n:
+            raise ValueError(f"PARDISO: right-hand side of shape {b.shape}, expected ({self.n},) or ({self.n}, k)")
+        if b.ndim == 2 and b.shape[1] == 0:
+            return np.zeros_like(b)
+        b = np.asfortranarray(b)                  # PARDISO reads the right-hand sides column after column
+        x = np.zeros_like(b, order="F")
+        err = self._call(33, self._a, b, x, nrhs=1 if b.ndim == 1 else b.shape[1])
         if err:
             raise PardisoError(f"PARDISO solve failed: {_MESSAGES.get(err, err)}")
         return x

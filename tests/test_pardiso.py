@@ -35,6 +35,25 @@ def test_pardiso_cholesky_solves_with_and_without_shift():
 
 
 @needs_pardiso
+def test_pardiso_solves_several_right_hand_sides_at_once():
+    """The columns of b (n, k) solved in one call equal the one-by-one solves (round-off),
+    whatever b's memory order; k = 0 gives an empty result."""
+    A = _laplacian()
+    B = np.random.default_rng(3).standard_normal((A.shape[0], 7))
+    chol = pardiso.PardisoCholesky(A)
+    chol.factor(A.data, 0.1)
+    X = chol.solve(B)
+    ref = np.column_stack([chol.solve(B[:, k]) for k in range(B.shape[1])])
+    assert X.shape == B.shape
+    assert np.allclose(X, ref, rtol=1e-12, atol=1e-14)
+    assert np.linalg.norm((A + 0.1 * sp.eye(A.shape[0])) @ X - B) <= 1e-10 * np.linalg.norm(B)
+    assert np.allclose(chol.solve(np.ascontiguousarray(B)), chol.solve(np.asfortranarray(B)), rtol=0, atol=0)
+    assert chol.solve(np.zeros((A.shape[0], 0))).shape == (A.shape[0], 0)
+    with pytest.raises(ValueError, match="right-hand side"):
+        chol.solve(np.ones((3, 2)))
+
+
+@needs_pardiso
 def test_pardiso_reports_indefinite_matrices():
     """Shifting an SPD matrix just below its smallest eigenvalue makes the Cholesky fail
     (one negative eigenvalue); just above, it succeeds."""
@@ -78,6 +97,10 @@ def test_backends_agree_and_detect_indefiniteness(backend):
     x = solver.factor(A, shift=0.25)(b)
     ref = spla.spsolve((A + 0.25 * sp.eye(A.shape[0])).tocsc(), b)
     assert np.allclose(x, ref, rtol=1e-10, atol=1e-12)
+    # several right-hand sides as the columns of a matrix (equilibrium_jacobian's blocks)
+    B = np.column_stack([b, 2 * b, -b])
+    X = np.asarray(solver.factor(A, shift=0.25)(B)).reshape(B.shape)
+    assert np.allclose(X, np.column_stack([ref, 2 * ref, -ref]), rtol=1e-10, atol=1e-12)
     # the upper triangle alone (what BlockScatter(upper=True) assembles) gives the same answer
     U = sp.triu(A, format="csr")
     assert np.allclose(SparseSPD(backend).factor(U, shift=0.25, upper=True)(b), ref, rtol=1e-10, atol=1e-12)
