@@ -390,7 +390,7 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
                   newton_iterations: int = 400, max_trials: int = 4, verbose: bool = False,
                   leave_factor: float = RefineOptions.leave_factor, shifted_run: int = RefineOptions.shifted_run,
                   shifted_grace: int = RefineOptions.shifted_grace, margin: "StabilityMargin | None" = None,
-                  ftol: float = 0.0):
+                  ftol: float = 0.0, leaving_in_a_row: int = 2):
     """Layer-count refinement of rounded thicknesses p (P,) mm at their equilibrium q: up to
     ``rounds`` times, linearise J at the rounded state (gauss_newton_model), move ribbons by
     at most one layer (layer_descent), re-solve warm-started, and keep the move if J fell;
@@ -409,7 +409,11 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
     the margin's penalty) by less than this fraction, as the outer iteration ends
     (RefineOptions.ftol; 0: only a round without an accepted move ends them). Why: past that the
     moves trade a fraction of a per cent of J, less than the release from flat moves the state,
-    at a trial solve each."""
+    at a trial solve each. ``leaving_in_a_row``: a round also ends once this many of its trials
+    in a row left the branch (their solves stopped as LEFT_BRANCH; a trial that converged above
+    J does not count). Why: a state whose one-layer move and its best half both tip the sheet
+    into another state is at a fold for layer moves; on the hat, beetle and saddle every
+    smaller half then left too (notes, sessions 21-41), at 30-40 s a trial."""
     from shellfem.linalg import NotPositiveDefinite
     from shellfem.sensitivity import equilibrium_factor
     from shellfem.stability import lowest_mode
@@ -443,8 +447,9 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
         gain = 2.0 * m * (Mj.T @ b) - m ** 2 * np.einsum("ij,ij->j", Mj, Mj)
         idx = idx[np.argsort(-gain, kind="stable")]
         accepted = False
+        leaving = 0
         for _ in range(max_trials):
-            if len(idx) == 0:
+            if len(idx) == 0 or (leaving_in_a_row > 0 and leaving >= leaving_in_a_row):
                 break
             t0 = time.perf_counter()
             s = np.zeros_like(p)
@@ -475,6 +480,7 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
                 p, q, model, J, accepted = p_new, res.q, model_new, J_new, True
                 lam, u, solve = lam_new, u_new, solve_new
                 break
+            leaving = leaving + 1 if (not res.converged and res.reason.startswith(LEFT_BRANCH)) else 0
             idx = idx[:len(idx) // 2]
         if not accepted or Jt - Jt_new < ftol * Jt:
             break

@@ -262,6 +262,29 @@ def test_a_layer_trial_that_does_not_converge_is_recorded_without_an_objective(d
     assert hist and all(h["objective"] is None and not h["accepted"] and h["reason"].startswith("left the branch")
                         for h in hist)
     json.dumps(hist, allow_nan=False)
+    # the round ends after its first two trials left the branch (the move and its best half),
+    # with leaving_in_a_row = 0 it halves the move down to one ribbon (up to max_trials solves)
+    assert [h["changed"] for h in hist] == [hist[0]["changed"], hist[0]["changed"] // 2]
+    _, _, _, every = refine_layers(prob, p0, r0.q, 0.1, (0.1, 1.6), rounds=2, leaving_in_a_row=0)
+    assert len(every) > 2 and [h["changed"] for h in every[:2]] == [h["changed"] for h in hist]
+
+
+def test_a_layer_trial_that_converges_above_the_objective_does_not_end_the_round(deployed, monkeypatch):
+    """Trials that converge to a state above J are rejected but are no fold: the round halves
+    the move down to max_trials solves, as before the leaving rule."""
+    from inverse.refine import refine_layers
+    from shellfem.newton import SolveResult
+    prob, p0, r0 = layers_off(deployed, 1)
+    n3 = 3 * deployed[0].n_vertices
+    bump = np.zeros_like(r0.q)
+    bump[:n3] = np.random.default_rng(0).normal(scale=1.0, size=n3)      # 1 mm of non-rigid noise
+
+    def above(self, model, q_guess, q, max_iterations, p, limit, shifted=None):
+        return SolveResult(q=q_guess + bump, converged=True, iterations=3, energy=1.0, gradient_norm=0.0,
+                           reason="gradient norm below tolerance", stable=True)
+    monkeypatch.setattr(ThicknessProblem, "trial_solve", above)
+    _, _, _, hist = refine_layers(prob, p0, r0.q, 0.1, (0.1, 1.6), rounds=2, max_trials=4)
+    assert len(hist) > 2 and not any(h["accepted"] for h in hist)
 
 
 def test_the_history_records_the_lowest_eigenvalue_and_the_margin_raises_it(deployed):
