@@ -412,8 +412,8 @@ def refine_layers(problem: ThicknessProblem, p, q, step: float, bounds, rounds: 
     at a trial solve each. ``leaving_in_a_row``: a round also ends once this many of its trials
     in a row left the branch (their solves stopped as LEFT_BRANCH; a trial that converged above
     J does not count). Why: a state whose one-layer move and its best half both tip the sheet
-    into another state is at a fold for layer moves; on the hat, beetle and saddle every
-    smaller half then left too (notes, sessions 21-41), at 30-40 s a trial."""
+    into another state is at a fold for layer moves; on the hat, beetle, saddle, wave and hypar
+    every smaller half then left too (docs/notes.md), at a long trial solve each."""
     from shellfem.linalg import NotPositiveDefinite
     from shellfem.sensitivity import equilibrium_factor
     from shellfem.stability import lowest_mode

@@ -105,9 +105,9 @@ def equilibrium_factor(model: ShellModel, q: np.ndarray, free: np.ndarray, backe
 def equilibrium_jacobian(solve, G: sp.spmatrix, free: np.ndarray, block: int = 128) -> np.ndarray:
     """dq/dp (n_free, P) at an equilibrium: -H^-1 dg/dp with the factorised free Hessian
     ``solve`` (SparseSPD's: it takes the right-hand sides as the columns of a matrix). The
-    columns go ``block`` at a time, so the factor is read once per block, not once per
-    parameter (on a 50,905-DOF saddle with 125 ribbons, 0.8 s instead of 5.0 s per outer
-    iteration of the refinement), and memory stays at n_free x block beside the result."""
+    columns go ``block`` at a time: the factor is read once per block, not once per parameter
+    (a refinement with a hundred ribbons spent most of its sensitivity time in the one-column
+    solves), and memory stays at n_free x block beside the result."""
     Gf = sp.csc_matrix(G)[free]
     nf, P = Gf.shape
     out = np.empty((nf, P))
