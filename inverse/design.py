@@ -928,8 +928,8 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
     ``parallel`` (None: when the machine has two or more cores): the refinement's independent
     solves side by side in forked workers, one core each (the open-loop verification beside the
     refinement from the target, which needs only the mesh; its two starts; the jig releases
-    beside the release from flat; report.json "verify_beside_refine"): the 110 mm saddle's run
-    924 s against 1,318 s one after the other, to the same bits. Returns the report dict."""
+    beside the release from flat; report.json "verify_beside_refine"), to the same bits as one
+    after the other (docs/notes.md has the timings). Returns the report dict."""
     from geometry.target import read_mesh
     from shellfem import forked
     from shellfem.outfiles import OutputDir

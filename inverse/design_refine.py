@@ -80,9 +80,8 @@ def _refine_from_starts(prob, p0, q_target, sim, T, opts, measure, starts, paral
     first solve has settled elsewhere than the released state, the refinement from the released
     state runs beside it in a forked process, each on one core until both have ended (a fixed
     thread schedule). The refinement holds OpenBLAS to one thread (inverse.refine), so its
-    results do not depend on the thread count. The 110 mm saddle's refinement (both starts, the
-    verification beside): 681 s against 909 s one after the other, to the same bits. ``measure``
-    is called with ``report=False`` there (no progress from the child)."""
+    results do not depend on the thread count: the records are the serial run's, to the same
+    bits. ``measure`` is called with ``report=False`` there (no progress from the child)."""
     from inverse.refine import refine_thickness
     from inverse.registration import kabsch
     from inverse.verify import SimulationBeside
