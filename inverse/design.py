@@ -763,6 +763,11 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
         rep["refine"] = nothing
         return
     before = [r.thickness_mm for r in d.ribbons]
+
+    def restore_open_loop():
+        """The ribbons' open-loop thicknesses back (refine_design set the rounded refined ones)."""
+        for r, t0 in zip(d.ribbons, before):
+            r.thickness_mm = t0
     failed = None
     try:
         block, near_x = refine_design(d, pattern, beside if beside is not None else sims[0], printer, refine_options,
@@ -781,13 +786,11 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
         rep["stages_s"]["verify"] = round(float(rep.get("verify_simulation_s") or 0.0) + time.perf_counter() - t_v, 3)
         rep["verify_beside_refine"] = True
         if not sims:
-            for r, t0 in zip(d.ribbons, before):
-                r.thickness_mm = t0
+            restore_open_loop()
             rep["refine"] = nothing
             return
     if failed is not None:
-        for r, t0 in zip(d.ribbons, before):
-            r.thickness_mm = t0
+        restore_open_loop()
         rep["refine"] = {"ok": False, "reason": str(failed), "seconds": round(time.perf_counter() - t, 2),
                          "note": "the open-loop design is kept"}
         return
@@ -865,8 +868,7 @@ def _refine_and_rewrite(d, o, rep, pattern, sims, name, out, refine_options, smo
         # deploys farther from the target than the open loop: keep the open loop
         block["refined_released"] = candidates["refined"][1]
         block["refined_thickness_mm"] = [r.thickness_mm for r in d.ribbons]
-        for r, t0 in zip(d.ribbons, before):
-            r.thickness_mm = t0
+        restore_open_loop()
         write_and_verify(raw, name, simulation=sims[0])      # its verification, written again, not re-run
         block["kept"] = "open loop"
         block["kept_note"] = (f"the refined design deploys from flat farther from the target than the open loop "
