@@ -234,7 +234,7 @@ def _refine_lines(r) -> list:
         lines = [f"refined in {ref['outer_iterations']} outer iterations, {ref['seconds']:.0f} s, not kept: "
                  f"{ref['kept_note']}"]
     else:
-        lines = [f"refined in {ref['outer_iterations']} outer iterations, {ref['seconds']:.0f} s ({ref['reason']})" + was]
+        lines = [f"refined in {ref['outer_iterations']} outer iterations, {ref['seconds']:.0f} s ({ref['reason']}){was}"]
     ran = [x for x in ref.get("starts", []) if x.get("converged")]
     if len(ran) > 1:
         lines.append("refined from " + " and from ".join(

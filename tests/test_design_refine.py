@@ -323,7 +323,8 @@ def test_the_cli_names_both_starts_and_the_one_kept():
          "refine": {"ok": True, "kept": "refined", "outer_iterations": 15, "seconds": 600, "reason": "ftol",
                     "start": "released state", "starts": starts}}
     lines = _refine_lines(r)
-    assert lines[0].startswith("refined in 15 outer iterations") and lines[0].endswith("; open loop was 2.20 / 8.80 %, 2.25 / 8.90 %")
+    assert lines[0].startswith("refined in 15 outer iterations")
+    assert lines[0].endswith("; open loop was 2.20 / 8.80 %, 2.25 / 8.90 %")
     assert lines[1] == ("refined from the target (rms 2.61 -> 1.99 mm) and from the released state "
                         "(rms 3.38 -> 1.21 mm); kept the one from the released state")
     r["refine"]["starts"] = [starts[0], {"start": "released state", "skipped": "the solve from the target settled in it"}]
