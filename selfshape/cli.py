@@ -227,13 +227,15 @@ def _refine_lines(r) -> list:
         return []
     if not ref.get("ok"):
         return [f"refinement failed, open-loop design kept: {ref['reason']}"]
-    o = r.get("open_loop", {}).get("deviation_pct_bbox")
-    ob = r.get("open_loop", {}).get("deviation_target_to_deployed_pct_bbox")
-    was = (f"; open loop was {o[0]:.2f} / {o[1]:.2f} %" + (f", {ob[0]:.2f} / {ob[1]:.2f} %" if ob else "")) if o else ""
     if ref.get("kept") == "open loop":
         lines = [f"refined in {ref['outer_iterations']} outer iterations, {ref['seconds']:.0f} s, not kept: "
                  f"{ref['kept_note']}"]
     else:
+        ol = r.get("open_loop", {})
+        was = ""
+        if ol.get("deviation_pct_bbox"):
+            was = "; open loop was " + ", ".join(f"{v[0]:.2f} / {v[1]:.2f} %" for v in (
+                ol["deviation_pct_bbox"], ol.get("deviation_target_to_deployed_pct_bbox")) if v)
         lines = [f"refined in {ref['outer_iterations']} outer iterations, {ref['seconds']:.0f} s ({ref['reason']}){was}"]
     ran = [x for x in ref.get("starts", []) if x.get("converged")]
     if len(ran) > 1:
