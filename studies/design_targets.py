@@ -2,10 +2,12 @@
 
 For each TARGET.obj: `inverse.design.design_file` -> out/design/TARGET/ (all outputs), then
 docs/design/TARGET_{target,flat,ribbons,simulated}.png pictures and docs/design/table.md, a
-Markdown table with the seed's Table 5.1 columns and the simulated deviation. Prints ONE JSON
-line per target and a final summary line.
+Markdown table with the seed's Table 5.1 columns, the chosen pre-stretch and the simulated
+deviation. The defaults are `selfshape design TARGET --verify`'s (the stretch chosen per target,
+the verification's mesh and Newton cap). Prints ONE JSON line per target and a final summary line.
 
-    python studies/design_targets.py [--no-verify] [--mesh-size 2] [--across 1] [--verify-iterations N]
+    python studies/design_targets.py [--no-verify] [--stretch auto|S] [--printer PRINTER.toml]
+                                        [--mesh-size 3] [--across 1] [--verify-iterations 3000]
                                         [--law LAW.csv] [--out out/design] [--docs docs/design] [names...]
 """
 from __future__ import annotations
@@ -18,6 +20,8 @@ import time
 
 import numpy as np
 from study_cli import target_paths
+
+from inverse.to_pattern import VERIFY_ITERATIONS, VERIFY_MESH_ACROSS, VERIFY_MESH_SIZE_MM
 
 
 
@@ -71,9 +75,9 @@ def _fmt(v, nd=3):
 
 
 def table_markdown(rows) -> str:
-    head = ("| target | faces | time (s) | lambda | dev. % bbox (mean / max) | target to deployed % (mean / max) | "
+    head = ("| target | stretch | faces | time (s) | lambda | dev. % bbox (mean / max) | target to deployed % (mean / max) | "
             "k1 dev. (deg) | max bound dev. (s1 / s2) | out of bounds % (s1 / s2) | residual energy | "
-            "ribbons (front / back) | thickness (mm) |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+            "ribbons (front / back) | thickness (mm) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
     lines = []
     for r in rows:
         hist = {**r["thickness_histogram"]["front"], **r["thickness_histogram"]["back"]}
@@ -87,7 +91,7 @@ def table_markdown(rows) -> str:
         else:
             dev = "not run"
         sides = r["ribbons_per_side"]
-        lines.append(f"| {r['name']} | {r['n_faces']} | {r['time_s']:.1f} | {r.get('lambda', 0):g} | {dev} | {back} | "
+        lines.append(f"| {r['name']} | {_fmt(r.get('stretch'))} | {r['n_faces']} | {r['time_s']:.1f} | {r.get('lambda', 0):g} | {dev} | {back} | "
                      f"{r['k1_deviation_deg']:.3f} | {_fmt(r['sigma_bound_violation'], 2)} | "
                      f"{_fmt(r['sigma_out_of_bounds_pct'], 3)} | {r['residual_energy']:.2e} | "
                      f"{sides['front']} / {sides['back']} | {thick} |")
@@ -103,9 +107,11 @@ def main(argv=None):
     ap.add_argument("--out", default="out/design")
     ap.add_argument("--docs", default="docs/design")
     ap.add_argument("--edge", type=float, default=1.0, help="refine until the mean edge is below (mm)")
-    ap.add_argument("--mesh-size", type=float, default=2.0, help="[mesh] size_mm written to pattern.toml (verify)")
-    ap.add_argument("--across", type=float, default=None, help="[mesh] across written to pattern.toml (verify)")
-    ap.add_argument("--verify-iterations", type=int, default=None, help="Newton cap of the verification")
+    ap.add_argument("--mesh-size", type=float, default=VERIFY_MESH_SIZE_MM, help="[mesh] size_mm written to pattern.toml (verify)")
+    ap.add_argument("--across", type=float, default=VERIFY_MESH_ACROSS, help="[mesh] across written to pattern.toml (verify)")
+    ap.add_argument("--verify-iterations", type=int, default=VERIFY_ITERATIONS, help="Newton cap of the verification")
+    ap.add_argument("--stretch", default="auto", help="fabric pre-stretch, or auto (the CLI's choice per target)")
+    ap.add_argument("--printer", default=None, help="printer file (TOML), e.g. inverse/data/printers/layer_0.1mm.toml")
     ap.add_argument("--law", default=None, help="curvature-law CSV (default: the shipped law)")
     ap.add_argument("--metric-floor", type=float, default=None,
                     help="[solver] metric_floor of the verification (default: the solver's 10; shellfem.newton.lm_metric)")
@@ -119,6 +125,11 @@ def main(argv=None):
     np.seterr(all="ignore")
     from geometry.target import load_target
     from inverse.design import design_file
+    from inverse.printer import load_printer
+
+    extra = {"stretch": a.stretch if a.stretch == "auto" else float(a.stretch)}
+    if a.printer:
+        extra["printer"] = load_printer(a.printer)
 
     os.makedirs(a.docs, exist_ok=True)
     paths = target_paths(a.names)
@@ -130,7 +141,7 @@ def main(argv=None):
         try:
             rep = design_file(path, out, verify=not a.no_verify, edge_mm=a.edge, mesh_size_mm=a.mesh_size,
                               mesh_across=a.across, verify_iterations=a.verify_iterations, thickness_law=a.law,
-                              metric_floor=a.metric_floor)
+                              metric_floor=a.metric_floor, **extra)
         except Exception as e:  # report and go on with the other targets
             print(json.dumps({"name": name, "error": f"{type(e).__name__}: {e}"}), flush=True)
             continue
@@ -143,7 +154,7 @@ def main(argv=None):
         shutil.copy(os.path.join(out, "pattern.png"), os.path.join(a.docs, f"{name}_ribbons.png"))
         if os.path.exists(os.path.join(out, "verify.png")):
             shutil.copy(os.path.join(out, "verify.png"), os.path.join(a.docs, f"{name}_simulated.png"))
-        keys = ("name", "n_faces", "time_s", "k1_deviation_deg", "sigma_bound_violation", "sigma_out_of_bounds_pct",
+        keys = ("name", "stretch", "n_faces", "time_s", "k1_deviation_deg", "sigma_bound_violation", "sigma_out_of_bounds_pct",
                 "residual_energy", "ribbons_per_side", "flatten_iterations", "flatten_converged",
                 "verify_converged", "verify_reason", "deviation_pct_bbox", "verify_simulation_s", "stages_s")
         print(json.dumps({k: rep.get(k) for k in keys} | {"wall_s": round(time.perf_counter() - t0, 1)}), flush=True)

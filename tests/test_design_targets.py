@@ -8,7 +8,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def _report(dev=None, back=None, converged=None):
-    r = {"n_faces": 100, "time_s": 1.25, "lambda": 0, "k1_deviation_deg": 1.5, "sigma_bound_violation": [0.1, 0.2],
+    r = {"stretch": 1.2, "n_faces": 100, "time_s": 1.25, "lambda": 0, "k1_deviation_deg": 1.5, "sigma_bound_violation": [0.1, 0.2],
          "sigma_out_of_bounds_pct": [1.0, 2.0], "residual_energy": 1e-3, "ribbons_per_side": {"front": 3, "back": 1},
          "thickness_histogram": {"front": {"0.4": 3}, "back": {"0.2": 1}}}
     if converged is not None:
@@ -30,6 +30,6 @@ def test_table_only_rebuilds_from_reports(tmp_path):
     assert json.loads(run.stdout)["table"].endswith("table.md")
     rows = (docs / "table.md").read_text().splitlines()
     assert "target to deployed % (mean / max)" in rows[0]
-    assert rows[2].startswith("| a | 100 | 1.2 | 0 | 2.5 / 10.9 | 8.2 / 27.3 |")
+    assert rows[2].startswith("| a | 1.2 | 100 | 1.2 | 0 | 2.5 / 10.9 | 8.2 / 27.3 |")
     assert "| b |" in rows[3] and "not converged (maximum number of iterations reached) | - |" in rows[3]
     assert "| c |" in rows[4] and "| not run | - |" in rows[4] and rows[4].endswith("| 3 / 1 | 0.2-0.4 |")
