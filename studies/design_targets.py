@@ -21,8 +21,11 @@ import time
 import numpy as np
 from study_cli import target_paths
 
-from inverse.to_pattern import VERIFY_ITERATIONS, VERIFY_MESH_ACROSS, VERIFY_MESH_SIZE_MM
-
+from inverse.to_pattern import (
+    VERIFY_ITERATIONS,
+    VERIFY_MESH_ACROSS,
+    VERIFY_MESH_SIZE_MM,
+)
 
 
 def _plot_target(V, F, path, title):
