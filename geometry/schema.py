@@ -220,6 +220,8 @@ DESIGN_NUMBERS: dict[str, Num] = {
     "flatten_max_iter": Num(1, 100_000, "", "flattening iterations on the fine mesh", integer=True),
     "ribbon_length": Num(1.0, 1000.0, _LEN, "a printed dash of 1 mm to 1 m"),
     "ribbon_width": WIDTH,
+    "proxy_smooth_mm": Num(0.0, COORD_MAX_MM, _LEN, "the proxy surface's shortest wavelength: a length on a target "
+                           "of at most 10 m", lo_open=True),
 }
 #: The flattening's stretch bounds (s1min, s1max, s2min, s2max) of a design: each in this range
 #: and each minimum at most its maximum (DesignOptions.bounds; None: the contraction model's).

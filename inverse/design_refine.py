@@ -227,7 +227,7 @@ def refine_design(d, pattern, sim, printer, options=None, smoothness: float = 0.
     if not groups:
         raise SelfshapeError("refine: the design has no printed region to refine")
     p0 = np.array([d.ribbons[g[0]].thickness_mm for g in groups])
-    T = flat_to_target(sheet.points, d.flat.uv, d.F, d.V)
+    T = flat_to_target(sheet.points, d.flat.uv, d.F, d.goal)
     n_edges = build_topology(sheet.triangles).n_edges
     free = np.ones(3 * sheet.n_vertices + n_edges, bool)
     free[gauge_dofs(T, np.zeros(0, np.int64))] = False

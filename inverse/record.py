@@ -10,7 +10,8 @@ import numpy as np
 @dataclass
 class Design:
     """Everything the pipeline computed (mm). V, F: scaled and refined target; V_input, F_input:
-    the scaled input before refinement; curvature, field: geometry.curvature / fields records;
+    the scaled input before refinement (the target, always); V_goal: the target refined like V
+    when V is a proxy surface (a surface within the stretch bounds designed for instead); curvature, field: geometry.curvature / fields records;
     flat: geometry.flattening.FlatResult; kappa1 (m,): signed target normal curvature along the
     ribbon direction (> 0: front); outline (k, 2): flattened outer boundary polygon; holes: the
     flattened hole rims (a list of (k, 2) polygons; empty for a disk target); ribbons:
@@ -43,6 +44,14 @@ class Design:
     curvature_reach: dict = field(default_factory=dict)   # inverse.thickness_law.curvature_reach
     target_repairs: list = field(default_factory=list)    # what geometry.target.check_disk repaired, sentences
     holes: list = field(default_factory=list)             # (k, 2) polygons cut out of the outline
+    V_goal: np.ndarray | None = None    # the target on the mesh F when V is a proxy surface (inverse.design proxy)
+    proxy: dict | None = None           # how the proxy was found (geometry.reachable), None: designed for the target
+
+    @property
+    def goal(self) -> np.ndarray:
+        """The target's positions on the design's mesh F (mm): V, or V_goal when the design was made
+        for a proxy surface; what verification and refinement measure against."""
+        return self.V if self.V_goal is None else self.V_goal
 
     def fabric_polygon(self):
         """The flat fabric as a shapely Polygon: the outline with its holes (mm)."""

@@ -46,5 +46,6 @@ def report_dict(d: Design) -> dict:
         "plastic_young_modulus_mpa": d.law_plastic_mpa,
         "curvature_reach": d.curvature_reach,
         "target_repairs": d.target_repairs,
+        "proxy": d.proxy,
     }
 

@@ -37,7 +37,7 @@ def register_simulation(d: Design, sim):
     hit = getattr(sim, "_registration", None)
     if hit is not None and hit[0] == key:
         return hit[1]
-    Y0 = flat_to_target(sim.sheet.points, d.flat.uv, d.F, d.V)
+    Y0 = flat_to_target(sim.sheet.points, d.flat.uv, d.F, d.goal)
     result = deviation_both_ways(d, sim.positions, sim.sheet.triangles, Y0)
     sim._registration = (key, result)
     return result
@@ -84,8 +84,8 @@ def flat_sheet_deviation(d: Design):
     from geometry.meshops import face_areas
     uv = np.asarray(d.flat.uv, float)
     X = np.column_stack([uv, np.zeros(len(uv))])
-    c = float(np.sqrt(face_areas(d.V, d.F).sum() / face_areas(X, d.F).sum()))
-    _, pct, back, _ = deviation_both_ways(d, c * X, d.F, d.V)
+    c = float(np.sqrt(face_areas(d.goal, d.F).sum() / face_areas(X, d.F).sum()))
+    _, pct, back, _ = deviation_both_ways(d, c * X, d.F, d.goal)
     return pct, back
 
 

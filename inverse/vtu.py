@@ -12,13 +12,15 @@ from shellfem.outfiles import check_finite_arrays
 
 def write_flat_vtu(d: Design, path: str):
     """flat.vtu: flattened mesh (z = 0), cell data sigma1, sigma2, kappa1_per_mm; point data
-    target (3D position)."""
+    target (3D position on the target) and, for a design made for a proxy surface, proxy (3D
+    position on it: the surface flattened)."""
     import meshio
 
     pts = np.column_stack([d.flat.uv, np.zeros(len(d.flat.uv))])
-    check_finite_arrays("flat.vtu", {"flat positions": pts, "target": d.V, "sigma1": d.flat.sigma1,
+    point_data = {"target": d.goal} if d.V_goal is None else {"target": d.goal, "proxy": d.V}
+    check_finite_arrays("flat.vtu", {"flat positions": pts, **point_data, "sigma1": d.flat.sigma1,
                                      "sigma2": d.flat.sigma2, "kappa1_per_mm": d.kappa1})
-    meshio.write(path, meshio.Mesh(pts, [("triangle", d.F)], point_data={"target": d.V},
+    meshio.write(path, meshio.Mesh(pts, [("triangle", d.F)], point_data=point_data,
                                    cell_data={"sigma1": [d.flat.sigma1], "sigma2": [d.flat.sigma2],
                                               "kappa1_per_mm": [d.kappa1]}))
 

@@ -186,7 +186,7 @@ def _cmd_design(a):
     r = design_file(a.target, a.output, verify=a.verify, diagonal_mm=a.diagonal, stretch=a.stretch,
                     thickness_law=a.law, lam=a.lam, printer=printer, verify_iterations=a.verify_iterations,
                     refine=a.refine, mesh_size_mm=a.mesh_size, mesh_across=a.mesh_across, verbose=a.verbose,
-                    contraction=a.contraction,
+                    contraction=a.contraction, proxy=a.proxy,
                     inputs=[p for p in (a.printer, a.contraction.removesuffix(":polygon"))
                             if p and p not in ("auto", "seed", "table", "table-polygon")],
                     progress=a.progress)
@@ -201,6 +201,11 @@ def _cmd_design(a):
                                          f"{100 * row['out_of_bounds']:.1f} % out of bounds" if "error" not in row
                                          else "cannot be designed")
             for row in c["candidates"]) + f" -> {c['chosen']:g}")
+    px = r.get("proxy") or {}
+    if px.get("used"):
+        dp, oob = px["distance_pct"], px["out_of_bounds_pct"]
+        print(f"designed for a proxy surface within the stretch bounds, {dp[0]:.2f} / {dp[1]:.2f} % from the target "
+              f"(mean / max): the target's flattening is out of them on {oob[0]:.1f} / {oob[1]:.1f} % of the area")
     warning = (r.get("curvature_reach") or {}).get("warning")
     if warning:
         print(f"warning: {warning}")
@@ -471,6 +476,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--lam", type=_schema_number("DESIGN_NUMBERS", "lam"), default=0.0, help="line-field lambda of the seed (<= 0, 1/mm^2)")
     d.add_argument("--printer", default=None,
                    help="printer TOML (inverse.printer.Printer fields: bed_size, nozzle_mm, print_speed_mm_s, ...)")
+    d.add_argument("--proxy", action="store_true",
+                   help="where the target's flattening is far out of the stretch bounds, design for the nearest smooth "
+                        "surface within them (still verified and refined against the target)")
     d.set_defaults(fn=_cmd_design)
 
     c = sub.add_parser("calibrate", help="fit material parameters (validation.strips / validation.fabric)")
