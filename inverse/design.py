@@ -260,10 +260,11 @@ def proxy_surface(V, F, bounds, lam: float, smooth_mm: float, stop: str = "mean"
     wavelength >= ``smooth_mm`` (geometry.reachable.reachable_surface). Returns (surface (n, 3),
     info dict for the report: used, out_of_bounds_pct of the target, and when used the proxy's
     distance to the target both ways (mean, max, % of the diagonal), its faces still out of
-    bounds (%), smooth_mm, seconds). Why: at s 1.2 the hemisphere designed for its proxy (2.6 %
-    from it) deploys 2.1 % from the hemisphere (mean), designed for itself 5.4 %: a target far
-    beyond the bounds gets a flattening that is out of them everywhere, whose ribbons' stretches
-    and curvatures ask for a shape no release reaches (docs/notes.md, session 43)."""
+    bounds (%), smooth_mm, seconds). Why: at s 1.2 the 110 mm hemisphere designed for its proxy
+    (2.6 % from it) deploys 2.3 % from the hemisphere (mean of the diagonal), designed for itself
+    5.4 %: a target far beyond the bounds gets a flattening that is out of them nearly everywhere,
+    whose ribbons ask for a shape no release reaches. The hat and the beetle gain nothing
+    (docs/notes.md, session 43), so it is an option."""
     from geometry.curvature import principal_curvature
     from geometry.fields import curvature_line_field
     from geometry.flattening import flatten

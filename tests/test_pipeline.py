@@ -787,3 +787,22 @@ def test_a_target_far_out_of_its_bounds_is_designed_for_its_proxy_and_measured_a
     Vc, Fc = cylinder_patch()
     kept = design(Vc, Fc, diagonal_mm=None, edge_mm=None, stretch=1.6, proxy=True)
     assert kept.proxy["used"] is False and kept.V_goal is None
+
+
+def test_cli_design_proxy_says_what_it_designed_for(tmp_path, capsys):
+    """`selfshape design --proxy` on a cap far out of the s 1.2 bounds: the line naming the proxy
+    and its distance, report.json's proxy block, and flat.vtu's target and proxy point data."""
+    import meshio
+
+    from selfshape.cli import main
+    V, F = sphere_cap(40.0, 60.0, 8)
+    out = tmp_path / "out"
+    assert main(["design", write_obj(tmp_path / "cap.obj", V, F), "-o", str(out), "--proxy", "--stretch", "1.2",
+                 "--diagonal", "80", "-q"]) == 0
+    said = capsys.readouterr().out
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["proxy"]["used"] is True
+    dp = rep["proxy"]["distance_pct"]
+    assert f"designed for a proxy surface within the stretch bounds, {dp[0]:.2f} / {dp[1]:.2f} % from the target" in said
+    m = meshio.read(out / "flat.vtu")
+    assert float(np.abs(m.point_data["proxy"] - m.point_data["target"]).max()) > 0.5
