@@ -119,13 +119,11 @@ def _s_step(S, T, F, uv, dflat, bounds, mass, length, iterations, basis):
     K = (Gd.T @ sp.diags(area) @ Gd + Gp.T @ sp.diags(area) @ Gp + sp.diags(w * mass)).tocsr()
     Kr = basis.T @ (K @ basis)
     KT = K @ T
-    box = not isinstance(bounds, np.ndarray)
     for _ in range(iterations):
         a, b = Gd @ S, Gp @ S                          # (m, 3) each: dS along and across
         t1, t2 = 1.0 / np.maximum(np.linalg.norm(a, axis=1), 1e-12), 1.0 / np.maximum(np.linalg.norm(b, axis=1), 1e-12)
         # the admissible stretches (flat length / surface length) nearest the current ones
-        sig1, sig2 = (np.clip(t1, bounds[0], bounds[1]), np.clip(t2, bounds[2], bounds[3])) if box \
-            else project_stretches(t1, t2, bounds)
+        sig1, sig2 = project_stretches(t1, t2, bounds)
         c1, c2 = 1.0 / sig1, 1.0 / sig2
         Q = _polar(np.stack([c1[:, None] * a, c2[:, None] * b], axis=2))
         rhs = Gd.T @ (area[:, None] * (c1[:, None] * Q[:, :, 0])) + Gp.T @ (area[:, None] * (c2[:, None] * Q[:, :, 1])) \
@@ -229,4 +227,5 @@ def reachable_surface(V, F, dir1, bounds, uv0=None, *, tolerance: float = 0.01, 
         raise SelfshapeError("reachable surface: the iteration diverged (non-finite positions)")
     return ReachableResult(S=S, uv=uv, length_mm=float(length), excess=excess,
                            out_of_bounds_pct=float(100.0 * np.mean(excess > tolerance)),
-                           distance_mm=_distances(S, V, F), history=history)
+                           distance_mm=history[-1]["distance_mm"] if history else (0.0, 0.0, 0.0, 0.0),
+                           history=history)
