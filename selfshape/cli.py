@@ -186,7 +186,7 @@ def _cmd_design(a):
     r = design_file(a.target, a.output, verify=a.verify, diagonal_mm=a.diagonal, stretch=a.stretch,
                     thickness_law=a.law, lam=a.lam, printer=printer, verify_iterations=a.verify_iterations,
                     refine=a.refine, mesh_size_mm=a.mesh_size, mesh_across=a.mesh_across, verbose=a.verbose,
-                    contraction=a.contraction, proxy=a.proxy,
+                    contraction=a.contraction, proxy={"on": True, "off": False}.get(a.proxy, a.proxy),
                     inputs=[p for p in (a.printer, a.contraction.removesuffix(":polygon"))
                             if p and p not in ("auto", "seed", "table", "table-polygon")],
                     progress=a.progress)
@@ -202,6 +202,18 @@ def _cmd_design(a):
                                          else "cannot be designed")
             for row in c["candidates"]) + f" -> {c['chosen']:g}")
     px = r.get("proxy") or {}
+    auto = px.get("auto")
+    if isinstance(auto, dict) and "distance_pct" in px:
+        def both(m):
+            return "did not converge" if m is None else f"{m[0]:.2f} / {m[1]:.2f} %"
+        print(f"proxy auto: designed for the target it deploys {both(auto['target'])}, for a proxy surface "
+              f"{px['distance_pct'][0]:.2f} % from the target {both(auto['proxy'])} (deployed -> target / "
+              f"target -> deployed, mean) -> kept the {auto['kept']}'s design")
+    elif isinstance(auto, dict):
+        print(f"proxy auto: the target's flattening is within the stretch bounds at s {auto['stretch']:g}; "
+              f"designed for the target")
+    elif auto:
+        print(f"proxy auto: {auto}")
     if px.get("used"):
         dp, oob = px["distance_pct"], px["out_of_bounds_pct"]
         print(f"designed for a proxy surface within the stretch bounds, {dp[0]:.2f} / {dp[1]:.2f} % from the target "
@@ -476,9 +488,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--lam", type=_schema_number("DESIGN_NUMBERS", "lam"), default=0.0, help="line-field lambda of the seed (<= 0, 1/mm^2)")
     d.add_argument("--printer", default=None,
                    help="printer TOML (inverse.printer.Printer fields: bed_size, nozzle_mm, print_speed_mm_s, ...)")
-    d.add_argument("--proxy", action="store_true",
+    d.add_argument("--proxy", nargs="?", const="on", default="off", choices=("on", "off", "auto"),
                    help="where the target's flattening is far out of the stretch bounds, design for the nearest smooth "
-                        "surface within them (still verified and refined against the target)")
+                        "surface within them (still verified and refined against the target); 'auto' (with --verify "
+                        "or --refine): verify the designs for the target and for the proxy, keep the nearer")
     d.set_defaults(fn=_cmd_design)
 
     c = sub.add_parser("calibrate", help="fit material parameters (validation.strips / validation.fabric)")
