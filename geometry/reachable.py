@@ -135,14 +135,18 @@ def _s_step(S, T, F, uv, dflat, bounds, mass, length, iterations, basis):
 def smooth_basis(V, F, smooth_mm: float, max_modes: int = 400):
     """(n, k) the Laplacian eigenfunctions of the mesh (V, F) (free boundary, mass-orthonormal)
     whose wavelength 2 pi / sqrt(eigenvalue) is at least ``smooth_mm`` (mm), at most
-    ``max_modes`` of them: the smooth displacements."""
+    ``max_modes`` of them: the smooth displacements. ARPACK starts from a vector seeded by the
+    mesh size, not from its own generator, whose state carries over between calls: two calls in
+    one process returned bases equal only to round-off, which a multistable sheet designed for
+    the proxy turns into another deployed state."""
     import igl
     from scipy.sparse.linalg import eigsh
 
     L = -igl.cotmatrix(V, np.asarray(F, np.int64))
     M = sp.diags(lumped_mass(V, F))
     k = int(min(max_modes, len(V) - 2))
-    vals, vecs = eigsh(L.tocsc(), k=k, M=M.tocsc(), sigma=-1e-8, which="LM")
+    v0 = np.random.default_rng(len(V)).standard_normal(len(V))
+    vals, vecs = eigsh(L.tocsc(), k=k, M=M.tocsc(), sigma=-1e-8, which="LM", v0=v0)
     order = np.argsort(vals)
     vals, vecs = vals[order], vecs[:, order]
     keep = vals <= (2.0 * np.pi / smooth_mm) ** 2
