@@ -683,11 +683,16 @@ def _verify_target_and_proxy(d, alt, pattern_kw, base_file, parallel=None, progr
         except SelfshapeError:      # its meshing error: reported as the serial verification below reports it
             beside = None
     results = []
-    for i, (dd, raw, pattern) in enumerate(cands):
-        sims = []
-        rep = verify_design(dd, pattern, None, sims=sims, progress=progress if i == 0 or beside is None else None,
-                            beside=beside if i == 1 else None)
-        results.append((rep, sims[0] if sims else None))
+    try:
+        for i, (dd, raw, pattern) in enumerate(cands):
+            sims = []
+            rep = verify_design(dd, pattern, None, sims=sims, progress=progress if i == 0 or beside is None else None,
+                                beside=beside if i == 1 else None)
+            results.append((rep, sims[0] if sims else None))
+    except BaseException:             # Ctrl-C or an internal error here: the worker does not outlive it
+        if beside is not None:
+            beside.cancel()
+        raise
     scores = [_deviation_score(rep) for rep, _ in results]
     keep = 1 if scores[1] is not None and (scores[0] is None or scores[1] < scores[0]) else 0
 
