@@ -488,7 +488,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--lam", type=_schema_number("DESIGN_NUMBERS", "lam"), default=0.0, help="line-field lambda of the seed (<= 0, 1/mm^2)")
     d.add_argument("--printer", default=None,
                    help="printer TOML (inverse.printer.Printer fields: bed_size, nozzle_mm, print_speed_mm_s, ...)")
-    d.add_argument("--proxy", nargs="?", const="on", default="off", choices=("on", "off", "auto"),
+    d.add_argument("--proxy", nargs="?", const="on", default="off", choices=PROXY_VALUES,
                    help="where the target's flattening is far out of the stretch bounds, design for the nearest smooth "
                         "surface within them (still verified and refined against the target); 'auto' (with --verify "
                         "or --refine): verify the designs for the target and for the proxy, keep the nearer")
@@ -527,10 +527,25 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+PROXY_VALUES = ("on", "off", "auto")
+
+
+def _bare_proxy_is_on(argv: list) -> list:
+    """``--proxy`` not followed by one of PROXY_VALUES means ``--proxy on`` (its meaning before
+    it took a value): argparse would otherwise take the target path after it as the value."""
+    out = []
+    for i, a in enumerate(argv):
+        out.append(a)
+        if a == "--proxy" and (i + 1 == len(argv) or argv[i + 1] not in PROXY_VALUES):
+            out.append("on")
+    return out
+
+
 def main(argv=None) -> int:
     """Run ``selfshape ARGV``; returns the exit status (0, 1 not converged, 2 bad input or
     usage, 3 internal error, 130 interrupted) instead of exiting, so tests can call it."""
     from shellfem.errors import SelfshapeError
+    argv = _bare_proxy_is_on(sys.argv[1:] if argv is None else list(argv))
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as e:       # a usage error (one line, status 2) or --help (status 0)

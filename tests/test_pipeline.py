@@ -844,3 +844,15 @@ def test_cli_design_proxy_auto_keeps_the_design_that_deploys_nearer(tmp_path, ca
     assert plain["proxy"]["used"] is False
     with pytest.raises(SelfshapeError, match="proxy must be true, false or 'auto'"):
         design(V, F, diagonal_mm=50.0, stretch=1.2, proxy="yes")
+
+
+def test_cli_bare_proxy_before_the_target_means_on():
+    """`selfshape design --proxy TARGET -o DIR` (the flag before the positional, as before it took
+    a value) parses as --proxy on, not as a value 'TARGET'; --proxy auto and a trailing --proxy too."""
+    from selfshape.cli import _bare_proxy_is_on, build_parser
+    p = build_parser()
+    a = p.parse_args(_bare_proxy_is_on(["design", "--proxy", "t.obj", "-o", "out"]))
+    assert (a.proxy, a.target, a.output) == ("on", "t.obj", "out")
+    assert p.parse_args(_bare_proxy_is_on(["design", "t.obj", "-o", "out", "--proxy"])).proxy == "on"
+    assert p.parse_args(_bare_proxy_is_on(["design", "--proxy", "auto", "t.obj", "-o", "out"])).proxy == "auto"
+    assert p.parse_args(["design", "t.obj", "-o", "out"]).proxy == "off"
