@@ -253,6 +253,9 @@ class DesignOptions:
 #: faces out of bounds, all within that).
 PROXY_MIN_OOB_PCT = 1.0
 
+#: the command-line words of DesignOptions.proxy (selfshape design --proxy, the study scripts)
+PROXY_WORDS = {"on": True, "off": False, "auto": "auto"}
+
 
 def proxy_surface(V, F, bounds, lam: float, smooth_mm: float, stop: str = "mean"):
     """The surface a design is made for instead of the target (V (n, 3) mm, F): the target
@@ -666,25 +669,23 @@ def _verify_target_and_proxy(d, alt, pattern_kw, base_file, parallel=None, progr
     at 2.3 % for its proxy against 5.4 % for itself, while the hat and the beetle, as far out of
     their bounds, deploy as near or nearer designed for themselves (docs/notes.md, sessions 43-44).
     ``pattern_kw``: inverse.to_pattern.pattern_dict's keywords; ``base_file``: the pattern.toml
-    path the patterns are read as. Returns (kept design, its pattern dict, its Pattern, its
-    Simulation or None, its verification's report entries, the choice record {"target",
-    "proxy": [deployed -> target mean, target -> deployed mean] % or None, "kept"})."""
+    path the patterns are read as. Returns (kept design, its Simulation or None, its
+    verification's report entries, the choice record {"target", "proxy": [deployed -> target
+    mean, target -> deployed mean] % or None, "kept"})."""
     from geometry.patterns import parse_pattern
     from shellfem import forked
 
-    cands = []
-    for dd in (d, alt):
-        raw = pattern_dict(dd, **pattern_kw)
-        cands.append((dd, raw, parse_pattern(raw, base_file, os.path.dirname(os.path.abspath(base_file)))))
+    cands = [(dd, parse_pattern(pattern_dict(dd, **pattern_kw), base_file, os.path.dirname(os.path.abspath(base_file))))
+             for dd in (d, alt)]
     beside = None
-    if forked.wanted(parallel) and getattr(cands[1][2], "solver_model", "shell") == "shell":
+    if forked.wanted(parallel) and getattr(cands[1][1], "solver_model", "shell") == "shell":
         try:
-            beside = SimulationBeside(cands[1][2], label="the proxy design's verification")
+            beside = SimulationBeside(cands[1][1], label="the proxy design's verification")
         except SelfshapeError:      # its meshing error: reported as the serial verification below reports it
             beside = None
     results = []
     try:
-        for i, (dd, raw, pattern) in enumerate(cands):
+        for i, (dd, pattern) in enumerate(cands):
             sims = []
             rep = verify_design(dd, pattern, None, sims=sims, progress=progress if i == 0 or beside is None else None,
                                 beside=beside if i == 1 else None)
@@ -700,9 +701,8 @@ def _verify_target_and_proxy(d, alt, pattern_kw, base_file, parallel=None, progr
         a, b = rep.get("deviation_pct_bbox"), rep.get("deviation_target_to_deployed_pct_bbox")
         return [round(float(a[0]), 4), round(float(b[0]), 4)] if rep.get("verify_converged") and a and b else None
     record = {"target": means(results[0][0]), "proxy": means(results[1][0]), "kept": ("target", "proxy")[keep]}
-    dd, raw, pattern = cands[keep]
     rep, sim = results[keep]
-    return dd, raw, pattern, sim, rep, record
+    return cands[keep][0], sim, rep, record
 
 
 def _fmt(x) -> str:
@@ -1074,7 +1074,7 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
             d = design(V, F, o_first, where=name, progress=progress)
         pattern_kw = dict(mesh_size_mm=mesh_size_mm, mesh_across=mesh_across, seed=o.seed, target_name=name,
                           max_iterations=verify_iterations, metric_floor=metric_floor)
-        verified = None             # proxy "auto": (Pattern, Simulation or None, report entries) of the kept design
+        verified = None             # proxy "auto": (Simulation or None, report entries, seconds) of the kept design
         if o.proxy == "auto" and (verify or refine):
             # the proxy's design chooses its own stretch (its flattening is within other bounds)
             o_p = replace(o, proxy=True)
@@ -1084,12 +1084,12 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
                 t = time.perf_counter()
                 if progress is not None:
                     progress({"stage": "verify"})
-                d, _, pattern_v, sim_v, rep_v, record = _verify_target_and_proxy(
-                    d, alt, pattern_kw, out.file("pattern.toml"), parallel, progress)
+                d, sim_v, rep_v, record = _verify_target_and_proxy(d, alt, pattern_kw, out.file("pattern.toml"),
+                                                                   parallel, progress)
                 d.proxy = {**alt.proxy, "used": d is alt, "auto": record}
                 if d is alt:
                     choice = choice_p
-                verified = (pattern_v, sim_v, rep_v, time.perf_counter() - t)
+                verified = (sim_v, rep_v, time.perf_counter() - t)
             else:
                 d.proxy = {**alt.proxy, "auto": {"target": None, "proxy": None, "kept": "target",
                                                  "stretch": alt.stretch}}
@@ -1107,7 +1107,7 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
             rep["stretch_choice"] = choice
         rep["stages_s"] = {k: round(v, 3) for k, v in d.times.items()}
         rep["stages_cpu_s"] = {k: round(v, 3) for k, v in d.cpu_times.items()}
-        rep["time_s"] = round(time.perf_counter() - t_start - (verified[3] if verified is not None else 0.0), 3)
+        rep["time_s"] = round(time.perf_counter() - t_start - (verified[2] if verified is not None else 0.0), 3)
         if verify or refine:
             t = time.perf_counter()
             p_toml = out.file("pattern.toml")
@@ -1117,9 +1117,9 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
             if progress is not None:
                 progress({"stage": "verify"})
             if verified is not None:         # both open loops verified above: the kept one's files
-                sim_v, rep_v = verified[1], verified[2]
+                sim_v, rep_v, seconds_v = verified
                 rep.update(verify_design(d, pattern, out, sims=sims, simulation=sim_v) if sim_v is not None else rep_v)
-                rep["stages_s"]["verify"] = round(verified[3], 3)
+                rep["stages_s"]["verify"] = round(seconds_v, 3)
             elif refine and forked.wanted(parallel) and getattr(pattern, "solver_model", "shell") == "shell":
                 # the refinement from the target needs only the mesh: the open-loop verification's
                 # release from flat runs beside it in a worker (a meshing error: the verification

@@ -175,7 +175,7 @@ def _curvature_fit(row) -> str:
 
 
 def _cmd_design(a):
-    from inverse.design import design_file
+    from inverse.design import PROXY_WORDS, design_file
     from inverse.printer import load_printer
     printer = load_printer(a.printer) if a.printer else None
     table = a.contraction.removesuffix(":polygon")
@@ -186,7 +186,7 @@ def _cmd_design(a):
     r = design_file(a.target, a.output, verify=a.verify, diagonal_mm=a.diagonal, stretch=a.stretch,
                     thickness_law=a.law, lam=a.lam, printer=printer, verify_iterations=a.verify_iterations,
                     refine=a.refine, mesh_size_mm=a.mesh_size, mesh_across=a.mesh_across, verbose=a.verbose,
-                    contraction=a.contraction, proxy={"on": True, "off": False}.get(a.proxy, a.proxy),
+                    contraction=a.contraction, proxy=PROXY_WORDS[a.proxy],
                     inputs=[p for p in (a.printer, a.contraction.removesuffix(":polygon"))
                             if p and p not in ("auto", "seed", "table", "table-polygon")],
                     progress=a.progress)

@@ -39,7 +39,7 @@ from study_cli import ANALYTIC_TARGETS, analytic_target, target_paths
 
 
 def run_target(path, out_dir, args) -> dict:
-    from inverse.design import design_file
+    from inverse.design import PROXY_WORDS, design_file
     from inverse.printer import Printer, load_printer
     from inverse.refine import RefineOptions
 
@@ -50,7 +50,7 @@ def run_target(path, out_dir, args) -> dict:
     rep = design_file(path, out_dir, refine=True, mesh_size_mm=args.mesh_size, mesh_across=args.across,
                       verify_iterations=args.verify_iterations, refine_options=opts, printer=printer,
                       verbose=args.verbose, parallel=False if (args.serial or args.workers or args.scheduler) else None,
-                      proxy={"on": True, "off": False, "auto": "auto"}[getattr(args, "proxy", "off")],
+                      proxy=PROXY_WORDS[getattr(args, "proxy", "off")],
                       **({} if args.stretch is None else {"stretch": args.stretch}))
     ref, ol = rep.get("refine", {}), rep.get("open_loop", {})
     return {
