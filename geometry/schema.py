@@ -222,6 +222,8 @@ DESIGN_NUMBERS: dict[str, Num] = {
     "ribbon_width": WIDTH,
     "proxy_smooth_mm": Num(0.0, COORD_MAX_MM, _LEN, "the proxy surface's shortest wavelength: a length on a target "
                            "of at most 10 m", lo_open=True),
+    "stretch_candidates": Num(1, 10, "", "designs verified per surface with --stretch auto (1: the stretch "
+                              "choice's score alone; the shipped laws are at 5 stretches)", integer=True),
 }
 #: The flattening's stretch bounds (s1min, s1max, s2min, s2max) of a design: each in this range
 #: and each minimum at most its maximum (DesignOptions.bounds; None: the contraction model's).

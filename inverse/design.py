@@ -36,6 +36,7 @@ Units: mm, 1/mm; the flat pattern is in printed (pre-stretched) mm.
 """
 from __future__ import annotations
 
+import itertools
 import os
 import time
 from dataclasses import dataclass, replace
@@ -224,8 +225,12 @@ class DesignOptions:
     metric the bounds admit, smooth at wavelengths down to ``proxy_smooth_mm`` (mm); the
     verification and the refinement still measure against the target. "auto" (design_file with
     verification): the design for the target and the one for its proxy are both verified and the
-    one that deploys nearer the target is kept (`_verify_target_and_proxy`); without verification
-    "auto" designs for the target."""
+    one that deploys nearer the target is kept (`_verify_candidates`); without verification
+    "auto" designs for the target.
+    stretch_candidates: with stretch "auto" and a verification (design_file), the designs at this
+    many best stretches by `reach_score` (for the target, and for its proxy with proxy "auto")
+    are all simulated and the one that deploys nearest the target is kept (1: the score's
+    choice alone, as without verification)."""
     stretch: float | str = "auto"
     diagonal_mm: float | None = 110.0
     printer: object = None
@@ -244,6 +249,7 @@ class DesignOptions:
     contraction: object = "auto"
     proxy: bool | str = False
     proxy_smooth_mm: float = 30.0
+    stretch_candidates: int = 1
 
 
 #: A proxy surface (DesignOptions.proxy) is sought only where the target's flattening leaves the
@@ -589,6 +595,17 @@ def choose_stretch(V, F, options: DesignOptions | None = None, *, where: str = "
     that does not state it cannot choose (one-line error). Ties go to the larger stretch (more
     contraction for the flattening). Returns (Design, {"candidates": [...], "chosen": s}).
     ``progress``: as for `design`, each event with "candidate": "stretch s (i/n)"."""
+    ranked, record = rank_stretches(V, F, options, where=where, progress=progress, keep=1, **overrides)
+    return ranked[0], record
+
+
+def rank_stretches(V, F, options: DesignOptions | None = None, *, where: str = "target", progress=None,
+                   keep: int = 1, **overrides):
+    """`choose_stretch` keeping the ``keep`` best designs: ([Design, ...] best first by
+    `reach_score`, at most ``keep`` of them, {"candidates": [...], "chosen": the best's s}). The
+    ranked designs are what DesignOptions.stretch_candidates verifies: the score is read off
+    the flattening and the law, and on a torus band it took 1.3 where the design at 1.2 deploys
+    nearer (docs/notes.md, session 44)."""
     from inverse.thickness_law import ThicknessLaw, load_thickness_law, shipped_laws
 
     o = replace(options or DesignOptions(), **overrides)
@@ -602,7 +619,7 @@ def choose_stretch(V, F, options: DesignOptions | None = None, *, where: str = "
                                  f"(a '# fabric_stretch = s' line); give --stretch instead")
         candidates = [law.stretch]
         o = replace(o, thickness_law=law)         # read once, not again per design
-    best, rows, failed = None, [], None
+    scored, rows, failed = [], [], None
     for i, s in enumerate(candidates):
         tag = f"stretch {s:g} ({i + 1}/{len(candidates)})"
         each = None if progress is None else (lambda e, tag=tag: progress({**e, "candidate": tag}))
@@ -616,11 +633,13 @@ def choose_stretch(V, F, options: DesignOptions | None = None, *, where: str = "
             continue
         row = reach_score(d)
         rows.append(row)
-        if best is None or row["score"] < best[1]["score"] - 1e-9:
-            best = (d, row)
-    if best is None:
+        # ties keep the earlier (larger) stretch: a later one must score lower by more than 1e-9
+        pos = sum(1 for _, r in scored if r["score"] <= row["score"] + 1e-9)
+        scored.insert(pos, (d, row))
+        del scored[max(int(keep), 1):]       # the designs not kept are not held
+    if not scored:
         raise failed
-    return best[0], {"candidates": rows, "chosen": best[1]["stretch"]}
+    return [d for d, _ in scored], {"candidates": rows, "chosen": scored[0][1]["stretch"]}
 
 
 # ----------------------------------------------------------------------------- the verb
@@ -660,49 +679,53 @@ def _deviation_score(rep) -> float | None:
     return 0.5 * (float(a[0]) + float(b[0]))
 
 
-def _verify_target_and_proxy(d, alt, pattern_kw, base_file, parallel=None, progress=None):
-    """DesignOptions.proxy = "auto": simulate the open-loop design for the target (``d``) and
-    the one for its proxy surface (``alt``), side by side in a forked worker when ``parallel``
-    (shellfem.forked), and keep the one that deploys nearer the target (_deviation_score: the
-    mean of the two one-way mean deviations; a simulation that fails or does not converge
-    loses). Why measured, not decided from the flattening: at s 1.2 the 110 mm hemisphere lands
-    at 2.3 % for its proxy against 5.4 % for itself, while the hat and the beetle, as far out of
-    their bounds, deploy as near or nearer designed for themselves (docs/notes.md, sessions 43-44).
-    ``pattern_kw``: inverse.to_pattern.pattern_dict's keywords; ``base_file``: the pattern.toml
-    path the patterns are read as. Returns (kept design, its Simulation or None, its
-    verification's report entries, the choice record {"target", "proxy": [deployed -> target
-    mean, target -> deployed mean] % or None, "kept"})."""
+def _means(rep):
+    """[deployed -> target mean, target -> deployed mean] % of a verification, None if it has none."""
+    a, b = rep.get("deviation_pct_bbox"), rep.get("deviation_target_to_deployed_pct_bbox")
+    return [round(float(a[0]), 4), round(float(b[0]), 4)] if rep.get("verify_converged") and a and b else None
+
+
+def _verify_candidates(cands, pattern_kw, base_file, parallel=None, progress=None):
+    """Simulate the open-loop designs ``cands`` [(label, Design)] and keep the one that deploys
+    nearest the target (_deviation_score: the mean of the two one-way mean deviations; a
+    simulation that fails or does not converge loses; ties keep the earlier). Two at a time: the
+    second of each pair in a forked worker (shellfem.forked) beside this process when
+    ``parallel``. Why measured, not decided from the flattening: at s 1.2 the 110 mm hemisphere
+    lands at 2.3 % for its proxy (DesignOptions.proxy) against 5.4 % for itself, while the hat
+    and the beetle, as far out of their bounds, deploy as near or nearer designed for
+    themselves; the stretch choice's score took 1.3 for a torus band whose design at 1.2
+    deploys nearer (docs/notes.md, sessions 43-45). ``pattern_kw``:
+    inverse.to_pattern.pattern_dict's keywords; ``base_file``: the pattern.toml path the
+    patterns are read as. Returns (index kept, its Simulation or None, its verification's
+    report entries, [_means per candidate])."""
     from geometry.patterns import parse_pattern
     from shellfem import forked
 
-    cands = [(dd, parse_pattern(pattern_dict(dd, **pattern_kw), base_file, os.path.dirname(os.path.abspath(base_file))))
-             for dd in (d, alt)]
-    beside = None
-    if forked.wanted(parallel) and getattr(cands[1][1], "solver_model", "shell") == "shell":
+    base_dir = os.path.dirname(os.path.abspath(base_file))
+    reps, best = [None] * len(cands), None          # best: (score, index, Simulation)
+    for i in range(0, len(cands), 2):
+        pair = [(k, parse_pattern(pattern_dict(cands[k][1], **pattern_kw), base_file, base_dir))
+                for k in range(i, min(i + 2, len(cands)))]
+        beside = None
+        if len(pair) == 2 and forked.wanted(parallel) and getattr(pair[1][1], "solver_model", "shell") == "shell":
+            try:
+                beside = SimulationBeside(pair[1][1], label=f"the verification of the {cands[pair[1][0]][0]} design")
+            except SelfshapeError:  # its meshing error: reported as the serial verification below reports it
+                beside = None
         try:
-            beside = SimulationBeside(cands[1][1], label="the proxy design's verification")
-        except SelfshapeError:      # its meshing error: reported as the serial verification below reports it
-            beside = None
-    results = []
-    try:
-        for i, (dd, pattern) in enumerate(cands):
-            sims = []
-            rep = verify_design(dd, pattern, None, sims=sims, progress=progress if i == 0 or beside is None else None,
-                                beside=beside if i == 1 else None)
-            results.append((rep, sims[0] if sims else None))
-    except BaseException:             # Ctrl-C or an internal error here: the worker does not outlive it
-        if beside is not None:
-            beside.cancel()
-        raise
-    scores = [_deviation_score(rep) for rep, _ in results]
-    keep = 1 if scores[1] is not None and (scores[0] is None or scores[1] < scores[0]) else 0
-
-    def means(rep):
-        a, b = rep.get("deviation_pct_bbox"), rep.get("deviation_target_to_deployed_pct_bbox")
-        return [round(float(a[0]), 4), round(float(b[0]), 4)] if rep.get("verify_converged") and a and b else None
-    record = {"target": means(results[0][0]), "proxy": means(results[1][0]), "kept": ("target", "proxy")[keep]}
-    rep, sim = results[keep]
-    return cands[keep][0], sim, rep, record
+            for n, (k, pattern) in enumerate(pair):
+                sims = []
+                reps[k] = verify_design(cands[k][1], pattern, None, sims=sims,
+                                        progress=progress if n == 0 or beside is None else None,
+                                        beside=beside if n == 1 else None)
+                score = _deviation_score(reps[k])
+                if best is None or (score is not None and (best[0] is None or score < best[0])):
+                    best = (score, k, sims[0] if sims else None)       # the others' Simulations are dropped
+        except BaseException:             # Ctrl-C or an internal error here: the worker does not outlive it
+            if beside is not None:
+                beside.cancel()
+            raise
+    return best[1], best[2], reps[best[1]], [_means(r) for r in reps]
 
 
 def _fmt(x) -> str:
@@ -1066,35 +1089,55 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
     out = OutputDir(out_dir, OUTPUTS, inputs=[target_path, law, *inputs])
     with out:
         choice = None
-        # proxy "auto": the target's own design first (its stretch chosen for the target), then the proxy's
+        verifying = verify or refine
+        # stretch_candidates: the designs at the best stretches, verified below when there is a verification
+        keep = o.stretch_candidates if o.stretch == "auto" and verifying else 1
+        # proxy "auto": the target's own designs first (their stretch chosen for the target), then the proxy's
         o_first = replace(o, proxy=False) if o.proxy == "auto" else o
         if o.stretch == "auto":
-            d, choice = choose_stretch(V, F, o_first, where=name, progress=progress)
+            ds, choice = rank_stretches(V, F, o_first, where=name, progress=progress, keep=keep)
         else:
-            d = design(V, F, o_first, where=name, progress=progress)
+            ds = [design(V, F, o_first, where=name, progress=progress)]
+        cands = [("target", dd) for dd in ds]
+        choices = {"target": choice}
+        if o.proxy == "auto" and verifying:
+            # the proxy's designs choose their own stretches (the proxy's flattening is within other bounds)
+            o_p = replace(o, proxy=True)
+            alts, choices["proxy"] = rank_stretches(V, F, o_p, where=name, progress=progress, keep=keep) \
+                if o.stretch == "auto" else ([design(V, F, o_p, where=name, progress=progress)], None)
+            if alts[0].proxy["used"]:
+                # paired target / proxy at each rank: the first pair is simulated side by side
+                cands = [c for pair in itertools.zip_longest(cands, [("proxy", a) for a in alts]) for c in pair if c]
+            else:
+                for dd in ds:
+                    dd.proxy = {**alts[0].proxy, "auto": {"target": None, "proxy": None, "kept": "target",
+                                                          "stretch": alts[0].stretch}}
+        elif o.proxy == "auto":
+            for dd in ds:
+                dd.proxy = {"used": False, "auto": "not verified: designed for the target"}
         pattern_kw = dict(mesh_size_mm=mesh_size_mm, mesh_across=mesh_across, seed=o.seed, target_name=name,
                           max_iterations=verify_iterations, metric_floor=metric_floor)
-        verified = None             # proxy "auto": (Simulation or None, report entries, seconds) of the kept design
-        if o.proxy == "auto" and (verify or refine):
-            # the proxy's design chooses its own stretch (its flattening is within other bounds)
-            o_p = replace(o, proxy=True)
-            alt, choice_p = choose_stretch(V, F, o_p, where=name, progress=progress) if o.stretch == "auto" else \
-                (design(V, F, o_p, where=name, progress=progress), None)
-            if alt.proxy["used"]:
-                t = time.perf_counter()
-                if progress is not None:
-                    progress({"stage": "verify"})
-                d, sim_v, rep_v, record = _verify_target_and_proxy(d, alt, pattern_kw, out.file("pattern.toml"),
-                                                                   parallel, progress)
-                d.proxy = {**alt.proxy, "used": d is alt, "auto": record}
-                if d is alt:
-                    choice = choice_p
-                verified = (sim_v, rep_v, time.perf_counter() - t)
-            else:
-                d.proxy = {**alt.proxy, "auto": {"target": None, "proxy": None, "kept": "target",
-                                                 "stretch": alt.stretch}}
-        elif o.proxy == "auto":
-            d.proxy = {"used": False, "auto": "not verified: designed for the target"}
+        verified = None             # several candidates: (Simulation or None, report entries, seconds) of the kept
+        if len(cands) > 1:
+            t = time.perf_counter()
+            if progress is not None:
+                progress({"stage": "verify"})
+            k, sim_v, rep_v, means = _verify_candidates(cands, pattern_kw, out.file("pattern.toml"), parallel, progress)
+            label, d = cands[k]
+            verified = (sim_v, rep_v, time.perf_counter() - t)
+            if o.proxy == "auto":
+                # each kind's nearest verified design (its best by the score where none converged)
+                best = {lab: min((m for (l2, _), m in zip(cands, means) if l2 == lab),
+                                 key=lambda m: np.inf if m is None else sum(m)) for lab in ("target", "proxy")}
+                d.proxy = {**(d.proxy if label == "proxy" else alts[0].proxy), "used": label == "proxy",
+                           "auto": {**best, "kept": label}}
+            choice = choices[label]
+            if keep > 1 and choice is not None:
+                choice = {**choice, "chosen": d.stretch, "by": "verification",
+                          "verified": [{"design": lab, "stretch": dd.stretch, "deviation_means_pct": m}
+                                       for (lab, dd), m in zip(cands, means)]}
+        else:
+            d = ds[0]
         t = time.perf_counter()
         if progress is not None:
             progress({"stage": "write"})

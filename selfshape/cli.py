@@ -183,10 +183,14 @@ def _cmd_design(a):
         from shellfem.errors import SelfshapeError
         raise SelfshapeError(f"--contraction {a.contraction!r:.80}: not 'auto', 'seed', 'table', 'table-polygon' nor "
                              f"a contraction table file (no such file)")
+    if a.stretch_candidates > 1 and (a.stretch != "auto" or not (a.verify or a.refine)):
+        from shellfem.errors import SelfshapeError
+        raise SelfshapeError(f"--stretch-candidates {a.stretch_candidates}: needs --stretch auto and --verify or "
+                             f"--refine (the candidates are verified to choose)")
     r = design_file(a.target, a.output, verify=a.verify, diagonal_mm=a.diagonal, stretch=a.stretch,
                     thickness_law=a.law, lam=a.lam, printer=printer, verify_iterations=a.verify_iterations,
                     refine=a.refine, mesh_size_mm=a.mesh_size, mesh_across=a.mesh_across, verbose=a.verbose,
-                    contraction=a.contraction, proxy=PROXY_WORDS[a.proxy],
+                    contraction=a.contraction, proxy=PROXY_WORDS[a.proxy], stretch_candidates=a.stretch_candidates,
                     inputs=[p for p in (a.printer, a.contraction.removesuffix(":polygon"))
                             if p and p not in ("auto", "seed", "table", "table-polygon")],
                     progress=a.progress)
@@ -200,7 +204,12 @@ def _cmd_design(a):
             f"s {row['stretch']:g}: " + (f"{_curvature_fit(row)}, "
                                          f"{100 * row['out_of_bounds']:.1f} % out of bounds" if "error" not in row
                                          else "cannot be designed")
-            for row in c["candidates"]) + f" -> {c['chosen']:g}")
+            for row in c["candidates"]) + f" -> {c['chosen']:g}" + (" (verified)" if c.get("verified") else ""))
+        if c.get("verified"):
+            print("verified: " + ", ".join(
+                f"{v['design']} s {v['stretch']:g} " + ("did not converge" if v["deviation_means_pct"] is None else
+                                                        "{:.2f} / {:.2f} %".format(*v["deviation_means_pct"]))
+                for v in c["verified"]) + " (deployed -> target / target -> deployed, mean)")
     px = r.get("proxy") or {}
     auto = px.get("auto")
     if isinstance(auto, dict) and "distance_pct" in px:
@@ -480,6 +489,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="scale the target to this bounding-box diagonal, mm (10-5000)")
     d.add_argument("--stretch", type=_stretch, default="auto",
                    help="fabric pre-stretch s, or 'auto' (default): the shipped law's stretch that fits the target best")
+    d.add_argument("--stretch-candidates", type=_schema_number("DESIGN_NUMBERS", "stretch_candidates"), default=1,
+                   metavar="N", help="with --stretch auto and --verify or --refine: verify the designs at the N best "
+                                     "stretches by the choice's score and keep the one that deploys nearest (default 1)")
     d.add_argument("--law", default=None, help="curvature-law CSV (default: the shipped inverse/data table)")
     d.add_argument("--contraction", default="auto",
                    help="how stretch maps to ribbon spacing: 'auto' (default: the shipped table of simulated patches "
