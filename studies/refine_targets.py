@@ -23,7 +23,7 @@ in forked workers (inverse.design.design_file's ``parallel``);
 
     python studies/refine_targets.py [--mesh-size 3] [--across 1] [--max-outer N] [--stretch 1.2]
                                      [--printer inverse/data/printers/layer_0.1mm.toml] [--proxy on|off|auto]
-                                     [--verify-iterations 3000] [--out out/refine]
+                                     [--stretch-candidates N] [--verify-iterations 3000] [--out out/refine]
                                      [--workers N | --scheduler ADDRESS] [--serial] [-q] [names or paths...]
     python studies/refine_targets.py --table RUN.jsonl [...]     # the README table of runs' JSON lines
 """
@@ -51,6 +51,7 @@ def run_target(path, out_dir, args) -> dict:
                       verify_iterations=args.verify_iterations, refine_options=opts, printer=printer,
                       verbose=args.verbose, parallel=False if (args.serial or args.workers or args.scheduler) else None,
                       proxy=PROXY_WORDS[getattr(args, "proxy", "off")],
+                      stretch_candidates=getattr(args, "stretch_candidates", 1) if args.stretch is None else 1,
                       **({} if args.stretch is None else {"stretch": args.stretch}))
     ref, ol = rep.get("refine", {}), rep.get("open_loop", {})
     return {
@@ -71,7 +72,8 @@ def run_target(path, out_dir, args) -> dict:
         "feasibility": ref.get("feasibility"), "n_triangles": rep.get("verify_n_triangles"),
         "thickness_rounded_mm": ref.get("thickness_rounded_mm"),
         "out_of_bounds_pct": rep.get("sigma_out_of_bounds_pct"), "stages_s": rep.get("stages_s"),
-        "proxy": rep.get("proxy"), "stretch": rep.get("stretch"), "refine_s": (rep.get("stages_s") or {}).get("refine"),
+        "proxy": rep.get("proxy"), "stretch": rep.get("stretch"),
+        "verified": (rep.get("stretch_choice") or {}).get("verified"), "refine_s": (rep.get("stages_s") or {}).get("refine"),
         "total_s": round(time.perf_counter() - t0, 1),
     }
 
@@ -160,6 +162,9 @@ def main(argv=None) -> int:
     ap.add_argument("--stretch", type=float, help="pre-stretch s (default: the design's own choice)")
     ap.add_argument("--proxy", choices=("on", "off", "auto"), default="off",
                     help="design for a proxy surface within the stretch bounds (selfshape design --proxy)")
+    ap.add_argument("--stretch-candidates", type=int, default=1,
+                    help="without --stretch: verify the open loops at this many best stretches and keep the nearest "
+                         "(selfshape design --stretch-candidates)")
     ap.add_argument("--max-thickness", type=float, default=1.6, help="thickest printable ribbon (mm)")
     ap.add_argument("-v", "--verbose", action="store_true")
     ap.add_argument("--serial", action="store_true",
