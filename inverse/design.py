@@ -1125,12 +1125,12 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
             k, sim_v, rep_v, means = _verify_candidates(cands, pattern_kw, out.file("pattern.toml"), parallel, progress)
             label, d = cands[k]
             verified = (sim_v, rep_v, time.perf_counter() - t)
-            if o.proxy == "auto":
+            if any(lab == "proxy" for lab, _ in cands):
                 # each kind's nearest verified design (its best by the score where none converged)
-                best = {lab: min((m for (l2, _), m in zip(cands, means) if l2 == lab),
-                                 key=lambda m: np.inf if m is None else sum(m)) for lab in ("target", "proxy")}
-                d.proxy = {**(d.proxy if label == "proxy" else alts[0].proxy), "used": label == "proxy",
-                           "auto": {**best, "kept": label}}
+                best = {lab: min(((dd, m) for (l2, dd), m in zip(cands, means) if l2 == lab),
+                                 key=lambda dm: np.inf if dm[1] is None else sum(dm[1])) for lab in ("target", "proxy")}
+                d.proxy = {**best["proxy"][0].proxy, "used": label == "proxy",
+                           "auto": {"target": best["target"][1], "proxy": best["proxy"][1], "kept": label}}
             choice = choices[label]
             if keep > 1 and choice is not None:
                 choice = {**choice, "chosen": d.stretch, "by": "verification",

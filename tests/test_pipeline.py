@@ -882,6 +882,35 @@ def test_cli_design_stretch_candidates_keeps_the_stretch_that_deploys_nearest(tm
         design(V, F, diagonal_mm=50.0, stretch_candidates=0)
 
 
+def test_design_file_stretch_candidates_records_the_verified_choice(tmp_path, monkeypatch):
+    """design_file's bookkeeping of stretch_candidates with proxy "auto" on a cylinder its bounds
+    admit (no proxy designs to verify): the verifications stubbed by a table of deviations, so
+    that the nearest is known. The kept design is the stub's nearest, not the score's first, its
+    stretch is the pattern's and the report's; a candidate that does not converge loses."""
+    V, F = cylinder_patch()
+    target = write_obj(tmp_path / "cyl.obj", V, F)
+    seen = []
+
+    def verified(d, pattern, out_dir=None, sims=None, progress=None, simulation=None, beside=None):
+        seen.append(d.stretch)
+        if d.stretch == seen[0]:                  # the score's first: does not converge
+            return {"verify_converged": False, "verify_reason": "stub", "deviation_pct_bbox": None}
+        m = {1.1: 1.5}.get(d.stretch, 2.5)
+        return {"verify_converged": True, "deviation_pct_bbox": [m, 9.0],
+                "deviation_target_to_deployed_pct_bbox": [m + 0.25, 9.0]}
+    monkeypatch.setattr(design_module, "verify_design", verified)
+    rep = design_file(target, tmp_path / "out", verify=True, diagonal_mm=50.0, proxy="auto", stretch_candidates=3,
+                      mesh_size_mm=8.0, parallel=False)
+    c = rep["stretch_choice"]
+    ranked = [r["stretch"] for r in sorted(c["candidates"], key=lambda r: r["score"])][:3]
+    assert [v["stretch"] for v in c["verified"]] == ranked == seen and 1.1 in ranked[1:]
+    assert c["verified"][0]["deviation_means_pct"] is None
+    assert c["chosen"] == 1.1 == rep["stretch"] and c["by"] == "verification"
+    assert rep["deviation_pct_bbox"][0] == 1.5
+    assert load_pattern(tmp_path / "out" / "pattern.toml").raw["fabric"]["stretch"] == 1.1
+    assert rep["proxy"]["used"] is False and rep["proxy"]["auto"]["kept"] == "target"
+
+
 def test_cli_bare_proxy_before_the_target_means_on():
     """`selfshape design --proxy TARGET -o DIR` (the flag before the positional, as before it took
     a value) parses as --proxy on, not as a value 'TARGET'; --proxy auto and a trailing --proxy too."""
