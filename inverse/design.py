@@ -1157,7 +1157,7 @@ def design_file(target_path, out_dir, options: DesignOptions | None = None, *, v
             pattern = parse_pattern(raw, p_toml, os.path.dirname(os.path.abspath(p_toml)))
             sims = []
             beside = None
-            if progress is not None:
+            if progress is not None and verified is None:    # else said before the candidates' verifications
                 progress({"stage": "verify"})
             if verified is not None:         # both open loops verified above: the kept one's files
                 sim_v, rep_v, seconds_v = verified
