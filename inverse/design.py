@@ -670,19 +670,18 @@ def _write_design_files(out, d, raw, printer, title):
         out.write(n, lambda tmp: cad.write_drawing(tmp, drawing))
 
 
+def _means(rep) -> list | None:
+    """[deployed -> target mean, target -> deployed mean] (% of the diagonal) of a verification,
+    None if it has none (did not converge)."""
+    a, b = rep.get("deviation_pct_bbox"), rep.get("deviation_target_to_deployed_pct_bbox")
+    return [float(a[0]), float(b[0])] if rep.get("verify_converged") and a and b else None
+
+
 def _deviation_score(rep) -> float | None:
     """Mean of the two one-way mean deviations (% of the diagonal) of a verification, None if
     it has none (did not converge)."""
-    a, b = rep.get("deviation_pct_bbox"), rep.get("deviation_target_to_deployed_pct_bbox")
-    if not rep.get("verify_converged") or not a or not b:
-        return None
-    return 0.5 * (float(a[0]) + float(b[0]))
-
-
-def _means(rep):
-    """[deployed -> target mean, target -> deployed mean] % of a verification, None if it has none."""
-    a, b = rep.get("deviation_pct_bbox"), rep.get("deviation_target_to_deployed_pct_bbox")
-    return [round(float(a[0]), 4), round(float(b[0]), 4)] if rep.get("verify_converged") and a and b else None
+    m = _means(rep)
+    return None if m is None else 0.5 * (m[0] + m[1])
 
 
 def _verify_candidates(cands, pattern_kw, base_file, parallel=None, progress=None):
@@ -725,7 +724,8 @@ def _verify_candidates(cands, pattern_kw, base_file, parallel=None, progress=Non
             if beside is not None:
                 beside.cancel()
             raise
-    return best[1], best[2], reps[best[1]], [_means(r) for r in reps]
+    return best[1], best[2], reps[best[1]], [None if m is None else [round(x, 4) for x in m]
+                                              for m in map(_means, reps)]
 
 
 def _fmt(x) -> str:

@@ -144,6 +144,7 @@ def main(argv=None) -> int:
     from selfshape.progress import StatusLine
     from shellfem.cluster import check_options
     from shellfem.errors import SelfshapeError
+    from inverse.design import PROXY_WORDS
     from inverse.refine import RefineOptions
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("names", nargs="*", help="target names in meshes/targets, analytic targets ("
@@ -160,7 +161,7 @@ def main(argv=None) -> int:
     ap.add_argument("--layer", type=float, default=0.2, help="printer layer height (mm), without --printer")
     ap.add_argument("--printer", help="printer file (TOML), e.g. inverse/data/printers/layer_0.1mm.toml")
     ap.add_argument("--stretch", type=float, help="pre-stretch s (default: the design's own choice)")
-    ap.add_argument("--proxy", choices=("on", "off", "auto"), default="off",
+    ap.add_argument("--proxy", choices=tuple(PROXY_WORDS), default="off",
                     help="design for a proxy surface within the stretch bounds (selfshape design --proxy)")
     ap.add_argument("--stretch-candidates", type=int, default=1,
                     help="without --stretch: verify the open loops at this many best stretches and keep the nearest "
