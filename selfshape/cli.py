@@ -190,7 +190,7 @@ def _cmd_design(a):
     r = design_file(a.target, a.output, verify=a.verify, diagonal_mm=a.diagonal, stretch=a.stretch,
                     thickness_law=a.law, lam=a.lam, printer=printer, verify_iterations=a.verify_iterations,
                     refine=a.refine, mesh_size_mm=a.mesh_size, mesh_across=a.mesh_across, verbose=a.verbose,
-                    contraction=a.contraction, proxy=PROXY_WORDS[a.proxy], stretch_candidates=a.stretch_candidates,
+                    contraction=a.contraction, proxy=None if a.proxy is None else PROXY_WORDS[a.proxy], stretch_candidates=a.stretch_candidates,
                     inputs=[p for p in (a.printer, a.contraction.removesuffix(":polygon"))
                             if p and p not in ("auto", "seed", "table", "table-polygon")],
                     progress=a.progress)
@@ -500,10 +500,11 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--lam", type=_schema_number("DESIGN_NUMBERS", "lam"), default=0.0, help="line-field lambda of the seed (<= 0, 1/mm^2)")
     d.add_argument("--printer", default=None,
                    help="printer TOML (inverse.printer.Printer fields: bed_size, nozzle_mm, print_speed_mm_s, ...)")
-    d.add_argument("--proxy", nargs="?", const="on", default="off", choices=PROXY_VALUES,
+    d.add_argument("--proxy", nargs="?", const="on", default=None, choices=PROXY_VALUES,
                    help="where the target's flattening is far out of the stretch bounds, design for the nearest smooth "
                         "surface within them (still verified and refined against the target); 'auto' (with --verify "
-                        "or --refine): verify the designs for the target and for the proxy, keep the nearer")
+                        "or --refine): verify the designs for the target and for the proxy, keep the nearer "
+                        "(default: 'auto' with --refine, else 'off')")
     d.set_defaults(fn=_cmd_design)
 
     c = sub.add_parser("calibrate", help="fit material parameters (validation.strips / validation.fabric)")

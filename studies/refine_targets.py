@@ -50,7 +50,7 @@ def run_target(path, out_dir, args) -> dict:
     rep = design_file(path, out_dir, refine=True, mesh_size_mm=args.mesh_size, mesh_across=args.across,
                       verify_iterations=args.verify_iterations, refine_options=opts, printer=printer,
                       verbose=args.verbose, parallel=False if (args.serial or args.workers or args.scheduler) else None,
-                      proxy=PROXY_WORDS[getattr(args, "proxy", "off")],
+                      proxy=None if getattr(args, "proxy", None) is None else PROXY_WORDS[args.proxy],
                       stretch_candidates=getattr(args, "stretch_candidates", 1) if args.stretch is None else 1,
                       **({} if args.stretch is None else {"stretch": args.stretch}))
     ref, ol = rep.get("refine", {}), rep.get("open_loop", {})
@@ -161,8 +161,9 @@ def main(argv=None) -> int:
     ap.add_argument("--layer", type=float, default=0.2, help="printer layer height (mm), without --printer")
     ap.add_argument("--printer", help="printer file (TOML), e.g. inverse/data/printers/layer_0.1mm.toml")
     ap.add_argument("--stretch", type=float, help="pre-stretch s (default: the design's own choice)")
-    ap.add_argument("--proxy", choices=tuple(PROXY_WORDS), default="off",
-                    help="design for a proxy surface within the stretch bounds (selfshape design --proxy)")
+    ap.add_argument("--proxy", choices=tuple(PROXY_WORDS), default=None,
+                    help="design for a proxy surface within the stretch bounds (selfshape design --proxy; "
+                         "default: auto, as --refine's)")
     ap.add_argument("--stretch-candidates", type=int, default=1,
                     help="without --stretch: verify the open loops at this many best stretches and keep the nearest "
                          "(selfshape design --stretch-candidates)")

@@ -270,7 +270,7 @@ def test_refine_a_small_cap_lands_closer_than_the_open_loop(tmp_path):
 
     V, F = sphere_cap(40.0, 30.0, 8)
     rep = design_file(write_obj(tmp_path / "cap.obj", V, F), tmp_path / "out", refine=True, diagonal_mm=40.0,
-                      mesh_size_mm=3.0, refine_options=RefineOptions(bounds=(0.2, 1.6), max_outer=3))
+                      mesh_size_mm=3.0, refine_options=RefineOptions(bounds=(0.2, 1.6), max_outer=3), proxy=False)
     ref, open_loop = rep["refine"], rep["open_loop"]
     assert ref["ok"] and ref["outer_iterations"] >= 1
     assert rep["deviation_target_to_deployed_pct_bbox"][0] < 0.8 * open_loop["deviation_target_to_deployed_pct_bbox"][0]
@@ -438,7 +438,8 @@ def test_the_open_loop_verification_beside_the_refinement_is_the_serial_one(tmp_
     reps, vtus = [], []
     for parallel in (False, True):
         out = tmp_path / f"out{parallel}"
-        reps.append(design_file(target, out, refine=True, diagonal_mm=40.0, mesh_size_mm=4.0, parallel=parallel))
+        reps.append(design_file(target, out, refine=True, diagonal_mm=40.0, mesh_size_mm=4.0, parallel=parallel,
+                                proxy=False))     # one design: its verification runs beside the refinement
         vtus.append(meshio.read(out / "deployed.vtu"))
     serial, beside = reps
     assert seen[0][0] is not SimulationBeside and seen[1][0] is SimulationBeside and seen[0][1] == seen[1][1]
@@ -450,3 +451,30 @@ def test_the_open_loop_verification_beside_the_refinement_is_the_serial_one(tmp_
     assert serial["refine"]["kept"] == beside["refine"]["kept"]
     np.testing.assert_array_equal(vtus[0].points, vtus[1].points)
     assert beside["stages_s"]["verify"] >= beside["open_loop"]["verify_simulation_s"] > 0
+
+
+def test_refine_verifies_the_proxy_by_default_and_a_verification_alone_does_not(tmp_path, monkeypatch):
+    """design_file(refine=True) with no proxy asked: on a cap far out of the stretch bounds both
+    designs, the target's own and its proxy's, are verified and the nearer by the mean of the two
+    means is the one refined (the refinement stubbed); design_file(verify=True) verifies the design
+    asked for alone."""
+    import inverse.design_refine
+    from geometry.target import sphere_cap
+    seen = []
+
+    def refine(d, pattern, sim, *a, **k):
+        seen.append(bool(d.proxy and d.proxy.get("used")))
+        return {"outer_iterations": 0, "reason": "test", "seconds": 0.0, "rounded": {}}, None
+    monkeypatch.setattr(inverse.design_refine, "refine_design", refine)
+    V, F = sphere_cap(40.0, 30.0, 6)
+    target = write_obj(tmp_path / "cap.obj", V, F)
+    kw = dict(diagonal_mm=40.0, mesh_size_mm=4.0, parallel=False, stretch=1.2)
+    rep = design_file(target, tmp_path / "refined", refine=True, **kw)
+    px = rep["proxy"]
+    assert max(px["out_of_bounds_pct"]) > 1.0 and px["distance_pct"][0] > 0
+    means = px["auto"]
+    assert len(means["target"]) == len(means["proxy"]) == 2
+    assert means["kept"] == ("proxy" if sum(means["proxy"]) < sum(means["target"]) else "target")
+    assert seen == [means["kept"] == "proxy"] and px["used"] == (means["kept"] == "proxy")
+    rep = design_file(target, tmp_path / "verified", verify=True, **kw)
+    assert rep.get("proxy") is None and rep["verify_converged"]

@@ -920,4 +920,4 @@ def test_cli_bare_proxy_before_the_target_means_on():
     assert (a.proxy, a.target, a.output) == ("on", "t.obj", "out")
     assert p.parse_args(_bare_proxy_is_on(["design", "t.obj", "-o", "out", "--proxy"])).proxy == "on"
     assert p.parse_args(_bare_proxy_is_on(["design", "--proxy", "auto", "t.obj", "-o", "out"])).proxy == "auto"
-    assert p.parse_args(["design", "t.obj", "-o", "out"]).proxy == "off"
+    assert p.parse_args(["design", "t.obj", "-o", "out"]).proxy is None       # design_file: auto with --refine
