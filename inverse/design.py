@@ -262,7 +262,8 @@ class DesignOptions:
 #: faces out of bounds, all within that).
 PROXY_MIN_OOB_PCT = 1.0
 
-#: the command-line words of DesignOptions.proxy (selfshape design --proxy, the study scripts)
+#: the command-line words of DesignOptions.proxy (selfshape design --proxy, the study scripts; no
+#: word: None, the default)
 PROXY_WORDS = {"on": True, "off": False, "auto": "auto"}
 
 

@@ -190,7 +190,7 @@ def _cmd_design(a):
     r = design_file(a.target, a.output, verify=a.verify, diagonal_mm=a.diagonal, stretch=a.stretch,
                     thickness_law=a.law, lam=a.lam, printer=printer, verify_iterations=a.verify_iterations,
                     refine=a.refine, mesh_size_mm=a.mesh_size, mesh_across=a.mesh_across, verbose=a.verbose,
-                    contraction=a.contraction, proxy=None if a.proxy is None else PROXY_WORDS[a.proxy], stretch_candidates=a.stretch_candidates,
+                    contraction=a.contraction, proxy=PROXY_WORDS.get(a.proxy), stretch_candidates=a.stretch_candidates,
                     inputs=[p for p in (a.printer, a.contraction.removesuffix(":polygon"))
                             if p and p not in ("auto", "seed", "table", "table-polygon")],
                     progress=a.progress)

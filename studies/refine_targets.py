@@ -50,7 +50,7 @@ def run_target(path, out_dir, args) -> dict:
     rep = design_file(path, out_dir, refine=True, mesh_size_mm=args.mesh_size, mesh_across=args.across,
                       verify_iterations=args.verify_iterations, refine_options=opts, printer=printer,
                       verbose=args.verbose, parallel=False if (args.serial or args.workers or args.scheduler) else None,
-                      proxy=None if getattr(args, "proxy", None) is None else PROXY_WORDS[args.proxy],
+                      proxy=PROXY_WORDS.get(getattr(args, "proxy", None)),
                       stretch_candidates=getattr(args, "stretch_candidates", 1) if args.stretch is None else 1,
                       **({} if args.stretch is None else {"stretch": args.stretch}))
     ref, ol = rep.get("refine", {}), rep.get("open_loop", {})
