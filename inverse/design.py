@@ -228,8 +228,9 @@ class DesignOptions:
     one that deploys nearer the target is kept (`_verify_candidates`); without verification
     "auto" designs for the target. None (default): "auto" in design_file with ``refine``, else
     off: refined, the 110 mm hemisphere ends at 1.8 % from its proxy's design against 4.7 % from
-    its own, the hat at 1.29 % against 1.60 %, and the beetle keeps its own design (docs/notes.md,
-    sessions 45-46); a verification alone stays one simulation of the design asked for.
+    its own and the hat at 1.29 % against 1.60 %; a Gaussian bump at 0.95 % released free against
+    0.75 % on a jig (a nearer open loop need not refine nearer; docs/notes.md, sessions 45-46); a
+    verification alone stays one simulation of the design asked for.
     stretch_candidates: with stretch "auto" and a verification (design_file), the designs at this
     many best stretches by `reach_score` (for the target, and for its proxy with proxy "auto")
     are all simulated and the one that deploys nearest the target is kept (1: the score's
